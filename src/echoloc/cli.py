@@ -1,0 +1,501 @@
+"""The ``echoloc`` command line: a thin edge over the library.
+
+Exit codes (FORMATS.md): 0 success, 2 bad input or usage (one line on stderr), 1 an
+internal error.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import warnings
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, TypeVar
+
+import click
+import numpy as np
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.table import Table
+
+from echoloc import __version__
+from echoloc.echoes import ESTIMATORS, EchoOptions, FrameEchoes
+from echoloc.errors import EchoLocError
+from echoloc.evaluate import Evaluation, evaluate
+from echoloc.locate import FrameObjects, LocateOptions
+from echoloc.output import echoes_record, json_line, objects_record
+from echoloc.pipeline import Chain, check_locatable, frame_echoes, frame_objects, prepare
+from echoloc.recording import Recording, read_recording, write_recording
+from echoloc.scene import default_scene, load_scene
+from echoloc.simulate import simulate
+
+# Tables wrap at 80 columns when piped; give them room (COLUMNS still wins).
+stdout = Console() if sys.stdout.isatty() else Console(width=int(os.environ.get("COLUMNS", 120)))
+stderr = Console(stderr=True)
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def _frames_option(value: str | None, n_frames: int) -> range:
+    """Parse ``--frames``: ``N`` (one frame), ``A:B`` (a slice), or all frames when None."""
+    if value is None:
+        return range(n_frames)
+    try:
+        if ":" in value:
+            start_text, stop_text = value.split(":", 1)
+            start = int(start_text) if start_text else 0
+            stop = int(stop_text) if stop_text else n_frames
+        else:
+            start = int(value)
+            stop = start + 1
+    except ValueError:
+        raise EchoLocError(f"--frames must be N or START:STOP, got {value!r}") from None
+    if not (0 <= start < stop <= n_frames):
+        raise EchoLocError(f"--frames {value} is outside the recording's {n_frames} frames")
+    return range(start, stop)
+
+
+def _processing_options(func: F) -> F:
+    """Options shared by echoes, locate and evaluate."""
+    decorators = [
+        click.argument("recording_path", metavar="RECORDING", type=click.Path(path_type=Path)),
+        click.option(
+            "--estimator",
+            type=click.Choice(sorted(ESTIMATORS)),
+            default="matched",
+            show_default=True,
+            help="Time-of-flight estimator.",
+        ),
+        click.option(
+            "--threshold-db",
+            type=float,
+            default=EchoOptions.threshold_db,
+            show_default=True,
+            help="Detection threshold on the echo's output SNR, dB.",
+        ),
+        click.option(
+            "--blanking-s",
+            type=float,
+            default=0.0,
+            show_default=True,
+            help="Ignore echoes arriving earlier than this (transmitter ring-down), s.",
+        ),
+        click.option(
+            "--speed-of-sound",
+            "speed_of_sound_m_s",
+            type=float,
+            default=None,
+            help="Override the recording's speed of sound, m/s.",
+        ),
+        click.option("--frames", "frames_text", default=None, help="Frames to process: N or START:STOP."),
+        click.option(
+            "--repair-nonfinite",
+            is_flag=True,
+            help="Replace NaN or infinite samples by 0 (with a warning) instead of refusing the file.",
+        ),
+    ]
+    for decorator in reversed(decorators):
+        func = decorator(func)
+    return func
+
+
+def _chain(
+    recording: Recording,
+    estimator: str,
+    threshold_db: float,
+    blanking_s: float,
+    speed_of_sound_m_s: float | None,
+    path_sigma_m: float | None = None,
+) -> Chain:
+    if speed_of_sound_m_s is not None and not speed_of_sound_m_s > 0:
+        raise EchoLocError(f"--speed-of-sound must be > 0, got {speed_of_sound_m_s}")
+    if blanking_s < 0:
+        raise EchoLocError(f"--blanking-s must be >= 0, got {blanking_s}")
+    chain = prepare(
+        recording,
+        estimator=estimator,
+        echo_options=EchoOptions(threshold_db=threshold_db, blanking_s=blanking_s),
+        speed_of_sound_m_s=speed_of_sound_m_s,
+    )
+    if path_sigma_m is not None:
+        if not path_sigma_m > 0:
+            raise EchoLocError(f"--path-sigma-m must be > 0, got {path_sigma_m}")
+        from dataclasses import replace
+
+        chain = replace(chain, locate_options=replace(chain.locate_options, path_sigma_m=path_sigma_m))
+    return chain
+
+
+@contextmanager
+def _progress(total: int, label: str, enabled: bool) -> Iterator[Callable[[], None]]:
+    """A rich progress bar on stderr (hidden when not a terminal or when disabled)."""
+    if not enabled or not stderr.is_terminal:
+        yield lambda: None
+        return
+    with Progress(
+        TextColumn(label),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeRemainingColumn(),
+        console=stderr,
+        transient=True,
+    ) as progress:
+        task = progress.add_task(label, total=total)
+        yield lambda: progress.advance(task)
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="echoloc")
+def cli() -> None:
+    """Airborne ultrasonic echolocation: coded pulses, time of flight, 3-D obstacle positions.
+
+    Start with `echoloc demo`. Recordings are HDF5 (or NPZ) files in the format of
+    FORMATS.md; `echoloc simulate` makes them from a scene file.
+    """
+
+
+# --- demo --------------------------------------------------------------------------
+
+
+@cli.command()
+@click.option(
+    "-o",
+    "--output",
+    type=click.Path(path_type=Path),
+    default=Path("echoloc-demo.h5"),
+    show_default=True,
+    help="Where to write the demo recording.",
+)
+@click.option("--frames", "n_frames", type=click.IntRange(1, 100_000), default=20, show_default=True)
+@click.option(
+    "--plot", type=click.Path(path_type=Path), default=None, help="Also draw the first frame to this PNG."
+)
+def demo(output: Path, n_frames: int, plot: Path | None) -> None:
+    """Simulate the report's set-up (three balls), locate them and compare with the truth."""
+    scene = default_scene()
+    recording = simulate(scene, n_frames)
+    written = write_recording(recording, output)
+    chain = prepare(recording)
+    results = [frame_objects(chain, frame_echoes(chain, i)) for i in range(n_frames)]
+    truth = scene.reflector_positions_m
+    first = results[0]
+
+    waveform = scene.waveform()
+    stdout.print(
+        f"[bold]echoloc demo[/bold]: transmitter at the origin, receivers at (±0.25, 0, 0) and "
+        f"(0, ±0.25, 0) m; {waveform.name} × {scene.pulse.cycles_per_bit} cycles at "
+        f"{scene.pulse.carrier_hz / 1e3:g} kHz, sampled at {scene.sample_rate_hz / 1e3:g} kHz, "
+        f"{scene.temperature_c:g} °C (c = {chain.speed_of_sound_m_s:.2f} m/s)."
+    )
+    table = Table(title=f"Frame 0 of {n_frames}: three balls (report table 4.3 ranges)")
+    for column in (
+        "ball",
+        "range mm",
+        "truth x, y, z (mm)",
+        "estimate x, y, z (mm)",
+        "error mm",
+        "±1σ mm",
+        "rx",
+    ):
+        table.add_column(column, justify="right")
+    evaluation = evaluate(
+        results,
+        recording.truth_positions_m if recording.truth_positions_m is not None else np.zeros((0, 0, 3)),
+        0.01,
+    )
+    for k, position in enumerate(truth):
+        estimates = np.array([o.position_m for o in first.objects]).reshape(-1, 3)
+        if len(estimates):
+            nearest = int(np.argmin(np.linalg.norm(estimates - position, axis=1)))
+            found = first.objects[nearest]
+            error = float(np.linalg.norm(found.position_m - position))
+            table.add_row(
+                str(k + 1),
+                f"{np.linalg.norm(position) * 1e3:.1f}",
+                _mm(position),
+                _mm(found.position_m),
+                f"{error * 1e3:.3f}",
+                _mm(found.std_m, digits=2),
+                str(len(found.receivers)),
+            )
+        else:
+            table.add_row(
+                str(k + 1), f"{np.linalg.norm(position) * 1e3:.1f}", _mm(position), "not found", "", "", ""
+            )
+    stdout.print(table)
+    max_error_mm = (
+        float(np.max(np.linalg.norm(evaluation.errors_m, axis=1))) * 1e3
+        if evaluation.n_matched
+        else float("nan")
+    )
+    stdout.print(
+        f"Over {n_frames} frames: {evaluation.n_matched} of {evaluation.n_truth} balls found "
+        f"(recall {evaluation.recall:.3f}), {evaluation.n_false} false objects, largest error "
+        f"{max_error_mm:.3f} mm, RMSE x/y/z {_mm(evaluation.rmse_m, digits=3)} mm."
+    )
+    stdout.print(
+        "±1σ comes from the fit's covariance with the default a-priori path error of "
+        f"{chain.locate_options.path_sigma_m * 1e3:g} mm (--path-sigma-m), "
+        "which the demo's clean air does not reach."
+    )
+    stdout.print(f"Recording written to [bold]{written}[/bold]; try `echoloc locate {written}`.")
+    if plot is not None:
+        from echoloc.plot import plot_frame
+
+        plot_frame(chain, 0, plot)
+        stdout.print(f"Plot written to [bold]{plot}[/bold].")
+
+
+def _mm(values: Any, digits: int = 1) -> str:
+    return ", ".join(f"{v * 1e3:.{digits}f}" for v in np.asarray(values))
+
+
+# --- simulate ----------------------------------------------------------------------
+
+
+@cli.command(name="simulate")
+@click.argument("scene_path", metavar="SCENE.toml", type=click.Path(path_type=Path))
+@click.option(
+    "-o", "--output", type=click.Path(path_type=Path), required=True, help="Recording to write (.h5 or .npz)."
+)
+@click.option("--frames", "n_frames", type=click.IntRange(1, 10_000_000), default=1, show_default=True)
+@click.option("--seed", type=int, default=None, help="Override the scene's random seed.")
+def simulate_command(scene_path: Path, output: Path, n_frames: int, seed: int | None) -> None:
+    """Simulate a scene file and write the recording, with truth_positions per frame."""
+    from dataclasses import replace
+
+    scene = load_scene(scene_path)
+    if seed is not None:
+        scene = replace(scene, seed=seed)
+    with _progress(1, "simulating", n_frames > 1000):
+        recording = simulate(scene, n_frames)
+    written = write_recording(recording, output)
+    stderr.print(
+        f"wrote {n_frames} frame(s) × {recording.n_receivers} receivers × "
+        f"{recording.n_samples} samples to {written}"
+    )
+
+
+# --- echoes, locate, evaluate ------------------------------------------------------
+
+
+@cli.command()
+@_processing_options
+@click.option("--json", "as_json", is_flag=True, help="JSON Lines per FORMATS.md instead of a table.")
+def echoes(
+    recording_path: Path,
+    estimator: str,
+    threshold_db: float,
+    blanking_s: float,
+    speed_of_sound_m_s: float | None,
+    frames_text: str | None,
+    repair_nonfinite: bool,
+    as_json: bool,
+) -> None:
+    """Times of flight of the echoes in every frame of RECORDING, per receiver."""
+    recording = read_recording(recording_path, repair_nonfinite=repair_nonfinite)
+    chain = _chain(recording, estimator, threshold_db, blanking_s, speed_of_sound_m_s)
+    frames = _frames_option(frames_text, recording.n_frames)
+    if as_json:
+        for index in frames:
+            click.echo(json_line(echoes_record(frame_echoes(chain, index))))
+        return
+    table = Table(title=f"Echoes in {recording_path} ({estimator}, c = {chain.speed_of_sound_m_s:.2f} m/s)")
+    for column in ("frame", "receiver", "tof µs", "path m", "amplitude", "SNR dB"):
+        table.add_column(column, justify="right")
+    for index in frames:
+        _echo_rows(table, frame_echoes(chain, index))
+    stdout.print(table)
+
+
+def _echo_rows(table: Table, result: FrameEchoes) -> None:
+    for receiver, channel in enumerate(result.channels):
+        if len(channel.tof_s) == 0:
+            table.add_row(str(result.frame), str(receiver), "-", "-", "-", "-")
+        for tof, amplitude, snr in zip(channel.tof_s, channel.amplitude, channel.snr_db, strict=True):
+            table.add_row(
+                str(result.frame),
+                str(receiver),
+                f"{tof * 1e6:.3f}",
+                f"{tof * result.speed_of_sound_m_s:.5f}",
+                f"{amplitude:.4g}",
+                f"{snr:.1f}",
+            )
+
+
+@cli.command()
+@_processing_options
+@click.option(
+    "--path-sigma-m",
+    type=float,
+    default=None,
+    help=f"A-priori path error, m [default: {LocateOptions.path_sigma_m}].",
+)
+@click.option("--json", "as_json", is_flag=True, help="JSON Lines per FORMATS.md instead of a table.")
+def locate(
+    recording_path: Path,
+    estimator: str,
+    threshold_db: float,
+    blanking_s: float,
+    speed_of_sound_m_s: float | None,
+    frames_text: str | None,
+    repair_nonfinite: bool,
+    path_sigma_m: float | None,
+    as_json: bool,
+) -> None:
+    """3-D positions of the reflectors in every frame of RECORDING."""
+    recording = read_recording(recording_path, repair_nonfinite=repair_nonfinite)
+    chain = _chain(recording, estimator, threshold_db, blanking_s, speed_of_sound_m_s, path_sigma_m)
+    check_locatable(chain)
+    frames = _frames_option(frames_text, recording.n_frames)
+    if as_json:
+        for index in frames:
+            click.echo(json_line(objects_record(frame_objects(chain, frame_echoes(chain, index)))))
+        return
+    table = Table(title=f"Objects in {recording_path} ({estimator})")
+    for column in ("frame", "x mm", "y mm", "z mm", "±σ x, y, z mm", "range mm", "rx", "score"):
+        table.add_column(column, justify="right")
+    for index in frames:
+        _object_rows(table, frame_objects(chain, frame_echoes(chain, index)))
+    stdout.print(table)
+
+
+def _object_rows(table: Table, result: FrameObjects) -> None:
+    if not result.objects:
+        table.add_row(str(result.frame), "-", "-", "-", "-", "-", "-", "-")
+    for obj in result.objects:
+        x, y, z = obj.position_m * 1e3
+        table.add_row(
+            str(result.frame),
+            f"{x:.1f}",
+            f"{y:.1f}",
+            f"{z:.1f}",
+            _mm(obj.std_m, digits=2),
+            f"{np.linalg.norm(obj.position_m) * 1e3:.1f}",
+            str(len(obj.receivers)),
+            f"{obj.score:.2f}",
+        )
+
+
+@cli.command(name="evaluate")
+@_processing_options
+@click.option(
+    "--path-sigma-m",
+    type=float,
+    default=None,
+    help=f"A-priori path error, m [default: {LocateOptions.path_sigma_m}].",
+)
+@click.option(
+    "--match-radius-m",
+    type=float,
+    default=0.02,
+    show_default=True,
+    help="Largest distance of a located object from its true reflector, m.",
+)
+@click.option("--json", "as_json", is_flag=True, help="One JSON object with the figures.")
+def evaluate_command(
+    recording_path: Path,
+    estimator: str,
+    threshold_db: float,
+    blanking_s: float,
+    speed_of_sound_m_s: float | None,
+    frames_text: str | None,
+    repair_nonfinite: bool,
+    path_sigma_m: float | None,
+    match_radius_m: float,
+    as_json: bool,
+) -> None:
+    """Compare located objects with the recording's truth_positions: recall, false objects, RMSE."""
+    recording = read_recording(recording_path, repair_nonfinite=repair_nonfinite)
+    if recording.truth_positions_m is None:
+        raise EchoLocError(f"{recording_path}: has no truth_positions to evaluate against")
+    if not match_radius_m > 0:
+        raise EchoLocError(f"--match-radius-m must be > 0, got {match_radius_m}")
+    chain = _chain(recording, estimator, threshold_db, blanking_s, speed_of_sound_m_s, path_sigma_m)
+    check_locatable(chain)
+    frames = _frames_option(frames_text, recording.n_frames)
+    results = []
+    with _progress(len(frames), "locating", not as_json) as advance:
+        for index in frames:
+            results.append(frame_objects(chain, frame_echoes(chain, index)))
+            advance()
+    report = evaluate(results, recording.truth_positions_m, match_radius_m)
+    if as_json:
+        click.echo(json.dumps(_evaluation_record(report, estimator)))
+        return
+    _print_evaluation(report, recording_path, estimator)
+
+
+def _evaluation_record(report: Evaluation, estimator: str) -> dict[str, Any]:
+    return {
+        "estimator": estimator,
+        "frames": report.n_frames,
+        "truth_objects": report.n_truth,
+        "located_objects": report.n_located,
+        "matched": report.n_matched,
+        "recall": report.recall,
+        "false_objects": report.n_false,
+        "false_rate": report.false_rate,
+        "rmse_m": [float(v) for v in report.rmse_m],
+        "bias_m": [float(v) for v in report.bias_m],
+        "mean_reported_std_m": [float(v) for v in report.mean_std_m],
+        "match_radius_m": report.match_radius_m,
+    }
+
+
+def _print_evaluation(report: Evaluation, path: Path, estimator: str) -> None:
+    table = Table(title=f"{path}: {report.n_frames} frames, {report.n_truth} true reflectors ({estimator})")
+    table.add_column("figure")
+    table.add_column("value", justify="right")
+    table.add_row("recall", f"{report.recall:.4f} ({report.n_matched}/{report.n_truth})")
+    table.add_row("false objects", f"{report.false_rate:.4f} ({report.n_false}/{report.n_located})")
+    for axis, rmse, bias, std in zip("xyz", report.rmse_m, report.bias_m, report.mean_std_m, strict=True):
+        table.add_row(
+            f"{axis}: RMSE / bias / reported σ (mm)",
+            f"{rmse * 1e3:.3f} / {bias * 1e3:+.3f} / {std * 1e3:.3f}",
+        )
+    table.add_row("match radius", f"{report.match_radius_m * 1e3:g} mm")
+    stdout.print(table)
+
+
+# --- entry point -------------------------------------------------------------------
+
+
+def _show_warning(
+    message: Warning | str,
+    category: type[Warning],
+    filename: str,
+    lineno: int,
+    file: Any = None,
+    line: str | None = None,
+) -> None:
+    stderr.print(f"echoloc: warning: {message}", markup=False, highlight=False)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Run the CLI; bad input becomes one line on stderr and exit code 2."""
+    warnings.showwarning = _show_warning
+    try:
+        cli.main(args=argv, prog_name="echoloc", standalone_mode=False)
+    except EchoLocError as error:
+        stderr.print(f"echoloc: error: {error}", markup=False, highlight=False)
+        sys.exit(2)
+    except click.exceptions.Abort:
+        stderr.print("echoloc: aborted", markup=False)
+        sys.exit(1)
+    except click.ClickException as error:
+        error.show()
+        sys.exit(error.exit_code)
+    except OSError as error:
+        stderr.print(f"echoloc: error: {error}", markup=False, highlight=False)
+        sys.exit(2)
+    except Exception as error:
+        stderr.print(
+            f"echoloc: internal error: {type(error).__name__}: {error} (please report this)",
+            markup=False,
+            highlight=False,
+        )
+        sys.exit(1)
+    sys.exit(0)

@@ -1,0 +1,516 @@
+"""Time of flight: from received frames to echoes (tof, amplitude, SNR) per receiver.
+
+Two estimators share one interface (see :data:`ESTIMATORS`):
+
+``matched``
+    Matched filter. The frame is correlated with the emitted pulse (the SENT
+    template) through FFTs, and the correlation is made analytic in the same pass
+    (negative frequencies removed), so its magnitude is the envelope and its phase
+    the carrier phase. Echoes are extracted one by one, strongest first, by
+    subtracting the template's own autocorrelation at the fitted delay (CLEAN),
+    which removes the code's sidelobes with the echo and uncovers weaker and
+    overlapping echoes. Every echo is then re-fitted with the others removed (two
+    passes of successive refinement). Each delay is the envelope's peak refined by
+    the carrier phase at the peak; the half-cycle ambiguity of the phase (an echo
+    may come back inverted) is resolved by the envelope.
+
+``threshold``
+    The first crossing of a level by the signal's envelope, corrected for the time
+    the template's envelope takes to rise to that level for the echo's measured
+    amplitude (report ch. 3.3, threshold detection). It sees only the first of
+    overlapping echoes, as the report notes.
+
+Conventions: ``tof_s`` is the delay from emission start to the echo's arrival
+(FORMATS.md), whatever the estimator. ``amplitude`` is the echo's peak amplitude in
+sample units (the least-squares scale of the template). ``snr_db`` is the
+matched-filter output SNR, ``10 log10(|a|^2 / P)``, with ``P`` the mean noise power of
+the normalised analytic correlation, estimated robustly from the frame (for the
+threshold estimator, the same ratio on the signal's own envelope).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import scipy.fft
+from numpy.typing import NDArray
+
+from echoloc.errors import EchoLocError
+from echoloc.recording import Recording
+
+_LN2 = float(np.log(2.0))
+
+
+@dataclass(frozen=True)
+class EchoOptions:
+    """Options of every estimator.
+
+    threshold_db
+        Detection threshold on the output SNR (see module doc), dB. The default of
+        14 dB keeps the false-alarm probability per sample of Rayleigh noise at
+        exp(-10**1.4) = 1.4e-11.
+    blanking_s
+        Echoes arriving earlier than this (transmitter ring-down, direct coupling)
+        are dropped, s.
+    max_echoes
+        At most this many echoes per receiver and frame.
+    dynamic_range_db
+        Echoes weaker than the strongest of their channel by more than this are
+        dropped (residue of imperfect subtraction, not echoes), dB.
+    refine_passes
+        Passes of re-fitting each echo with the others removed (matched filter).
+    """
+
+    threshold_db: float = 14.0
+    blanking_s: float = 0.0
+    max_echoes: int = 16
+    dynamic_range_db: float = 40.0
+    refine_passes: int = 10
+
+
+@dataclass(frozen=True, eq=False)
+class ChannelEchoes:
+    """Echoes of one receiver in one frame, in ascending ``tof_s``."""
+
+    tof_s: NDArray[np.float64]
+    amplitude: NDArray[np.float64]
+    snr_db: NDArray[np.float64]
+
+    @staticmethod
+    def empty() -> ChannelEchoes:
+        return ChannelEchoes(np.zeros(0), np.zeros(0), np.zeros(0))
+
+
+@dataclass(frozen=True, eq=False)
+class FrameEchoes:
+    """Echoes of every receiver in one frame."""
+
+    frame: int
+    time_s: float
+    speed_of_sound_m_s: float
+    channels: tuple[ChannelEchoes, ...]
+
+
+# --- analytic correlation ----------------------------------------------------------
+
+
+def _analytic_weights(n_fft: int) -> NDArray[np.float64]:
+    """Weights on the rfft bins that make the inverse complex FFT analytic."""
+    weights = np.full(n_fft // 2 + 1, 2.0)
+    weights[0] = 1.0
+    if n_fft % 2 == 0:
+        weights[-1] = 1.0
+    return weights
+
+
+@dataclass(frozen=True, eq=False)
+class MatchedFilter:
+    """Everything the matched filter reuses for frames of one shape and template.
+
+    The template spectrum, the FFT length and a table of the template's analytic
+    autocorrelation at ``oversample`` sub-sample shifts are computed once.
+    """
+
+    template: NDArray[np.float64]
+    n_samples: int
+    sample_rate_hz: float
+    oversample: int = 256
+
+    @cached_property
+    def n_fft(self) -> int:
+        return int(scipy.fft.next_fast_len(self.n_samples + len(self.template), real=True))
+
+    @cached_property
+    def energy(self) -> float:
+        return float(np.sum(self.template**2))
+
+    @cached_property
+    def _spectrum(self) -> NDArray[np.complex128]:
+        """conj(W(f)) times the analytic weights, divided by the template's energy."""
+        w = scipy.fft.rfft(self.template, self.n_fft)
+        return np.asarray(np.conj(w) * _analytic_weights(self.n_fft) / self.energy)
+
+    @cached_property
+    def half_width(self) -> int:
+        """Lags kept on either side of an autocorrelation peak (template length + 2)."""
+        return len(self.template) + 2
+
+    @cached_property
+    def acf_table(self) -> NDArray[np.complex128]:
+        """Analytic autocorrelation for shifts j/oversample, lags -half_width..half_width.
+
+        Row j holds R(m - j/U) for m = -H..H, with R(0) = 1 for j = 0.
+        """
+        n_fft = self.n_fft
+        power = np.abs(scipy.fft.rfft(self.template, n_fft)) ** 2
+        freqs = np.arange(n_fft // 2 + 1) / n_fft  # cycles per sample
+        shifts = np.arange(self.oversample) / self.oversample
+        spectra = power * _analytic_weights(n_fft) / self.energy
+        rows = scipy.fft.ifft(spectra * np.exp(-2j * np.pi * freqs * shifts[:, None]), n_fft, axis=-1)
+        lags = np.arange(-self.half_width, self.half_width + 1)
+        return np.asarray(rows[:, lags % n_fft])
+
+    @cached_property
+    def phase_rate_rad_per_sample(self) -> float:
+        """d(arg R)/d(lag) at lag 0: 2 pi times the power-weighted mean frequency, rad/sample."""
+        power = np.abs(scipy.fft.rfft(self.template, self.n_fft)) ** 2
+        freqs = np.arange(len(power)) / self.n_fft
+        return float(2 * np.pi * np.sum(freqs * power) / np.sum(power))
+
+    @cached_property
+    def mainlobe_samples(self) -> float:
+        """Full width of the autocorrelation envelope's main lobe at -6 dB, samples."""
+        envelope = np.abs(self.acf_table[0])
+        above = np.flatnonzero(envelope >= 0.5)
+        centre = self.half_width
+        # Walk out from the peak to the first lag below half on each side.
+        right = centre
+        while right + 1 < len(envelope) and envelope[right + 1] >= 0.5:
+            right += 1
+        left = centre
+        while left - 1 >= 0 and envelope[left - 1] >= 0.5:
+            left -= 1
+        del above
+        return float(right - left + 1)
+
+    def correlate(self, frames: NDArray[np.floating]) -> NDArray[np.complex128]:
+        """Analytic correlation of frames (..., n_samples) with the template.
+
+        Index k is the lag of k samples (an echo arriving k samples after emission
+        peaks at k); normalised so that an echo ``a * template`` gives ``a`` there.
+        """
+        spectrum = scipy.fft.rfft(frames, self.n_fft, axis=-1, workers=-1)
+        full = scipy.fft.ifft(spectrum * self._spectrum, self.n_fft, axis=-1, workers=-1)
+        return np.asarray(full[..., : self.n_samples])
+
+
+def noise_power(values: NDArray[np.complex128]) -> float:
+    """Mean power of circular Gaussian noise from its median: ``median(|x|^2) / ln 2``."""
+    power = float(np.median(np.abs(values) ** 2)) / _LN2
+    return power if power > 0 else float(np.finfo(float).tiny)
+
+
+def _window(values: NDArray[np.complex128], centre: int, half: int) -> tuple[NDArray[np.complex128], int]:
+    """``values[centre-half : centre+half+1]`` zero-padded at the edges, and its start."""
+    start = centre - half
+    out = np.zeros(2 * half + 1, dtype=complex)
+    lo, hi = max(start, 0), min(centre + half + 1, len(values))
+    out[lo - start : hi - start] = values[lo:hi]
+    return out, start
+
+
+def _subtract(
+    values: NDArray[np.complex128], shape: NDArray[np.complex128], start: int, scale: complex
+) -> None:
+    lo, hi = max(start, 0), min(start + len(shape), len(values))
+    values[lo:hi] -= scale * shape[lo - start : hi - start]
+
+
+@dataclass
+class _Component:
+    tof_samples: float
+    amplitude: complex
+
+
+class _Clean:
+    """CLEAN extraction and refinement on one channel's analytic correlation."""
+
+    def __init__(self, mf: MatchedFilter, options: EchoOptions):
+        self.mf = mf
+        self.options = options
+        self.table = mf.acf_table
+        self.half = mf.half_width
+        self.fit_half = max(1, round(mf.mainlobe_samples / 2))
+        self.merge_samples = mf.mainlobe_samples / 4
+
+    def _shape(self, tof_samples: float) -> tuple[NDArray[np.complex128], int]:
+        """Template autocorrelation for an echo at ``tof_samples``, and its first index."""
+        base = int(np.floor(tof_samples))
+        j = round((tof_samples - base) * self.mf.oversample)
+        if j == self.mf.oversample:
+            base, j = base + 1, 0
+        return self.table[j], base - self.half
+
+    def _fit(self, values: NDArray[np.complex128], peak: int) -> _Component:
+        """Delay and complex amplitude of one echo whose envelope peaks at index ``peak``."""
+        n = len(values)
+        env = np.abs(values)
+        if 0 < peak < n - 1:
+            a, b, c = env[peak - 1], env[peak], env[peak + 1]
+            denominator = a - 2 * b + c
+            offset = 0.5 * (a - c) / denominator if denominator < 0 else 0.0
+        else:
+            offset = 0.0
+        coarse = peak + float(np.clip(offset, -0.5, 0.5))
+        # Carrier phase at the samples around the peak: arg c[m] = rate * (m - tof) + arg(a).
+        # With a real echo arg(a) is 0 or pi, so each sample gives tof modulo half a
+        # carrier period; take the candidate nearest the envelope's estimate.
+        rate = self.mf.phase_rate_rad_per_sample
+        period = np.pi / rate  # half a carrier cycle, in samples
+        m = np.arange(max(peak - 1, 0), min(peak + 2, n))
+        estimates = m - np.angle(values[m]) / rate
+        estimates = estimates + period * np.round((coarse - estimates) / period)
+        weights = env[m] ** 2
+        tof = float(np.sum(weights * estimates) / np.sum(weights))
+        if abs(tof - coarse) > 1.5:
+            tof = coarse
+        shape, start = self._shape(tof)
+        centre = round(tof)
+        segment, seg_start = _window(values, centre, self.fit_half)
+        model = shape[seg_start - start : seg_start - start + len(segment)]
+        amplitude = complex(np.vdot(model, segment) / np.vdot(model, model).real)
+        return _Component(tof, amplitude)
+
+    def _refit(self, residual: NDArray[np.complex128], component: _Component) -> None:
+        """Put the component back into the residual, fit it again alone, take it out again."""
+        shape, start = self._shape(component.tof_samples)
+        _subtract(residual, shape, start, -component.amplitude)
+        centre = round(component.tof_samples)
+        lo = max(centre - self.fit_half, 0)
+        hi = min(centre + self.fit_half + 1, len(residual))
+        peak = lo + int(np.argmax(np.abs(residual[lo:hi]))) if hi > lo else centre
+        refined = self._fit(residual, min(max(peak, 0), len(residual) - 1))
+        component.tof_samples, component.amplitude = refined.tof_samples, refined.amplitude
+        shape, start = self._shape(component.tof_samples)
+        _subtract(residual, shape, start, component.amplitude)
+
+    def _merge_close(
+        self, residual: NDArray[np.complex128], components: list[_Component]
+    ) -> list[_Component]:
+        """Fuse components closer than a quarter main lobe: one echo that CLEAN split."""
+        components = sorted(components, key=lambda c: c.tof_samples)
+        merged: list[_Component] = []
+        for component in components:
+            if merged and component.tof_samples - merged[-1].tof_samples < self.merge_samples:
+                previous = merged[-1]
+                # Undo the split: put both back, fit one echo at the stronger peak.
+                for part in (previous, component):
+                    shape, start = self._shape(part.tof_samples)
+                    _subtract(residual, shape, start, -part.amplitude)
+                if abs(component.amplitude) > abs(previous.amplitude):
+                    previous.tof_samples = component.tof_samples
+                previous.amplitude = 0j
+                self._refit(residual, previous)
+                continue
+            merged.append(component)
+        return merged
+
+    def run(self, correlation: NDArray[np.complex128]) -> tuple[list[_Component], float]:
+        residual = correlation.copy()
+        components: list[_Component] = []
+        power = noise_power(residual)
+        threshold = 10 ** (self.options.threshold_db / 10)
+        floor = 10 ** (-self.options.dynamic_range_db / 20)
+        strongest = 0.0
+        for round_ in range(2):
+            while len(components) < self.options.max_echoes:
+                peak = int(np.argmax(np.abs(residual)))
+                height = float(np.abs(residual[peak]))
+                if height**2 < threshold * power or height < floor * strongest:
+                    break
+                component = self._fit(residual, peak)
+                shape, start = self._shape(component.tof_samples)
+                _subtract(residual, shape, start, component.amplitude)
+                components.append(component)
+                strongest = max(strongest, abs(component.amplitude))
+            if round_ == 0:
+                # The first noise estimate includes the echoes' sidelobes; redo it on the residual.
+                power = noise_power(residual)
+        for _ in range(self.options.refine_passes):
+            components = self._merge_close(residual, components)
+            for component in components:
+                self._refit(residual, component)
+        components = self._merge_close(residual, components)
+        return components, power
+
+
+def matched_filter_echoes(
+    frames: NDArray[np.floating], mf: MatchedFilter, options: EchoOptions
+) -> list[ChannelEchoes]:
+    """Matched-filter echoes of one frame (n_rx, n_samples)."""
+    correlation = mf.correlate(frames)
+    clean = _Clean(mf, options)
+    result = []
+    for channel in correlation:
+        components, power = clean.run(channel)
+        tof = np.array([c.tof_samples for c in components]) / mf.sample_rate_hz
+        amplitude = np.array([abs(c.amplitude) for c in components])
+        snr_db = 10 * np.log10(np.maximum(amplitude**2, 1e-300) / power)
+        result.append(_finish(tof, amplitude, snr_db, options))
+    return result
+
+
+def _finish(
+    tof_s: NDArray[np.float64],
+    amplitude: NDArray[np.float64],
+    snr_db: NDArray[np.float64],
+    options: EchoOptions,
+) -> ChannelEchoes:
+    """Drop blanked and sub-threshold echoes, sort by arrival."""
+    strongest = float(amplitude.max()) if len(amplitude) else 0.0
+    floor = strongest * 10 ** (-options.dynamic_range_db / 20)
+    keep = (
+        (tof_s >= options.blanking_s)
+        & (snr_db >= options.threshold_db)
+        & (amplitude >= floor)
+        & np.isfinite(tof_s)
+    )
+    order = np.argsort(tof_s[keep], kind="stable")
+    return ChannelEchoes(tof_s[keep][order], amplitude[keep][order], snr_db[keep][order])
+
+
+# --- threshold detection -----------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class ThresholdDetector:
+    """Envelope threshold detection with the template's rise-time correction."""
+
+    template: NDArray[np.float64]
+    n_samples: int
+    sample_rate_hz: float
+    signal_kind: str = "rf"
+    oversample: int = 32
+
+    @cached_property
+    def n_fft(self) -> int:
+        return int(scipy.fft.next_fast_len(self.n_samples + len(self.template), real=True))
+
+    @cached_property
+    def _rise(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Template envelope (peak 1) on a fine grid up to its maximum, and the times, samples."""
+        if self.signal_kind == "envelope":
+            envelope = np.abs(self.template)
+            fine = np.interp(
+                np.arange(len(envelope) * self.oversample) / self.oversample,
+                np.arange(len(envelope)),
+                envelope,
+            )
+        else:
+            n_fine = self.n_fft * self.oversample
+            spectrum = scipy.fft.rfft(self.template, self.n_fft) * _analytic_weights(self.n_fft)
+            fine = np.abs(scipy.fft.ifft(spectrum, n_fine)) * self.oversample
+            fine = fine[: len(self.template) * self.oversample]
+        fine = fine / fine.max()
+        top = int(np.argmax(fine))
+        times = np.arange(top + 1) / self.oversample
+        return np.maximum.accumulate(fine[: top + 1]), times
+
+    def rise_time_samples(self, level: float) -> float:
+        """Time from the echo's start until its envelope first reaches ``level`` of its peak."""
+        envelope, times = self._rise
+        return float(np.interp(level, envelope, times))
+
+    @cached_property
+    def duration_samples(self) -> int:
+        return len(self.template)
+
+    def envelope(self, frames: NDArray[np.floating]) -> NDArray[np.float64]:
+        if self.signal_kind == "envelope":
+            return np.asarray(np.abs(frames), dtype=float)
+        spectrum = scipy.fft.rfft(frames, self.n_fft, axis=-1, workers=-1)
+        analytic = scipy.fft.ifft(spectrum * _analytic_weights(self.n_fft), self.n_fft, axis=-1, workers=-1)
+        return np.asarray(np.abs(analytic[..., : self.n_samples]))
+
+
+def threshold_echoes(
+    frames: NDArray[np.floating], detector: ThresholdDetector, options: EchoOptions
+) -> list[ChannelEchoes]:
+    """Threshold-crossing echoes of one frame (n_rx, n_samples)."""
+    envelopes = detector.envelope(frames)
+    result = []
+    first = int(np.ceil(options.blanking_s * detector.sample_rate_hz))
+    for env in envelopes:
+        power = (
+            float(np.median(env**2)) / _LN2
+            if detector.signal_kind != "envelope"
+            else float(np.median(env) ** 2 / _LN2)
+        )
+        power = max(power, float(np.finfo(float).tiny))
+        level = np.sqrt(10 ** (options.threshold_db / 10) * power)
+        tofs: list[float] = []
+        amplitudes: list[float] = []
+        k = max(first, 1)
+        while len(tofs) < options.max_echoes:
+            above = np.flatnonzero(env[k:] >= level)
+            if len(above) == 0:
+                break
+            cross = k + int(above[0])
+            # Linear interpolation of the crossing between samples cross-1 and cross.
+            lo, hi = env[cross - 1], env[cross]
+            t_cross = cross - 1 + (level - lo) / (hi - lo) if hi > lo else float(cross)
+            stop = min(cross + detector.duration_samples, len(env))
+            peak = float(env[cross:stop].max())
+            tofs.append(t_cross - detector.rise_time_samples(level / peak))
+            amplitudes.append(peak)
+            # Re-arm once the pulse has passed and the envelope has fallen below the level.
+            below = np.flatnonzero(env[stop:] < level)
+            if len(below) == 0:
+                break
+            k = stop + int(below[0])
+        tof = np.array(tofs) / detector.sample_rate_hz
+        amplitude = np.array(amplitudes)
+        snr_db = 10 * np.log10(np.maximum(amplitude**2, 1e-300) / power)
+        result.append(_finish(tof, amplitude, snr_db, options))
+    return result
+
+
+# --- the registry ------------------------------------------------------------------
+
+Estimator = Callable[[NDArray[np.floating]], list[ChannelEchoes]]
+"""A prepared estimator: one frame (n_rx, n_samples) -> echoes per receiver."""
+
+
+def _prepare_matched(recording: Recording, options: EchoOptions) -> Estimator:
+    if recording.signal_kind != "rf":
+        raise EchoLocError(
+            f"{recording.source}: the matched estimator needs signal_kind 'rf', "
+            f"this recording is {recording.signal_kind!r} (use --estimator threshold)"
+        )
+    assert recording.waveform is not None  # validated: rf recordings carry their waveform
+    mf = MatchedFilter(np.asarray(recording.waveform, float), recording.n_samples, recording.sample_rate_hz)
+    return lambda frame: matched_filter_echoes(frame, mf, options)
+
+
+def _prepare_threshold(recording: Recording, options: EchoOptions) -> Estimator:
+    if recording.signal_kind not in ("rf", "envelope"):
+        raise EchoLocError(
+            f"{recording.source}: the threshold estimator needs signal_kind 'rf' or 'envelope', "
+            f"not {recording.signal_kind!r}"
+        )
+    if recording.waveform is None:
+        raise EchoLocError(
+            f"{recording.source}: the threshold estimator needs the recording's waveform "
+            "to correct for the envelope's rise time"
+        )
+    detector = ThresholdDetector(
+        np.asarray(recording.waveform, float),
+        recording.n_samples,
+        recording.sample_rate_hz,
+        recording.signal_kind,
+    )
+    return lambda frame: threshold_echoes(frame, detector, options)
+
+
+ESTIMATORS: dict[str, Callable[[Recording, EchoOptions], Estimator]] = {
+    "matched": _prepare_matched,
+    "threshold": _prepare_threshold,
+}
+"""Every time-of-flight estimator, by name: ``prepare(recording, options) -> estimator``."""
+
+
+def prepare_estimator(recording: Recording, options: EchoOptions, name: str = "matched") -> Estimator:
+    """Look up estimator ``name`` and precompute what it reuses for ``recording``."""
+    if name not in ESTIMATORS:
+        raise EchoLocError(f"unknown estimator {name!r}; choose from {', '.join(ESTIMATORS)}")
+    return ESTIMATORS[name](recording, options)
+
+
+def frame_time_s(recording: Recording, index: int) -> float:
+    """Start time of frame ``index``: ``frame_times`` if recorded, else back-to-back frames."""
+    if recording.frame_times_s is not None:
+        return float(recording.frame_times_s[index])
+    return index * recording.n_samples / recording.sample_rate_hz

@@ -1,0 +1,29 @@
+"""The one error family of echoloc.
+
+Every problem caused by the user's input (a file, a scene, an option) raises a
+subclass of :class:`EchoLocError`, with a message that names the file, the field
+and the offending value. The command line turns these into one line on stderr and
+exit code 2 (``../shared/FORMATS.md``, "Exit codes").
+"""
+
+from __future__ import annotations
+
+
+class EchoLocError(ValueError):
+    """Bad input: the message is meant for the user, as one line."""
+
+
+class RecordingError(EchoLocError):
+    """A recording file (HDF5 or NPZ) breaks the interchange contract."""
+
+
+class SceneError(EchoLocError):
+    """A scene description (TOML or in code) is invalid."""
+
+
+class WaveformError(EchoLocError):
+    """A code or waveform cannot be built as asked."""
+
+
+class GeometryError(EchoLocError):
+    """Transducer positions or measured paths that no reflector can explain."""

@@ -1,0 +1,142 @@
+"""The per-frame chain, recording -> echoes -> objects, with what it precomputes once.
+
+:func:`prepare` turns a recording and the user's options into a :class:`Chain`: the
+estimator with its template spectra and tables, the speed of sound and the
+localisation options derived from the recording (pulse resolution, carrier,
+observable window, receivers to use). :func:`run` then maps frames to results.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from echoloc.air import speed_of_sound_m_s
+from echoloc.echoes import (
+    EchoOptions,
+    Estimator,
+    FrameEchoes,
+    MatchedFilter,
+    frame_time_s,
+    prepare_estimator,
+)
+from echoloc.errors import EchoLocError
+from echoloc.locate import FrameObjects, LocateOptions, locate_frame
+from echoloc.recording import Recording, dead_receivers
+
+
+def recording_speed_of_sound_m_s(recording: Recording) -> float:
+    """Speed of sound for a recording (FORMATS.md): the stored value, else from the air state."""
+    if recording.speed_of_sound_m_s is not None:
+        return float(recording.speed_of_sound_m_s)
+    temperature = 20.0 if recording.temperature_c is None else recording.temperature_c
+    humidity = 0.0 if recording.relative_humidity is None else recording.relative_humidity
+    return float(speed_of_sound_m_s(temperature, humidity))
+
+
+@dataclass(frozen=True, eq=False)
+class Chain:
+    """Everything the per-frame chain reuses for one recording."""
+
+    recording: Recording
+    estimator: Estimator
+    echo_options: EchoOptions
+    locate_options: LocateOptions
+    speed_of_sound_m_s: float
+    usable_receivers: NDArray[np.bool_]
+
+
+def prepare(
+    recording: Recording,
+    *,
+    estimator: str = "matched",
+    echo_options: EchoOptions | None = None,
+    locate_options: LocateOptions | None = None,
+    speed_of_sound_m_s: float | None = None,
+) -> Chain:
+    """Precompute the chain for ``recording``; options not given take recording-based defaults."""
+    echo_options = echo_options or EchoOptions()
+    c = speed_of_sound_m_s or recording_speed_of_sound_m_s(recording)
+    run_estimator = prepare_estimator(recording, echo_options, estimator)
+    if locate_options is None:
+        locate_options = LocateOptions()
+        if recording.waveform is not None and recording.signal_kind == "rf":
+            mf = MatchedFilter(
+                np.asarray(recording.waveform, float), recording.n_samples, recording.sample_rate_hz
+            )
+            resolution_m = mf.mainlobe_samples / recording.sample_rate_hz * c
+        else:
+            resolution_m = None
+        axes = recording.transmitter_axes
+        boresight = (
+            (0.0, 0.0, 1.0) if axes is None else tuple(float(v) for v in axes[0] / np.linalg.norm(axes[0]))
+        )
+        locate_options = replace(
+            locate_options,
+            resolution_m=resolution_m,
+            carrier_hz=recording.carrier_hz if estimator == "matched" else None,
+            window_m=(echo_options.blanking_s * c, recording.n_samples / recording.sample_rate_hz * c),
+            boresight=boresight,  # type: ignore[arg-type]
+        )
+    # Dead receivers (the reader warns about them) are left out of localisation.
+    usable = np.ones(recording.n_receivers, dtype=bool)
+    usable[dead_receivers(recording)] = False
+    return Chain(recording, run_estimator, echo_options, locate_options, c, usable)
+
+
+def check_locatable(chain: Chain) -> None:
+    """Raise when too few receivers work to locate anything."""
+    working = int(chain.usable_receivers.sum())
+    if working < chain.locate_options.min_receivers:
+        raise EchoLocError(
+            f"{chain.recording.source}: only {working} working receiver(s), "
+            f"at least {chain.locate_options.min_receivers} are needed to locate"
+        )
+
+
+def frame_echoes(chain: Chain, index: int) -> FrameEchoes:
+    """Echoes of frame ``index``."""
+    recording = chain.recording
+    frame = recording.frames[index]
+    if recording.background is not None:
+        background = recording.background
+        frame = frame - (background[index] if background.ndim == 3 else background)
+    channels = chain.estimator(frame)
+    return FrameEchoes(index, frame_time_s(recording, index), chain.speed_of_sound_m_s, tuple(channels))
+
+
+def frame_objects(chain: Chain, echoes: FrameEchoes) -> FrameObjects:
+    """Objects of one frame from its echoes."""
+    recording = chain.recording
+    tx_index = 0 if recording.frame_transmitter is None else int(recording.frame_transmitter[echoes.frame])
+    return locate_frame(
+        echoes,
+        recording.transmitters_m[tx_index],
+        recording.receivers_m,
+        chain.locate_options,
+        chain.usable_receivers,
+    )
+
+
+def run(chain: Chain, frames: Iterable[int] | None = None) -> Iterator[tuple[FrameEchoes, FrameObjects]]:
+    """Echoes and objects of every frame (or of ``frames``), one frame at a time."""
+    indices = range(chain.recording.n_frames) if frames is None else frames
+    for index in indices:
+        echoes = frame_echoes(chain, index)
+        yield echoes, frame_objects(chain, echoes)
+
+
+def find_echoes(
+    recording: Recording,
+    *,
+    estimator: str = "matched",
+    options: EchoOptions | None = None,
+    frames: Iterable[int] | None = None,
+) -> list[FrameEchoes]:
+    """Echoes of every frame (or of ``frames``) of a recording."""
+    chain = prepare(recording, estimator=estimator, echo_options=options)
+    indices = range(recording.n_frames) if frames is None else frames
+    return [frame_echoes(chain, i) for i in indices]

@@ -1,0 +1,146 @@
+"""Scene -> Recording: what the receivers of a sensor head record.
+
+Each echo is the emitted pulse, delayed by its exact path time and scaled by
+spherical spreading. Delays are band-limited fractional delays applied in the
+frequency domain, ``Y(f) = W(f) * sum_k a_k exp(-2j pi f tau_k)``: the sampled
+result equals sampling the band-limited (sinc) interpolation of the pulse shifted
+by ``tau_k``, not a shift rounded to a sample. The FFT length leaves room for the
+pulse after the last sample so that nothing wraps around into the frame.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+import scipy.fft
+from numpy.typing import NDArray
+
+from echoloc.air import spreading_gain
+from echoloc.recording import Recording
+from echoloc.scene import Scene
+
+_BATCH_FRAMES = 64
+
+
+def path_lengths_m(
+    transmitter_m: NDArray[np.float64],
+    receivers_m: NDArray[np.float64],
+    points_m: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Transmitter -> point -> receiver geometry for points (..., 3).
+
+    Returns ``(path_m, r_tx_m, r_rx_m)`` with shapes (..., n_rx), (...,), (..., n_rx).
+    """
+    r_tx = np.linalg.norm(points_m - transmitter_m, axis=-1)
+    r_rx = np.linalg.norm(points_m[..., None, :] - receivers_m, axis=-1)
+    return r_tx[..., None] + r_rx, r_tx, r_rx
+
+
+def draw_reflectors(
+    scene: Scene, n_frames: int, rng: np.random.Generator
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Reflector positions (n_frames, n_max, 3) with NaN padding, and strengths (NaN-padded).
+
+    Fixed reflectors come first in every frame; random ones are drawn per frame.
+    """
+    fixed = scene.reflector_positions_m
+    n_fixed = len(fixed)
+    spec = scene.random
+    n_random_max = spec.count[1] if spec is not None else 0
+    positions = np.full((n_frames, n_fixed + n_random_max, 3), np.nan)
+    strengths = np.full((n_frames, n_fixed + n_random_max), np.nan)
+    positions[:, :n_fixed] = fixed
+    strengths[:, :n_fixed] = scene.reflector_strengths
+    if spec is not None:
+        counts = rng.integers(spec.count[0], spec.count[1] + 1, size=n_frames)
+        low = np.array([spec.x_m[0], spec.y_m[0], spec.z_m[0]])
+        high = np.array([spec.x_m[1], spec.y_m[1], spec.z_m[1]])
+        drawn = rng.uniform(low, high, size=(n_frames, n_random_max, 3))
+        drawn_strength = rng.uniform(*spec.strength, size=(n_frames, n_random_max))
+        present = np.arange(n_random_max) < counts[:, None]
+        positions[:, n_fixed:] = np.where(present[..., None], drawn, np.nan)
+        strengths[:, n_fixed:] = np.where(present, drawn_strength, np.nan)
+    return positions, strengths
+
+
+def synthesize_frames(
+    waveform: NDArray[np.float64],
+    tof_s: NDArray[np.float64],
+    amplitude: NDArray[np.float64],
+    *,
+    sample_rate_hz: float,
+    n_samples: int,
+) -> NDArray[np.float64]:
+    """Sum of delayed, scaled copies of ``waveform``, band-limited fractional delays.
+
+    ``tof_s`` and ``amplitude`` have shape (n_frames, n_rx, n_echoes); NaN entries
+    (padding) contribute nothing. Returns (n_frames, n_rx, n_samples).
+    """
+    n_fft = scipy.fft.next_fast_len(n_samples + 2 * len(waveform) + 64, real=True)
+    spectrum = scipy.fft.rfft(waveform, n_fft)
+    freqs_hz = scipy.fft.rfftfreq(n_fft, 1.0 / sample_rate_hz)
+    valid = np.isfinite(tof_s) & np.isfinite(amplitude)
+    tof = np.where(valid, tof_s, 0.0)
+    amp = np.where(valid, amplitude, 0.0)
+    # sum_k a_k exp(-2j pi f tau_k), accumulated echo by echo to bound memory.
+    total = np.zeros((*tof.shape[:2], len(freqs_hz)), dtype=complex)
+    for k in range(tof.shape[2]):
+        total += amp[..., k, None] * np.exp(-2j * np.pi * freqs_hz * tof[..., k, None])
+    frames = scipy.fft.irfft(total * spectrum, n_fft, axis=-1)[..., :n_samples]
+    return np.asarray(frames)
+
+
+def _frames_in_batches(
+    scene: Scene,
+    positions: NDArray[np.float64],
+    strengths: NDArray[np.float64],
+    rng: np.random.Generator,
+) -> Iterator[NDArray[np.float64]]:
+    waveform = scene.waveform().samples
+    c = scene.speed_of_sound_m_s
+    transmitter = scene.array.transmitters_m[0]
+    receivers = scene.array.receivers_m
+    noise_std = None if scene.snr_db is None else 10.0 ** (-scene.snr_db / 20.0) * np.max(np.abs(waveform))
+    for start in range(0, len(positions), _BATCH_FRAMES):
+        batch = positions[start : start + _BATCH_FRAMES]
+        path, r_tx, r_rx = path_lengths_m(transmitter, receivers, batch)
+        if scene.path_jitter_m > 0:
+            path = path + rng.normal(0.0, scene.path_jitter_m, size=path.shape)
+        amplitude = strengths[start : start + _BATCH_FRAMES, :, None] * spreading_gain(r_tx[..., None], r_rx)
+        # (frames, echoes, rx) -> (frames, rx, echoes)
+        frames = synthesize_frames(
+            waveform,
+            np.swapaxes(path / c, 1, 2),
+            np.swapaxes(amplitude, 1, 2),
+            sample_rate_hz=scene.sample_rate_hz,
+            n_samples=scene.n_samples,
+        )
+        if noise_std is not None:
+            frames = frames + rng.normal(0.0, noise_std, size=frames.shape)
+        yield frames
+
+
+def simulate(scene: Scene, n_frames: int = 1) -> Recording:
+    """Simulate ``n_frames`` frames of ``scene``; the result carries ``truth_positions_m``."""
+    if n_frames < 1:
+        raise ValueError(f"n_frames must be >= 1, got {n_frames}")
+    rng = np.random.default_rng(scene.seed)
+    positions, strengths = draw_reflectors(scene, n_frames, rng)
+    frames = np.concatenate(list(_frames_in_batches(scene, positions, strengths, rng)), axis=0)
+    waveform = scene.waveform()
+    return Recording(
+        sample_rate_hz=scene.sample_rate_hz,
+        transmitters_m=scene.array.transmitters_m,
+        receivers_m=scene.array.receivers_m,
+        frames=frames,
+        waveform=waveform.samples,
+        signal_kind="rf",
+        carrier_hz=waveform.carrier_hz,
+        speed_of_sound_m_s=scene.speed_of_sound_m_s,
+        temperature_c=scene.temperature_c,
+        relative_humidity=scene.relative_humidity,
+        frame_times_s=np.arange(n_frames) / scene.frame_rate_hz,
+        frame_transmitter=np.zeros(n_frames, dtype=np.int64),
+        truth_positions_m=positions,
+    )
