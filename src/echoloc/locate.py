@@ -340,8 +340,21 @@ def associate(
     sigmas: list[NDArray[np.float64]],
     options: LocateOptions,
     usable: NDArray[np.bool_] | None = None,
+    amplitudes: list[NDArray[np.float64]] | None = None,
 ) -> list[LocatedObject]:
-    """Objects from echo paths per receiver ("peaks to points"); each echo used once."""
+    """Objects from echo paths per receiver ("peaks to points"); each echo used once.
+
+    Stage by stage, from full support down to ``min_receivers``: every combination
+    of one echo per receiver of the stage's size that meets in one point (chi-square
+    gate, in front of the array) is a candidate, and the set of candidates that
+    share no echo with the largest total weight is kept. The weight is the number of
+    objects first; the path residual and, when ``amplitudes`` are given, the
+    consistency of the echo amplitudes with spherical spreading break ties (a
+    "ghost" made of echoes from different reflectors rarely has amplitudes that
+    agree). An object with fewer receivers must explain each missing echo: its
+    predicted path lies within ``resolution_m`` of an echo already used by an
+    object of an earlier stage (the two echoes merged), or outside the window.
+    """
     n_rx = len(receivers_m)
     usable = np.ones(n_rx, dtype=bool) if usable is None else np.asarray(usable, dtype=bool)
     active = np.flatnonzero(usable)
@@ -350,57 +363,201 @@ def associate(
     rx = receivers_m[active]
     act_paths = [np.asarray(paths[i], float) for i in active]
     act_sigmas = [np.asarray(sigmas[i], float) for i in active]
+    act_amplitudes = None if amplitudes is None else [np.asarray(amplitudes[i], float) for i in active]
     direct = np.linalg.norm(rx - transmitter_m, axis=1)
     allow_missing = len(active) - options.min_receivers if options.resolution_m is not None else 0
     combos = _enumerate_combinations(act_paths, act_sigmas, rx, direct, allow_missing)
     boresight = np.asarray(options.boresight, dtype=float)
-    candidates = []
-    for subset in _subsets(len(active), options.min_receivers):
-        present = np.zeros(len(active), dtype=bool)
-        present[list(subset)] = True
-        rows = combos[np.all((combos >= 0) == present, axis=1)]
-        if len(rows) == 0:
-            continue
-        cols = list(subset)
-        path_matrix = np.stack([act_paths[c][rows[:, k]] for k, c in enumerate(cols)], axis=1)
-        sigma_matrix = np.stack([act_sigmas[c][rows[:, k]] for k, c in enumerate(cols)], axis=1)
-        solution = solve_positions(transmitter_m, rx[cols], path_matrix, sigma_matrix, boresight)
-        dof = len(cols) - 3
-        gate = stats.chi2.ppf(options.gate_probability, dof) if dof > 0 else np.inf
-        ahead = (solution.position_m - transmitter_m) @ boresight > 0
-        ok = solution.converged & ahead & (solution.chi2 <= gate)
-        if len(cols) < len(active):
-            ok &= _missing_explained(transmitter_m, rx, act_paths, solution.position_m, present, options)
-        p_value = stats.chi2.sf(solution.chi2, dof) if dof > 0 else np.ones(len(rows))
-        for k in np.flatnonzero(ok):
-            candidates.append(
-                (len(cols), float(solution.chi2[k]), k, rows[k], solution, float(p_value[k]), cols)
+    objects: list[LocatedObject] = []
+    used: set[tuple[int, int]] = set()
+    for size in range(len(active), len(active) - allow_missing - 1, -1):
+        candidates: list[_Candidate] = []
+        for subset in combinations(range(len(active)), size):
+            present = np.zeros(len(active), dtype=bool)
+            present[list(subset)] = True
+            rows = combos[np.all((combos >= 0) == present, axis=1)]
+            cols = list(subset)
+            if used:
+                free = np.ones(len(rows), dtype=bool)
+                for c in cols:
+                    free &= ~np.isin(rows[:, c], [e for r, e in used if r == c])
+                rows = rows[free]
+            if len(rows) == 0:
+                continue
+            candidates.extend(
+                _solve_candidates(
+                    transmitter_m,
+                    rx,
+                    cols,
+                    rows,
+                    act_paths,
+                    act_sigmas,
+                    act_amplitudes,
+                    used,
+                    options,
+                    boresight,
+                    present,
+                )
             )
-    # Best first: most receivers, then the smallest residual.
-    candidates.sort(key=lambda c: (-c[0], c[1]))
-    used: list[set[int]] = [set() for _ in active]
-    objects = []
-    for n_support, chi2, k, row, solution, p_value, cols in candidates:
-        if any(row[c] in used[c] for c in cols):
-            continue
-        for c in cols:
-            used[c].add(int(row[c]))
-        objects.append(
-            LocatedObject(
-                position_m=solution.position_m[k],
-                covariance_m2=solution.covariance_m2[k],
-                receivers=tuple(int(active[c]) for c in cols),
-                echo_indices=tuple(int(row[c]) for c in cols),
-                chi2=chi2,
-                score=n_support / n_rx * p_value,
+        for index in _best_disjoint(candidates):
+            candidate = candidates[index]
+            used |= candidate.echoes
+            obj = candidate.obj
+            objects.append(
+                LocatedObject(
+                    position_m=obj.position_m,
+                    covariance_m2=obj.covariance_m2,
+                    receivers=tuple(int(active[c]) for c in obj.receivers),
+                    echo_indices=obj.echo_indices,
+                    chi2=obj.chi2,
+                    score=len(obj.receivers) / n_rx * obj.score,
+                )
             )
-        )
     objects.sort(key=lambda o: float(np.linalg.norm(o.position_m - transmitter_m)))
     return objects
 
 
-def _subsets(n: int, smallest: int) -> list[tuple[int, ...]]:
-    return [s for size in range(n, smallest - 1, -1) for s in combinations(range(n), size)]
+AMPLITUDE_LOG_SIGMA = 0.1
+"""Assumed spread of echo amplitudes about the spreading model, natural-log units (10 %)."""
+
+
+def _solve_candidates(
+    transmitter_m: NDArray[np.float64],
+    rx: NDArray[np.float64],
+    cols: list[int],
+    rows: NDArray[np.int64],
+    paths: list[NDArray[np.float64]],
+    sigmas: list[NDArray[np.float64]],
+    amplitudes: list[NDArray[np.float64]] | None,
+    used: set[tuple[int, int]],
+    options: LocateOptions,
+    boresight: NDArray[np.float64],
+    present: NDArray[np.bool_],
+) -> list[_Candidate]:
+    """Solve each combination of echoes (rows) for receivers ``cols``; keep the plausible ones."""
+    path_matrix = np.stack([paths[c][rows[:, c]] for c in cols], axis=1)
+    sigma_matrix = np.stack([sigmas[c][rows[:, c]] for c in cols], axis=1)
+    solution = solve_positions(transmitter_m, rx[cols], path_matrix, sigma_matrix, boresight)
+    dof = len(cols) - 3
+    gate = float(stats.chi2.ppf(options.gate_probability, dof)) if dof > 0 else np.inf
+    ahead = (solution.position_m - transmitter_m) @ boresight > 0
+    ok = solution.converged & ahead & (solution.chi2 <= gate)
+    penalty = np.zeros(len(rows))
+    if len(cols) < len(rx):
+        used_paths = [np.array([paths[r][e] for r, e in used if r == i]) for i in range(len(rx))]
+        explained, penalty = _missing_explained(
+            transmitter_m, rx, used_paths, solution.position_m, present, options
+        )
+        ok &= explained
+    amplitude_chi2 = np.zeros(len(rows))
+    if amplitudes is not None:
+        measured = np.stack([amplitudes[c][rows[:, c]] for c in cols], axis=1)
+        r_tx = np.linalg.norm(solution.position_m - transmitter_m, axis=1)
+        r_rx = np.linalg.norm(solution.position_m[:, None, :] - rx[cols], axis=2)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            log_strength = np.log(measured * r_tx[:, None] * r_rx)
+        spread = log_strength - np.mean(log_strength, axis=1, keepdims=True)
+        amplitude_chi2 = np.nan_to_num(np.sum(spread**2, axis=1) / AMPLITUDE_LOG_SIGMA**2, nan=1e3)
+    p_value = stats.chi2.sf(solution.chi2, dof) if dof > 0 else np.ones(len(rows))
+    candidates = []
+    for k in np.flatnonzero(ok):
+        # More objects wins; residuals only break ties (each term stays below 0.1).
+        tie_break = 1e-3 * min(
+            float(solution.chi2[k]) / max(gate if np.isfinite(gate) else 1.0, 1.0)
+            + float(amplitude_chi2[k]) / len(cols)
+            + float(penalty[k]),
+            100.0,
+        )
+        candidates.append(
+            _Candidate(
+                echoes=frozenset((c, int(rows[k, c])) for c in cols),
+                weight=1.0 - tie_break,
+                obj=LocatedObject(
+                    position_m=solution.position_m[k],
+                    covariance_m2=solution.covariance_m2[k],
+                    receivers=tuple(cols),
+                    echo_indices=tuple(int(rows[k, c]) for c in cols),
+                    chi2=float(solution.chi2[k]),
+                    score=float(p_value[k]),
+                ),
+            )
+        )
+    return candidates
+
+
+@dataclass(frozen=True, eq=False)
+class _Candidate:
+    echoes: frozenset[tuple[int, int]]  # (receiver, echo index) pairs it uses
+    weight: float
+    obj: LocatedObject
+
+
+def _best_disjoint(candidates: list[_Candidate], node_limit: int = 50_000) -> list[int]:
+    """Indices of the heaviest set of candidates that share no echo (weighted set packing).
+
+    Solved exactly by branch and bound on each connected group of conflicting
+    candidates. The bound is the best weight per echo times the echoes still free,
+    which is tight because every candidate weighs about its number of echoes. Past
+    ``node_limit`` steps in a group the best set found so far is kept (never worse
+    than the greedy choice it starts from).
+    """
+    n = len(candidates)
+    conflicts = [
+        {j for j in range(n) if j != i and candidates[i].echoes & candidates[j].echoes} for i in range(n)
+    ]
+    chosen: list[int] = []
+    seen: set[int] = set()
+    for root in range(n):
+        if root in seen:
+            continue
+        group, stack = [], [root]
+        seen.add(root)
+        while stack:
+            node = stack.pop()
+            group.append(node)
+            for other in conflicts[node] - seen:
+                seen.add(other)
+                stack.append(other)
+        chosen.extend(_pack_group(sorted(group, key=lambda i: -candidates[i].weight), candidates, node_limit))
+    return chosen
+
+
+def _pack_group(group: list[int], candidates: list[_Candidate], node_limit: int) -> list[int]:
+    """Branch and bound over one group of candidates, heaviest first."""
+    items = [candidates[i] for i in group]
+    per_echo = max(max(c.weight / len(c.echoes) for c in items), 0.0)
+    # Echoes still reachable from position k onwards.
+    reachable: list[frozenset[tuple[int, int]]] = [frozenset()] * (len(items) + 1)
+    for k in range(len(items) - 1, -1, -1):
+        reachable[k] = reachable[k + 1] | items[k].echoes
+    best: list[int] = []
+    used: set[tuple[int, int]] = set()
+    for k, item in enumerate(items):  # the greedy incumbent
+        if item.weight > 0 and not (item.echoes & used):
+            best.append(k)
+            used |= item.echoes
+    best_weight = sum(items[k].weight for k in best)
+    steps = 0
+    picked: list[int] = []
+
+    def branch(k: int, used: frozenset[tuple[int, int]], total: float) -> None:
+        nonlocal best, best_weight, steps
+        steps += 1
+        if total > best_weight + 1e-12:
+            best, best_weight = list(picked), total
+        if k == len(items) or steps > node_limit:
+            return
+        if total + per_echo * len(reachable[k] - used) <= best_weight + 1e-12:
+            return
+        item = items[k]
+        if item.weight > 0 and not (item.echoes & used):
+            picked.append(k)
+            branch(k + 1, used | item.echoes, total + item.weight)
+            picked.pop()
+        branch(k + 1, used, total)
+
+    branch(0, frozenset(), 0.0)
+    return [group[k] for k in best]
 
 
 def _missing_explained(
@@ -410,25 +567,30 @@ def _missing_explained(
     points_m: NDArray[np.float64],
     present: NDArray[np.bool_],
     options: LocateOptions,
-) -> NDArray[np.bool_]:
-    """For each point: every receiver without an echo has a reason not to show one.
+) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+    """For each point: does every receiver without an echo have a reason not to show one?
 
-    The reason is an echo on that receiver within ``resolution_m`` of the predicted
-    path (the two echoes merged), or a predicted path outside the receiver's window.
+    The reason is an echo on that receiver (``paths``: the echoes already used by
+    other objects) within ``resolution_m`` of the predicted path, so that the two
+    echoes merged, or a predicted path outside the receiver's window.
+    Also returns the summed gaps in units of the resolution (0 for outside), a
+    measure of how well the merges explain the missing echoes.
     """
     assert options.resolution_m is not None
     predicted = model_paths_m(transmitter_m, receivers_m, points_m)
     explained = np.ones(len(points_m), dtype=bool)
+    penalty = np.zeros(len(points_m))
     low, high = options.window_m
     for i in np.flatnonzero(~present):
         outside = (predicted[:, i] < low) | (predicted[:, i] > high)
         if len(paths[i]):
-            gap = np.min(np.abs(predicted[:, i, None] - paths[i][None, :]), axis=1)
-            merged = gap <= options.resolution_m
+            gap = np.min(np.abs(predicted[:, i, None] - paths[i][None, :]), axis=1) / options.resolution_m
         else:
-            merged = np.zeros(len(points_m), dtype=bool)
+            gap = np.full(len(points_m), np.inf)
+        merged = gap <= 1.0
         explained &= outside | merged
-    return explained
+        penalty += np.where(outside, 0.0, np.minimum(gap, 1.0))
+    return explained, penalty
 
 
 def locate_frame(
@@ -442,5 +604,6 @@ def locate_frame(
     c = frame_echoes.speed_of_sound_m_s
     paths = [ch.tof_s * c for ch in frame_echoes.channels]
     sigmas = [path_sigmas_m(ch.snr_db, c, options) for ch in frame_echoes.channels]
-    objects = associate(transmitter_m, receivers_m, paths, sigmas, options, usable)
+    amplitudes = [ch.amplitude for ch in frame_echoes.channels]
+    objects = associate(transmitter_m, receivers_m, paths, sigmas, options, usable, amplitudes)
     return FrameObjects(frame_echoes.frame, frame_echoes.time_s, tuple(objects))
