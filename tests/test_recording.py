@@ -365,9 +365,7 @@ def test_channel_mismatch_message(tmp_path: Path) -> None:
         ("rec", b"", "extension"),
     ],
 )
-def test_unreadable_file_is_rejected(
-    tmp_path: Path, name: str, content: bytes, expected: str
-) -> None:
+def test_unreadable_file_is_rejected(tmp_path: Path, name: str, content: bytes, expected: str) -> None:
     path = tmp_path / name
     path.write_bytes(content)
     with pytest.raises(RecordingError, match=expected) as info:
@@ -535,9 +533,7 @@ def test_write_overwrites_and_leaves_no_temporary(tmp_path: Path, ext: str) -> N
 
 
 @pytest.mark.parametrize("ext", EXTENSIONS)
-def test_interrupted_write_keeps_old_file(
-    tmp_path: Path, ext: str, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_interrupted_write_keeps_old_file(tmp_path: Path, ext: str, monkeypatch: pytest.MonkeyPatch) -> None:
     path = tmp_path / f"rec{ext}"
     write_recording(make_recording(seed=1), path)
     before = path.read_bytes()

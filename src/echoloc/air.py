@@ -40,7 +40,7 @@ def water_mole_fraction(
 ) -> NDArray[np.float64]:
     """Mole fraction of water vapour for a relative humidity in 0..1 (dimensionless)."""
     rh = np.asarray(relative_humidity, dtype=float)
-    if np.any((rh < 0) | (rh > 1)):
+    if not np.all((rh >= 0) & (rh <= 1)):
         raise EchoLocError(f"relative_humidity must be a fraction in 0..1, got {rh}")
     return np.asarray(rh * saturation_vapour_pressure_pa(temperature_c) / pressure_pa)
 

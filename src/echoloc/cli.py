@@ -7,11 +7,13 @@ internal error.
 from __future__ import annotations
 
 import json
+import math
 import os
 import sys
 import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -34,7 +36,8 @@ from echoloc.simulate import simulate
 
 # Tables wrap at 80 columns when piped; give them room (COLUMNS still wins).
 stdout = Console() if sys.stdout.isatty() else Console(width=int(os.environ.get("COLUMNS", 120)))
-stderr = Console(stderr=True)
+# Messages on stderr are one line each, however long: never wrap them.
+stderr = Console(stderr=True, soft_wrap=True)
 F = TypeVar("F", bound=Callable[..., Any])
 
 
@@ -101,6 +104,18 @@ def _processing_options(func: F) -> F:
     return func
 
 
+def _finite(name: str, value: float | None, *, positive: bool = False, minimum: float | None = None) -> None:
+    """Refuse NaN, infinities and out-of-range option values with one clear line."""
+    if value is None:
+        return
+    if not math.isfinite(value):
+        raise EchoLocError(f"{name} must be a finite number, got {value}")
+    if positive and not value > 0:
+        raise EchoLocError(f"{name} must be > 0, got {value}")
+    if minimum is not None and value < minimum:
+        raise EchoLocError(f"{name} must be >= {minimum:g}, got {value}")
+
+
 def _chain(
     recording: Recording,
     estimator: str,
@@ -109,10 +124,10 @@ def _chain(
     speed_of_sound_m_s: float | None,
     path_sigma_m: float | None = None,
 ) -> Chain:
-    if speed_of_sound_m_s is not None and not speed_of_sound_m_s > 0:
-        raise EchoLocError(f"--speed-of-sound must be > 0, got {speed_of_sound_m_s}")
-    if blanking_s < 0:
-        raise EchoLocError(f"--blanking-s must be >= 0, got {blanking_s}")
+    _finite("--speed-of-sound", speed_of_sound_m_s, positive=True)
+    _finite("--blanking-s", blanking_s, minimum=0.0)
+    _finite("--threshold-db", threshold_db)
+    _finite("--path-sigma-m", path_sigma_m, positive=True)
     chain = prepare(
         recording,
         estimator=estimator,
@@ -120,10 +135,6 @@ def _chain(
         speed_of_sound_m_s=speed_of_sound_m_s,
     )
     if path_sigma_m is not None:
-        if not path_sigma_m > 0:
-            raise EchoLocError(f"--path-sigma-m must be > 0, got {path_sigma_m}")
-        from dataclasses import replace
-
         chain = replace(chain, locate_options=replace(chain.locate_options, path_sigma_m=path_sigma_m))
     return chain
 
@@ -264,8 +275,6 @@ def _mm(values: Any, digits: int = 1) -> str:
 @click.option("--seed", type=int, default=None, help="Override the scene's random seed.")
 def simulate_command(scene_path: Path, output: Path, n_frames: int, seed: int | None) -> None:
     """Simulate a scene file and write the recording, with truth_positions per frame."""
-    from dataclasses import replace
-
     scene = load_scene(scene_path)
     if seed is not None:
         scene = replace(scene, seed=seed)
@@ -411,8 +420,7 @@ def evaluate_command(
     recording = read_recording(recording_path, repair_nonfinite=repair_nonfinite)
     if recording.truth_positions_m is None:
         raise EchoLocError(f"{recording_path}: has no truth_positions to evaluate against")
-    if not match_radius_m > 0:
-        raise EchoLocError(f"--match-radius-m must be > 0, got {match_radius_m}")
+    _finite("--match-radius-m", match_radius_m, positive=True)
     chain = _chain(recording, estimator, threshold_db, blanking_s, speed_of_sound_m_s, path_sigma_m)
     check_locatable(chain)
     frames = _frames_option(frames_text, recording.n_frames)
@@ -485,9 +493,22 @@ def main(argv: list[str] | None = None) -> None:
     except click.exceptions.Abort:
         stderr.print("echoloc: aborted", markup=False)
         sys.exit(1)
+    except click.UsageError as error:
+        command = error.ctx.command_path if error.ctx is not None else "echoloc"
+        stderr.print(
+            f"echoloc: error: {error.format_message()} (see `{command} --help`)",
+            markup=False,
+            highlight=False,
+        )
+        sys.exit(2)
     except click.ClickException as error:
-        error.show()
-        sys.exit(error.exit_code)
+        stderr.print(f"echoloc: error: {error.format_message()}", markup=False, highlight=False)
+        sys.exit(2 if error.exit_code == 2 else 1)
+    except BrokenPipeError:
+        # The reader went away (`echoloc locate rec.h5 --json | head`): not an error of ours.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        sys.exit(0)
     except OSError as error:
         stderr.print(f"echoloc: error: {error}", markup=False, highlight=False)
         sys.exit(2)

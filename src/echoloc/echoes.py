@@ -62,13 +62,17 @@ class EchoOptions:
         dropped (residue of imperfect subtraction, not echoes), dB.
     refine_passes
         Passes of re-fitting each echo with the others removed (matched filter).
+    threshold_fraction
+        The threshold estimator's level is at least this fraction of the channel's
+        strongest envelope sample, so that clean data is not cut at its noise floor.
     """
 
     threshold_db: float = 14.0
     blanking_s: float = 0.0
     max_echoes: int = 16
     dynamic_range_db: float = 40.0
-    refine_passes: int = 10
+    refine_passes: int = 3
+    threshold_fraction: float = 0.1
 
 
 @dataclass(frozen=True, eq=False)
@@ -225,6 +229,7 @@ class _Clean:
         self.half = mf.half_width
         self.fit_half = max(1, round(mf.mainlobe_samples / 2))
         self.merge_samples = mf.mainlobe_samples / 4
+        self.cluster_samples = 2 * mf.mainlobe_samples
 
     def _shape(self, tof_samples: float) -> tuple[NDArray[np.complex128], int]:
         """Template autocorrelation for an echo at ``tof_samples``, and its first index."""
@@ -321,8 +326,14 @@ class _Clean:
                 power = noise_power(residual)
         for _ in range(self.options.refine_passes):
             components = self._merge_close(residual, components)
-            for component in components:
-                self._refit(residual, component)
+            # An isolated echo was fitted exactly the first time; only echoes whose main
+            # lobes overlap a neighbour's need fitting again with the neighbour removed.
+            tofs = np.array([c.tof_samples for c in components])
+            for k, component in enumerate(components):
+                others = np.delete(tofs, k)
+                if len(others) and np.min(np.abs(others - component.tof_samples)) < self.cluster_samples:
+                    self._refit(residual, component)
+                    tofs[k] = component.tof_samples
         components = self._merge_close(residual, components)
         return components, power
 
@@ -367,37 +378,39 @@ def _finish(
 
 @dataclass(frozen=True, eq=False)
 class ThresholdDetector:
-    """Envelope threshold detection with the template's rise-time correction."""
+    """Envelope threshold detection with the template's rise-time correction.
+
+    The crossing is located on the band-limited envelope between samples (sinc
+    interpolation of the analytic signal), and the arrival is the crossing time
+    minus the time the template's own envelope needs to rise from its start to the
+    level, relative to the echo's measured peak.
+    """
 
     template: NDArray[np.float64]
     n_samples: int
     sample_rate_hz: float
     signal_kind: str = "rf"
     oversample: int = 32
+    interpolation_taps: int = 32
 
     @cached_property
     def n_fft(self) -> int:
-        return int(scipy.fft.next_fast_len(self.n_samples + len(self.template), real=True))
+        return int(scipy.fft.next_fast_len(self.n_samples + 2 * len(self.template), real=True))
 
     @cached_property
     def _rise(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Template envelope (peak 1) on a fine grid up to its maximum, and the times, samples."""
-        if self.signal_kind == "envelope":
-            envelope = np.abs(self.template)
-            fine = np.interp(
-                np.arange(len(envelope) * self.oversample) / self.oversample,
-                np.arange(len(envelope)),
-                envelope,
-            )
-        else:
-            n_fine = self.n_fft * self.oversample
-            spectrum = scipy.fft.rfft(self.template, self.n_fft) * _analytic_weights(self.n_fft)
-            fine = np.abs(scipy.fft.ifft(spectrum, n_fine)) * self.oversample
-            fine = fine[: len(self.template) * self.oversample]
-        fine = fine / fine.max()
+        """Template envelope (peak 1), made monotonic, up to its peak, and its times in samples.
+
+        The times start before 0: the band-limited envelope of an abruptly starting
+        pulse rises a little before the pulse itself.
+        """
+        circular = self._circular_fine_envelope
+        before = 0 if self.signal_kind == "envelope" else self.interpolation_taps * self.oversample
+        after = len(self.template) * self.oversample
+        fine = np.concatenate([circular[len(circular) - before :], circular[:after]])
+        times = (np.arange(len(fine)) - before) / self.oversample
         top = int(np.argmax(fine))
-        times = np.arange(top + 1) / self.oversample
-        return np.maximum.accumulate(fine[: top + 1]), times
+        return np.maximum.accumulate(fine[: top + 1]), times[: top + 1]
 
     def rise_time_samples(self, level: float) -> float:
         """Time from the echo's start until its envelope first reaches ``level`` of its peak."""
@@ -408,49 +421,127 @@ class ThresholdDetector:
     def duration_samples(self) -> int:
         return len(self.template)
 
-    def envelope(self, frames: NDArray[np.floating]) -> NDArray[np.float64]:
+    @cached_property
+    def hold_samples(self) -> int:
+        """Samples the envelope must stay below the level before the detector re-arms.
+
+        Longer than the deepest dip inside the pulse itself (phase reversals), so a
+        dip within one echo, or within overlapping echoes, is not a new echo.
+        """
+        below = self._circular_fine_envelope[: len(self.template) * self.oversample] < 0.5
+        longest = run = 0
+        for flag in below:
+            run = run + 1 if flag else 0
+            longest = max(longest, run)
+        return int(np.ceil(longest / self.oversample)) + 2
+
+    @cached_property
+    def _circular_fine_envelope(self) -> NDArray[np.float64]:
+        """The template's band-limited envelope on the fine grid (peak 1); negative times wrap to the end."""
+        if self.signal_kind == "envelope":
+            envelope = np.abs(self.template).astype(float)
+            times = np.arange(len(envelope) * self.oversample) / self.oversample
+            fine = np.interp(times, np.arange(len(envelope)), envelope)
+        else:
+            spectrum = scipy.fft.rfft(self.template, self.n_fft) * _analytic_weights(self.n_fft)
+            fine = np.abs(scipy.fft.ifft(spectrum, self.n_fft * self.oversample))
+        return np.asarray(fine / fine.max())
+
+    def analytic(self, frames: NDArray[np.floating]) -> NDArray[np.complex128] | NDArray[np.float64]:
+        """Analytic signal of RF frames; envelope frames are returned as they are."""
         if self.signal_kind == "envelope":
             return np.asarray(np.abs(frames), dtype=float)
         spectrum = scipy.fft.rfft(frames, self.n_fft, axis=-1, workers=-1)
         analytic = scipy.fft.ifft(spectrum * _analytic_weights(self.n_fft), self.n_fft, axis=-1, workers=-1)
-        return np.asarray(np.abs(analytic[..., : self.n_samples]))
+        return np.asarray(analytic[..., : self.n_samples])
+
+    def fine_envelope(
+        self, signal: NDArray[np.complex128], start: int, stop: int
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Band-limited envelope on a grid of 1/oversample samples over [start, stop], and the times.
+
+        Windowed-sinc interpolation of the analytic samples, exact up to the
+        truncation of the kernel (the analytic signal's band [0, fs/2) fits in the
+        sampling band).
+        """
+        taps = np.arange(start - self.interpolation_taps, stop + self.interpolation_taps + 1)
+        taps = taps[(taps >= 0) & (taps < len(signal))]
+        t = start + np.arange((stop - start) * self.oversample + 1) / self.oversample
+        offset = t[:, None] - taps[None, :]
+        window = 0.5 * (1 + np.cos(np.pi * np.clip(offset / (self.interpolation_taps + 1), -1, 1)))
+        return np.abs((np.sinc(offset) * window) @ signal[taps]), t
+
+    def crossing(
+        self, signal: NDArray[np.complex128] | NDArray[np.float64], index: int, level: float
+    ) -> float:
+        """Time (samples) where the band-limited envelope first rises through ``level``.
+
+        ``index`` is the first sample at or above the level; the envelope between
+        samples may cross earlier (its ripple can dip below the level at a sample),
+        so the search starts a few samples before it.
+        """
+        if self.signal_kind == "envelope":
+            lo, hi = float(signal[index - 1]), float(signal[index])
+            return index - 1 + (level - lo) / (hi - lo) if hi > lo else float(index)
+        fine, t = self.fine_envelope(np.asarray(signal, complex), index - min(4, index), index)
+        above = np.flatnonzero(fine >= level)
+        if len(above) == 0:
+            return float(index)
+        k = int(above[0])
+        if k == 0:
+            return float(t[0])
+        lo, hi = fine[k - 1], fine[k]
+        return float(t[k - 1] + (level - lo) / (hi - lo) * (t[k] - t[k - 1]))
+
+    def peak(self, signal: NDArray[np.complex128] | NDArray[np.float64], start: int, stop: int) -> float:
+        """Largest envelope value of the echo in samples [start, stop), between samples too."""
+        env = np.abs(signal[start:stop])
+        top = start + int(np.argmax(env))
+        if self.signal_kind == "envelope":
+            return float(env.max())
+        fine, _ = self.fine_envelope(
+            np.asarray(signal, complex), max(top - 1, 0), min(top + 1, len(signal) - 1)
+        )
+        return float(max(fine.max(), env.max()))
 
 
 def threshold_echoes(
     frames: NDArray[np.floating], detector: ThresholdDetector, options: EchoOptions
 ) -> list[ChannelEchoes]:
-    """Threshold-crossing echoes of one frame (n_rx, n_samples)."""
-    envelopes = detector.envelope(frames)
+    """Threshold-crossing echoes of one frame (n_rx, n_samples).
+
+    The level is ``threshold_db`` above the noise power (from the median), and at
+    least ``threshold_fraction`` of the channel's strongest envelope sample.
+    """
+    signals = detector.analytic(frames)
     result = []
     first = int(np.ceil(options.blanking_s * detector.sample_rate_hz))
-    for env in envelopes:
-        power = (
-            float(np.median(env**2)) / _LN2
-            if detector.signal_kind != "envelope"
-            else float(np.median(env) ** 2 / _LN2)
+    for signal in signals:
+        env = np.abs(signal)
+        power = max(float(np.median(env**2)) / _LN2, float(np.finfo(float).tiny))
+        level = max(
+            float(np.sqrt(10 ** (options.threshold_db / 10) * power)),
+            options.threshold_fraction * float(env[first:].max(initial=0.0)),
         )
-        power = max(power, float(np.finfo(float).tiny))
-        level = np.sqrt(10 ** (options.threshold_db / 10) * power)
         tofs: list[float] = []
         amplitudes: list[float] = []
         k = max(first, 1)
-        while len(tofs) < options.max_echoes:
+        while len(tofs) < options.max_echoes and level > 0:
             above = np.flatnonzero(env[k:] >= level)
             if len(above) == 0:
                 break
             cross = k + int(above[0])
-            # Linear interpolation of the crossing between samples cross-1 and cross.
-            lo, hi = env[cross - 1], env[cross]
-            t_cross = cross - 1 + (level - lo) / (hi - lo) if hi > lo else float(cross)
             stop = min(cross + detector.duration_samples, len(env))
-            peak = float(env[cross:stop].max())
+            peak = detector.peak(signal, cross, stop)
+            t_cross = detector.crossing(signal, cross, level)
             tofs.append(t_cross - detector.rise_time_samples(level / peak))
             amplitudes.append(peak)
-            # Re-arm once the pulse has passed and the envelope has fallen below the level.
-            below = np.flatnonzero(env[stop:] < level)
-            if len(below) == 0:
+            # Re-arm once the pulse has passed and the envelope has stayed below the level.
+            quiet = np.convolve(env[stop:] < level, np.ones(detector.hold_samples), mode="valid")
+            settled = np.flatnonzero(quiet == detector.hold_samples)
+            if len(settled) == 0:
                 break
-            k = stop + int(below[0])
+            k = stop + int(settled[0]) + detector.hold_samples
         tof = np.array(tofs) / detector.sample_rate_hz
         amplitude = np.array(amplitudes)
         snr_db = 10 * np.log10(np.maximum(amplitude**2, 1e-300) / power)
@@ -495,18 +586,43 @@ def _prepare_threshold(recording: Recording, options: EchoOptions) -> Estimator:
     return lambda frame: threshold_echoes(frame, detector, options)
 
 
-ESTIMATORS: dict[str, Callable[[Recording, EchoOptions], Estimator]] = {
-    "matched": _prepare_matched,
-    "threshold": _prepare_threshold,
+@dataclass(frozen=True)
+class EstimatorInfo:
+    """A registered estimator.
+
+    ``prepare(recording, options)`` precomputes what the estimator reuses and returns
+    it ready for frames; ``clean_tolerance_s`` is the largest error of its ``tof_s``
+    on a clean, isolated echo (enforced by the tests for every registered estimator).
+    """
+
+    prepare: Callable[[Recording, EchoOptions], Estimator]
+    clean_tolerance_s: float
+    signal_kinds: tuple[str, ...]
+    summary: str
+
+
+ESTIMATORS: dict[str, EstimatorInfo] = {
+    "matched": EstimatorInfo(
+        _prepare_matched,
+        clean_tolerance_s=1e-9,
+        signal_kinds=("rf",),
+        summary="matched filter (SENT template), CLEAN extraction, carrier-phase refinement",
+    ),
+    "threshold": EstimatorInfo(
+        _prepare_threshold,
+        clean_tolerance_s=1e-6,
+        signal_kinds=("rf", "envelope"),
+        summary="first envelope crossing of a level, corrected for the pulse's rise time",
+    ),
 }
-"""Every time-of-flight estimator, by name: ``prepare(recording, options) -> estimator``."""
+"""Every time-of-flight estimator, by name."""
 
 
 def prepare_estimator(recording: Recording, options: EchoOptions, name: str = "matched") -> Estimator:
     """Look up estimator ``name`` and precompute what it reuses for ``recording``."""
     if name not in ESTIMATORS:
         raise EchoLocError(f"unknown estimator {name!r}; choose from {', '.join(ESTIMATORS)}")
-    return ESTIMATORS[name](recording, options)
+    return ESTIMATORS[name].prepare(recording, options)
 
 
 def frame_time_s(recording: Recording, index: int) -> float:

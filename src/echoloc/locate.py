@@ -117,14 +117,6 @@ def paired_closed_form(paths_m: NDArray[np.float64], spacing_m: float) -> NDArra
 # --- general solver ----------------------------------------------------------------
 
 
-def _is_degenerate(relative_receivers: NDArray[np.float64]) -> bool:
-    """True when T and the receivers span less than 3-D (a flat or linear array)."""
-    if len(relative_receivers) < 3:
-        return True
-    singular = np.linalg.svd(relative_receivers, compute_uv=False)
-    return bool(singular[-1] <= 1e-9 * max(singular[0], 1e-12))
-
-
 def linear_start(
     transmitter_m: NDArray[np.float64],
     receivers_m: NDArray[np.float64],
@@ -146,25 +138,29 @@ def linear_start(
     A[:, :, 3] = -2 * paths
     b = np.sum(rel**2, axis=1) - paths**2
     u, s, vt = np.linalg.svd(A, full_matrices=True)
-    rank = 4 if m >= 4 and not _is_degenerate(rel) else 3
-    ub = np.einsum("nmk,nm->nk", u[:, :, :rank], b)
-    x0 = np.einsum("nkj,nk->nj", vt[:, :rank, :], ub / s[:, :rank])
-    if rank == 3:
-        v = vt[:, 3, :]
-        # |p0 + s vp|^2 - (rho0 + s vr)^2 = 0
-        p0, r0, vp, vr = x0[:, :3], x0[:, 3], v[:, :3], v[:, 3]
-        qa = np.sum(vp**2, axis=1) - vr**2
-        qb = 2 * (np.sum(p0 * vp, axis=1) - r0 * vr)
-        qc = np.sum(p0**2, axis=1) - r0**2
-        disc = np.maximum(qb**2 - 4 * qa * qc, 0.0)
-        safe_a = np.where(np.abs(qa) > 1e-15, qa, 1e-15)
-        roots = np.stack([(-qb + np.sqrt(disc)) / (2 * safe_a), (-qb - np.sqrt(disc)) / (2 * safe_a)], axis=1)
-        candidates = p0[:, None, :] + roots[..., None] * vp[:, None, :]
-        ahead = candidates @ boresight
-        pick = np.argmax(ahead, axis=1)
-        p = candidates[np.arange(n), pick]
-    else:
-        p = x0[:, :3]
+    k = min(m, 4)
+    ub = np.zeros((n, 4))
+    ub[:, :k] = np.einsum("nmk,nm->nk", u[:, :, :k], b)
+    s = np.concatenate([s, np.zeros((n, 4 - k))], axis=1)
+    safe = np.where(s > 0, s, 1.0)
+    # Rank 4: the least-squares solution. Rank 3 (three receivers, a flat array, or
+    # receivers that coincide): the particular solution plus s * the null vector.
+    full = np.einsum("nkj,nk->nj", vt[:, :4, :], np.where(s > 0, ub / safe, 0.0))
+    x0 = np.einsum("nkj,nk->nj", vt[:, :3, :], ub[:, :3] / safe[:, :3])
+    v = vt[:, 3, :]
+    # |p0 + s vp|^2 - (rho0 + s vr)^2 = 0
+    p0, r0, vp, vr = x0[:, :3], x0[:, 3], v[:, :3], v[:, 3]
+    qa = np.sum(vp**2, axis=1) - vr**2
+    qb = 2 * (np.sum(p0 * vp, axis=1) - r0 * vr)
+    qc = np.sum(p0**2, axis=1) - r0**2
+    disc = np.sqrt(np.maximum(qb**2 - 4 * qa * qc, 0.0))
+    safe_a = np.where(np.abs(qa) > 1e-15, qa, 1e-15)
+    roots = np.stack([(-qb + disc) / (2 * safe_a), (-qb - disc) / (2 * safe_a)], axis=1)
+    candidates = p0[:, None, :] + roots[..., None] * vp[:, None, :]
+    ahead = candidates @ boresight
+    constrained = candidates[np.arange(n), np.argmax(ahead, axis=1)]
+    rank_four = (s[:, 3] > 1e-6 * s[:, 0]) if m >= 4 else np.zeros(n, dtype=bool)
+    p = np.where(rank_four[:, None], full[:, :3], constrained)
     return np.asarray(p + transmitter_m)
 
 

@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from echoloc.air import speed_of_sound_m_s
-from echoloc.errors import SceneError
+from echoloc.errors import EchoLocError, SceneError
 from echoloc.waveform import BARKER_CODES, Carrier, Waveform, barker_waveform
 
 
@@ -108,6 +108,12 @@ class Scene:
             raise SceneError(f"n_samples must be >= 1, got {self.n_samples}")
         if not self.frame_rate_hz > 0:
             raise SceneError(f"frame_rate_hz must be > 0, got {self.frame_rate_hz}")
+        if not self.temperature_c > -273.15:
+            raise SceneError(f"air.temperature_c must be above absolute zero, got {self.temperature_c}")
+        if not 0 <= self.relative_humidity <= 1:
+            raise SceneError(
+                f"air.relative_humidity must be a fraction in 0..1, got {self.relative_humidity}"
+            )
         if self.path_jitter_m < 0:
             raise SceneError(f"path_jitter_m must be >= 0, got {self.path_jitter_m}")
         if self.random is None and len(positions) == 0:
@@ -210,7 +216,7 @@ def scene_from_dict(data: Mapping[str, Any], source: str = "<scene>") -> Scene:
     """Build a :class:`Scene` from a parsed TOML table, checking every key and value."""
     try:
         return _scene_from_dict(data, source)
-    except SceneError as error:
+    except EchoLocError as error:
         message = str(error)
         raise SceneError(message if message.startswith(source) else f"{source}: {message}") from None
 

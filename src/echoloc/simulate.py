@@ -77,10 +77,14 @@ def synthesize_frames(
     ``tof_s`` and ``amplitude`` have shape (n_frames, n_rx, n_echoes); NaN entries
     (padding) contribute nothing. Returns (n_frames, n_rx, n_samples).
     """
-    n_fft = scipy.fft.next_fast_len(n_samples + 2 * len(waveform) + 64, real=True)
+    guard = 64  # samples of room for the band-limited pulse's tails
+    n_fft = scipy.fft.next_fast_len(n_samples + 2 * len(waveform) + 2 * guard, real=True)
     spectrum = scipy.fft.rfft(waveform, n_fft)
     freqs_hz = scipy.fft.rfftfreq(n_fft, 1.0 / sample_rate_hz)
-    valid = np.isfinite(tof_s) & np.isfinite(amplitude)
+    # An echo arriving after the frame has ended leaves no trace in it; left in, the
+    # circular FFT would wrap it round into the frame.
+    arrives_in_time = tof_s * sample_rate_hz < n_samples + guard
+    valid = np.isfinite(tof_s) & np.isfinite(amplitude) & arrives_in_time
     tof = np.where(valid, tof_s, 0.0)
     amp = np.where(valid, amplitude, 0.0)
     # sum_k a_k exp(-2j pi f tau_k), accumulated echo by echo to bound memory.

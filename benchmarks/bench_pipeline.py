@@ -1,0 +1,164 @@
+"""Time per frame of `echoes` and `locate`, side by side with straightforward baselines.
+
+Baselines, written the obvious way with scipy:
+
+- echoes: per channel, ``scipy.signal.correlate`` with the pulse, ``scipy.signal.hilbert``
+  for the envelope, ``scipy.signal.find_peaks`` (height 5 sigma of the envelope noise,
+  distance one chip) and a parabolic fit of the peak;
+- locate: every combination of one echo per receiver solved by
+  ``scipy.optimize.least_squares``, kept when its residual passes the same chi-square
+  gate, then taken greedily by residual.
+
+Both run on the same frames in alternating rounds (this machine is shared and noisy),
+and the median of the rounds is reported, with the ratio and the accuracy of each, so
+a speed-up never hides a loss of accuracy.
+
+    python benchmarks/bench_pipeline.py [--frames 40] [--rounds 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import time
+from collections.abc import Callable
+from dataclasses import replace
+
+import numpy as np
+from scipy import optimize, signal, stats
+
+from echoloc.evaluate import evaluate
+from echoloc.locate import FrameObjects, LocatedObject, model_paths_m
+from echoloc.pipeline import Chain, frame_echoes, frame_objects, prepare
+from echoloc.scene import RandomReflectors, default_scene
+from echoloc.simulate import simulate
+
+
+def baseline_echoes(chain: Chain, index: int) -> list[np.ndarray]:
+    """Paths (m) per receiver by correlate + hilbert + find_peaks + parabola."""
+    recording = chain.recording
+    pulse = np.asarray(recording.waveform)
+    fs = recording.sample_rate_hz
+    chip = round(4 / 50e3 * fs)
+    result = []
+    for channel in recording.frames[index]:
+        correlation = signal.correlate(channel, pulse, mode="full")[len(pulse) - 1 :]
+        envelope = np.abs(signal.hilbert(correlation))
+        noise = np.median(envelope) / np.sqrt(np.log(4))
+        peaks, _ = signal.find_peaks(envelope, height=5 * noise, distance=chip)
+        peaks = peaks[envelope[peaks] > 0.1 * envelope.max()]
+        a, b, c = envelope[peaks - 1], envelope[peaks], envelope[np.minimum(peaks + 1, len(envelope) - 1)]
+        offset = 0.5 * (a - c) / np.where(a - 2 * b + c < 0, a - 2 * b + c, -1.0)
+        result.append((peaks + offset) / fs * chain.speed_of_sound_m_s)
+    return result
+
+
+def baseline_locate(chain: Chain, index: int, paths: list[np.ndarray]) -> FrameObjects:
+    """Brute force: least_squares on every 4-combination, chi-square gate, greedy by residual."""
+    recording = chain.recording
+    tx, rx = recording.transmitters_m[0], recording.receivers_m
+    sigma = chain.locate_options.path_sigma_m
+    gate = stats.chi2.ppf(chain.locate_options.gate_probability, 1)
+    found = []
+    for combo in itertools.product(*[range(len(p)) for p in paths]):
+        measured = np.array([paths[i][k] for i, k in enumerate(combo)])
+
+        def residual(p: np.ndarray, measured: np.ndarray = measured) -> np.ndarray:
+            return (model_paths_m(tx, rx, p[None])[0] - measured) / sigma
+
+        fit = optimize.least_squares(residual, x0=np.array([0.0, 0.0, np.mean(measured) / 2]))
+        chi2 = float(np.sum(fit.fun**2))
+        if chi2 <= gate and fit.x[2] > 0:
+            found.append((chi2, combo, fit.x))
+    used: list[set[int]] = [set() for _ in paths]
+    objects = []
+    for chi2, combo, position in sorted(found, key=lambda f: f[0]):
+        if any(k in used[i] for i, k in enumerate(combo)):
+            continue
+        for i, k in enumerate(combo):
+            used[i].add(k)
+        objects.append(LocatedObject(position, np.eye(3) * sigma**2, (0, 1, 2, 3), combo, chi2, 1.0))
+    return FrameObjects(index, 0.0, tuple(objects))
+
+
+def _time(job: Callable[[], object]) -> float:
+    start = time.perf_counter()
+    job()
+    return time.perf_counter() - start
+
+
+def bench(name: str, chain: Chain, n_frames: int, rounds: int, brute_frames: int) -> None:
+    frames = range(n_frames)
+    # The brute-force locate takes seconds a frame: it runs on the first few frames only.
+    few = range(min(brute_frames, n_frames))
+    echoes = [frame_echoes(chain, i) for i in frames]
+    base_paths = [baseline_echoes(chain, i) for i in frames]
+    timings: dict[str, list[float]] = {k: [] for k in ("echoes", "echoes_base", "locate", "locate_base")}
+    for _ in range(rounds):
+        timings["echoes"].append(_time(lambda: [frame_echoes(chain, i) for i in frames]) / n_frames)
+        timings["echoes_base"].append(_time(lambda: [baseline_echoes(chain, i) for i in frames]) / n_frames)
+        timings["locate"].append(_time(lambda: [frame_objects(chain, e) for e in echoes]) / n_frames)
+        timings["locate_base"].append(
+            _time(lambda: [baseline_locate(chain, i, base_paths[i]) for i in few]) / len(few)
+        )
+    median = {k: float(np.median(v)) for k, v in timings.items()}
+    truth = chain.recording.truth_positions_m
+    assert truth is not None
+    ours = evaluate([frame_objects(chain, e) for e in echoes], truth)
+    theirs = evaluate([baseline_locate(chain, i, base_paths[i]) for i in few], truth)
+    print(
+        f"\n## {name}: {n_frames} frames x {chain.recording.n_receivers} receivers x "
+        f"{chain.recording.n_samples} samples, median of {rounds} alternating rounds\n"
+    )
+    print("| stage | echoloc ms/frame | baseline ms/frame | speed-up |")
+    print("|---|---|---|---|")
+    for stage in ("echoes", "locate"):
+        print(
+            f"| {stage} | {median[stage] * 1e3:.3f} | {median[stage + '_base'] * 1e3:.3f} | "
+            f"{median[stage + '_base'] / median[stage]:.1f}x |"
+        )
+    total = median["echoes"] + median["locate"]
+    print(
+        f"| full chain | {total * 1e3:.3f} | {(median['echoes_base'] + median['locate_base']) * 1e3:.3f} | "
+        f"{(median['echoes_base'] + median['locate_base']) / total:.1f}x |"
+    )
+    print(
+        f"\nAccuracy on the same frames: echoloc recall {ours.recall:.3f}, false {ours.false_rate:.3f}, "
+        f"RMSE {np.round(ours.rmse_m * 1e3, 3).tolist()} mm; baseline recall {theirs.recall:.3f}, "
+        f"false {theirs.false_rate:.3f}, RMSE {np.round(theirs.rmse_m * 1e3, 3).tolist()} mm"
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=40)
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--brute-frames", type=int, default=2, help="frames for the brute-force locate")
+    args = parser.parse_args()
+    scene = default_scene()
+    bench(
+        "Default scene (report set-up, 3 balls)",
+        prepare(simulate(scene, args.frames)),
+        args.frames,
+        args.rounds,
+        args.brute_frames,
+    )
+    five = replace(
+        scene,
+        reflector_positions_m=np.zeros((0, 3)),
+        reflector_strengths=np.zeros(0),
+        random=RandomReflectors(count=(5, 5), strength=(0.5, 2.0)),
+        snr_db=20.0,
+        path_jitter_m=0.5e-3,
+    )
+    bench(
+        "Five random reflectors in 1 m^3",
+        prepare(simulate(five, args.frames)),
+        args.frames,
+        args.rounds,
+        args.brute_frames,
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,826 @@
+"""End-to-end tests of the ``echoloc`` command line against FORMATS.md.
+
+Most cases run in-process through :func:`echoloc.cli.main` (which always ends with
+``sys.exit``) and capture stdout/stderr with ``capsys``; a few run the installed
+console script as a real subprocess, to prove what a user's shell sees: the exit
+code, a clean stdout and no traceback on stderr.
+
+FORMATS.md rules checked here: the recording file (readers reject with exit 2), the
+JSON Lines of ``echoes --json`` and ``locate --json``, and the exit codes (0 success,
+2 bad input or usage with one line on stderr naming the file and the problem, no
+traceback).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+import pytest
+
+from echoloc import cli
+from echoloc.recording import Recording, read_recording, write_recording
+from echoloc.scene import default_scene
+from echoloc.simulate import path_lengths_m, simulate
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+ECHOLOC = Path(sys.executable).parent / "echoloc"
+COMMANDS = ("demo", "simulate", "echoes", "locate", "evaluate")
+N_FRAMES = 2
+
+ECHOES_FRAME_KEYS = {"frame", "time_s", "channels"}
+CHANNEL_KEYS = {"receiver", "echoes"}
+ECHO_KEYS = {"tof_s", "path_m", "amplitude", "snr_db"}
+LOCATE_FRAME_KEYS = {"frame", "time_s", "objects"}
+OBJECT_KEYS = {"position_m", "std_m", "receivers", "score"}
+EVALUATE_KEYS = {
+    "estimator",
+    "frames",
+    "truth_objects",
+    "located_objects",
+    "matched",
+    "recall",
+    "false_objects",
+    "false_rate",
+    "rmse_m",
+    "bias_m",
+    "mean_reported_std_m",
+    "match_radius_m",
+}
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+@dataclasses.dataclass(frozen=True)
+class Result:
+    """What a run of the command line left behind."""
+
+    code: int
+    out: str
+    err: str
+
+    @property
+    def err_lines(self) -> list[str]:
+        return self.err.splitlines()
+
+
+def run(capsys: pytest.CaptureFixture[str], *args: object) -> Result:
+    """Run ``echoloc ARGS`` in-process; main() always ends with SystemExit."""
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as info:
+        cli.main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    code = info.value.code
+    assert isinstance(code, int), f"exit code {code!r} is not an int"
+    return Result(code, out, err)
+
+
+def _clean_env() -> dict[str, str]:
+    """The environment of a user's pipe: no forced terminal width or colour."""
+    env = dict(os.environ)
+    for name in ("COLUMNS", "LINES", "FORCE_COLOR", "TTY_COMPATIBLE", "TTY_INTERACTIVE"):
+        env.pop(name, None)
+    return env
+
+
+def run_process(*args: object, cwd: Path) -> Result:
+    """Run the installed ``echoloc`` console script as a real subprocess."""
+    completed = subprocess.run(
+        [str(ECHOLOC), *(str(a) for a in args)],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        env=_clean_env(),
+        timeout=60,
+        check=False,
+    )
+    return Result(completed.returncode, completed.stdout, completed.stderr)
+
+
+def _reject_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not valid JSON")
+
+
+def json_lines(text: str) -> list[dict[str, Any]]:
+    """Parse JSON Lines strictly: every line one JSON object, no NaN or Infinity."""
+    records = []
+    for line in text.splitlines():
+        record = json.loads(line, parse_constant=_reject_constant)
+        assert isinstance(record, dict), line
+        records.append(record)
+    return records
+
+
+def assert_bad_input(result: Result, *names: str) -> None:
+    """Exit 2, exactly one line on stderr naming ``names``, nothing on stdout, no traceback."""
+    assert result.code == 2, result
+    assert "Traceback" not in result.out + result.err
+    assert result.out == ""
+    assert len(result.err_lines) == 1, f"expected one line on stderr, got {result.err!r}"
+    line = result.err_lines[0]
+    assert line.startswith("echoloc: error: "), line
+    for name in names:
+        assert name in line, f"{name!r} not named in {line!r}"
+
+
+def is_number(value: object) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def read_h5(path: Path) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Root attributes and datasets of an HDF5 recording, as plain values."""
+    with h5py.File(path, "r") as f:
+        attrs = {name: f.attrs[name] for name in f.attrs}
+        data = {name: f[name][()] for name in f}
+    return attrs, data
+
+
+def write_h5(path: Path, attrs: dict[str, Any], data: dict[str, Any]) -> Path:
+    """Write attributes and datasets as given, without any validation."""
+    with h5py.File(path, "w") as f:
+        for name, value in attrs.items():
+            f.attrs[name] = value
+        for name, value in data.items():
+            f.create_dataset(name, data=value)
+    return path
+
+
+def broken_copy(good: Path, target: Path, breaker: Callable[[dict[str, Any], dict[str, Any]], None]) -> Path:
+    """Copy every field of a good HDF5 recording to ``target``, then let ``breaker`` break one."""
+    attrs, data = read_h5(good)
+    breaker(attrs, data)
+    if target.suffix == ".npz":
+        np.savez(target, **{name: np.asarray(value) for name, value in {**attrs, **data}.items()})
+        return target
+    return write_h5(target, attrs, data)
+
+
+def true_paths(rec: Recording, positions: np.ndarray) -> np.ndarray:
+    """Exact transmitter -> reflector -> receiver paths, shape (n_reflectors, n_rx)."""
+    path, _, _ = path_lengths_m(rec.transmitters_m[0], rec.receivers_m, positions)
+    return path
+
+
+# ----------------------------------------------------------------------------- fixtures
+
+
+@pytest.fixture(scope="module")
+def good_h5(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A valid recording of the report's three balls, N_FRAMES frames."""
+    path = tmp_path_factory.mktemp("good") / "balls.h5"
+    return write_recording(simulate(default_scene(), n_frames=N_FRAMES), path)
+
+
+@pytest.fixture(scope="module")
+def dead_h5(tmp_path_factory: pytest.TempPathFactory, good_h5: Path) -> Path:
+    """The three-ball recording with receiver 2 all zeros (a dead channel)."""
+
+    def kill_receiver_2(attrs: dict[str, Any], data: dict[str, Any]) -> None:
+        data["frames"][:, 2, :] = 0.0
+
+    return broken_copy(good_h5, tmp_path_factory.mktemp("dead") / "dead.h5", kill_receiver_2)
+
+
+@pytest.fixture
+def in_tmp(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """Work in tmp_path, so that file names in messages are short relative names."""
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
+@pytest.fixture
+def wide_stdout(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Room for the tables whatever COLUMNS the test run inherited."""
+    monkeypatch.setattr(cli.stdout, "width", 200)
+
+
+# ----------------------------------------------------------------------------- demo
+
+
+def test_demo_writes_a_readable_recording_and_finds_the_three_balls(
+    capsys: pytest.CaptureFixture[str], in_tmp: Path, wide_stdout: None
+) -> None:
+    """User expectation: `echoloc demo` works out of the box, writes the recording it
+    talks about, and its table shows each of the three balls with a sub-mm error."""
+    (in_tmp / "tmp").mkdir()
+    result = run(capsys, "demo", "-o", "tmp/demo.h5", "--frames", 3)
+    assert result.code == 0, result
+    assert "Traceback" not in result.err
+    rec = read_recording(in_tmp / "tmp" / "demo.h5")
+    assert rec.n_frames == 3
+    assert rec.truth_positions_m is not None
+
+    for column in ("ball", "range mm", "error mm", "rx"):
+        assert column in result.out
+    errors_mm = {}
+    for line in result.out.splitlines():
+        cells = [cell.strip() for cell in line.split("│")]
+        if len(cells) == 9 and cells[1] in {"1", "2", "3"}:
+            errors_mm[int(cells[1])] = float(cells[5])
+    assert sorted(errors_mm) == [1, 2, 3], result.out
+    assert all(0 <= error < 1.0 for error in errors_mm.values()), errors_mm
+    assert "3 frames" in result.out
+    assert "9 of 9 balls found" in result.out
+
+
+def test_demo_recording_located_within_1_mm_in_every_frame(
+    capsys: pytest.CaptureFixture[str], in_tmp: Path
+) -> None:
+    """User expectation: `echoloc locate` on the demo's own recording finds each of the
+    report's three balls (default_scene) within 1 mm, in every frame (FORMATS.md
+    `locate --json`, one line per frame)."""
+    assert run(capsys, "demo", "-o", "demo.h5", "--frames", 3).code == 0
+    result = run(capsys, "locate", "demo.h5", "--json")
+    assert result.code == 0, result
+    records = json_lines(result.out)
+    assert [r["frame"] for r in records] == [0, 1, 2]
+    truth = default_scene().reflector_positions_m
+    for record in records:
+        found = np.array([o["position_m"] for o in record["objects"]]).reshape(-1, 3)
+        assert len(found), record
+        for ball in truth:
+            distance = np.min(np.linalg.norm(found - ball, axis=1))
+            assert distance < 1e-3, (record["frame"], ball, distance)
+
+
+def test_demo_into_a_missing_directory_is_bad_input(capsys: pytest.CaptureFixture[str], in_tmp: Path) -> None:
+    """FORMATS.md exit codes: an output path that cannot be written is bad input (2),
+    one line naming the file, no traceback."""
+    assert_bad_input(run(capsys, "demo", "-o", "nodir/demo.h5", "--frames", 1), "nodir/demo.h5")
+    assert not (in_tmp / "nodir").exists()
+
+
+# ----------------------------------------------------------------------------- echoes --json
+
+
+def check_echoes_records(records: list[dict[str, Any]], rec: Recording) -> None:
+    """The shape rules of FORMATS.md `echoes --json`, for every record."""
+    assert rec.speed_of_sound_m_s is not None
+    c = rec.speed_of_sound_m_s
+    for record in records:
+        assert set(record) == ECHOES_FRAME_KEYS, record.keys()
+        assert isinstance(record["frame"], int)
+        assert is_number(record["time_s"])
+        assert [ch["receiver"] for ch in record["channels"]] == list(range(rec.n_receivers))
+        for channel in record["channels"]:
+            assert set(channel) == CHANNEL_KEYS, channel.keys()
+            tofs = [echo["tof_s"] for echo in channel["echoes"]]
+            assert tofs == sorted(tofs), f"echoes not in ascending tof: {tofs}"
+            for echo in channel["echoes"]:
+                assert set(echo) == ECHO_KEYS, echo.keys()
+                assert all(is_number(echo[key]) for key in ECHO_KEYS), echo
+                assert echo["tof_s"] > 0
+                assert echo["path_m"] == pytest.approx(echo["tof_s"] * c, rel=1e-12, abs=0)
+
+
+def test_echoes_json_follows_the_contract_and_finds_every_true_path(
+    capsys: pytest.CaptureFixture[str], good_h5: Path
+) -> None:
+    """FORMATS.md `echoes --json`: one object per frame with exactly the keys frame,
+    time_s, channels[{receiver, echoes[{tof_s, path_m, amplitude, snr_db}]}]; echoes in
+    ascending tof; path_m = tof_s x the speed of sound; every true path of the default
+    scene matched by an echo within 0.5 mm."""
+    result = run(capsys, "echoes", good_h5, "--json")
+    assert result.code == 0, result
+    assert result.err == ""
+    rec = read_recording(good_h5)
+    records = json_lines(result.out)
+    assert len(records) == rec.n_frames == N_FRAMES
+    assert [r["frame"] for r in records] == list(range(N_FRAMES))
+    assert rec.frame_times_s is not None
+    assert [r["time_s"] for r in records] == pytest.approx(list(rec.frame_times_s))
+    check_echoes_records(records, rec)
+
+    paths = true_paths(rec, default_scene().reflector_positions_m)
+    for record in records:
+        for channel in record["channels"]:
+            measured = np.array([echo["path_m"] for echo in channel["echoes"]])
+            assert len(measured), (record["frame"], channel["receiver"])
+            for true_path in paths[:, channel["receiver"]]:
+                miss = np.min(np.abs(measured - true_path))
+                assert miss < 0.5e-3, (record["frame"], channel["receiver"], true_path, miss)
+
+
+def test_echoes_json_threshold_estimator_first_echo_within_2_mm(
+    capsys: pytest.CaptureFixture[str], good_h5: Path
+) -> None:
+    """FORMATS.md `echoes --json`: tof_s is the path over c "whatever the estimator";
+    with --estimator threshold the first echo of each channel is the nearest ball's
+    path within 2 mm, and the format rules hold as for the matched filter."""
+    result = run(capsys, "echoes", good_h5, "--json", "--estimator", "threshold")
+    assert result.code == 0, result
+    rec = read_recording(good_h5)
+    records = json_lines(result.out)
+    assert len(records) == N_FRAMES
+    check_echoes_records(records, rec)
+    shortest = true_paths(rec, default_scene().reflector_positions_m).min(axis=0)
+    for record in records:
+        for channel in record["channels"]:
+            assert channel["echoes"], (record["frame"], channel["receiver"])
+            first = channel["echoes"][0]["path_m"]
+            assert abs(first - shortest[channel["receiver"]]) < 2e-3, (record["frame"], channel)
+
+
+def test_echoes_speed_of_sound_override_scales_path_not_tof(
+    capsys: pytest.CaptureFixture[str], good_h5: Path
+) -> None:
+    """FORMATS.md: path_m is tof_s times "the speed of sound used", so with
+    --speed-of-sound the paths follow the given value."""
+    result = run(capsys, "echoes", good_h5, "--json", "--speed-of-sound", 340.0, "--frames", 0)
+    assert result.code == 0, result
+    (record,) = json_lines(result.out)
+    echoes = [echo for channel in record["channels"] for echo in channel["echoes"]]
+    assert echoes
+    for echo in echoes:
+        assert echo["path_m"] == pytest.approx(echo["tof_s"] * 340.0, rel=1e-12, abs=0)
+
+
+# ----------------------------------------------------------------------------- locate --json
+
+
+def test_locate_json_follows_the_contract(capsys: pytest.CaptureFixture[str], good_h5: Path) -> None:
+    """FORMATS.md `locate --json`: one object per frame with exactly the keys frame,
+    time_s, objects[{position_m[3], std_m[3], receivers, score}]; receivers an int
+    3..4 (how many receivers support the object), score in [0, 1], std_m > 0; and the
+    three balls found within 1 mm."""
+    result = run(capsys, "locate", good_h5, "--json")
+    assert result.code == 0, result
+    assert result.err == ""
+    records = json_lines(result.out)
+    assert [r["frame"] for r in records] == list(range(N_FRAMES))
+    truth = default_scene().reflector_positions_m
+    for record in records:
+        assert set(record) == LOCATE_FRAME_KEYS, record.keys()
+        assert is_number(record["time_s"])
+        assert record["objects"], record
+        for obj in record["objects"]:
+            assert set(obj) == OBJECT_KEYS, obj.keys()
+            assert len(obj["position_m"]) == 3
+            assert all(map(is_number, obj["position_m"]))
+            assert len(obj["std_m"]) == 3
+            assert all(map(is_number, obj["std_m"]))
+            assert all(s > 0 for s in obj["std_m"]), obj
+            assert type(obj["receivers"]) is int, obj
+            assert 3 <= obj["receivers"] <= 4, obj
+            assert is_number(obj["score"]), obj
+            assert 0 <= obj["score"] <= 1, obj
+            assert obj["position_m"][2] > 0, "in front of the array (z is the boresight)"
+        found = np.array([o["position_m"] for o in record["objects"]])
+        for ball in truth:
+            assert np.min(np.linalg.norm(found - ball, axis=1)) < 1e-3
+
+
+def test_locate_reads_npz_recordings(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    """FORMATS.md: "the same names in a NumPy .npz are accepted too"."""
+    path = write_recording(simulate(default_scene(), n_frames=1), tmp_path / "balls.npz")
+    result = run(capsys, "locate", path, "--json")
+    assert result.code == 0, result
+    (record,) = json_lines(result.out)
+    assert len(record["objects"]) == 3
+
+
+# ----------------------------------------------------------------------------- --frames
+
+
+@pytest.mark.parametrize("command", ["echoes", "locate"])
+@pytest.mark.parametrize("frames", ["1:2", "1"])
+def test_frames_selects_one_frame(
+    capsys: pytest.CaptureFixture[str], good_h5: Path, command: str, frames: str
+) -> None:
+    """User expectation: --frames 1:2 (a slice) and --frames 1 select exactly frame 1,
+    reported with its own frame index and time."""
+    result = run(capsys, command, good_h5, "--json", "--frames", frames)
+    assert result.code == 0, result
+    (record,) = json_lines(result.out)
+    assert record["frame"] == 1
+    assert record["time_s"] == pytest.approx(0.01)
+
+
+@pytest.mark.parametrize("frames", [":", "0:", ":2"])
+def test_frames_open_slices_select_all(
+    capsys: pytest.CaptureFixture[str], good_h5: Path, frames: str
+) -> None:
+    """User expectation: --frames with an open end means "to the start/end"."""
+    result = run(capsys, "locate", good_h5, "--json", "--frames", frames)
+    assert result.code == 0, result
+    assert [r["frame"] for r in json_lines(result.out)] == [0, 1]
+
+
+@pytest.mark.parametrize("command", ["echoes", "locate", "evaluate"])
+@pytest.mark.parametrize("frames", ["x", "5:2", "2", "0:3", "-1", "1:2:3", "1.5", ""])
+def test_bad_frames_is_a_usage_error(
+    capsys: pytest.CaptureFixture[str], good_h5: Path, command: str, frames: str
+) -> None:
+    """FORMATS.md exit codes: a --frames value that is not N or START:STOP inside the
+    recording is bad usage: exit 2, one line on stderr naming --frames."""
+    result = run(capsys, command, good_h5, "--json", "--frames", frames)
+    assert_bad_input(result, "--frames")
+
+
+# ----------------------------------------------------------------------------- evaluate
+
+
+def test_simulate_then_evaluate_random_scene(capsys: pytest.CaptureFixture[str], in_tmp: Path) -> None:
+    """User expectation (examples/random-1m3.toml, the acceptance scene): 30 simulated
+    frames are evaluated with recall >= 0.95 and a false rate <= 0.05."""
+    result = run(capsys, "simulate", EXAMPLES / "random-1m3.toml", "-o", "random.h5", "--frames", 30)
+    assert result.code == 0, result
+    assert result.out == ""
+    assert "Traceback" not in result.err
+    assert read_recording(in_tmp / "random.h5").n_frames == 30
+
+    result = run(capsys, "evaluate", "random.h5", "--json")
+    assert result.code == 0, result
+    (report,) = json_lines(result.out)
+    assert set(report) == EVALUATE_KEYS
+    assert report["frames"] == 30
+    assert report["estimator"] == "matched"
+    assert report["truth_objects"] >= 30
+    assert report["recall"] >= 0.95, report
+    assert report["false_rate"] <= 0.05, report
+    assert all(0 <= v < 5e-3 for v in report["rmse_m"]), report
+
+
+def test_evaluate_without_truth_is_bad_input(
+    capsys: pytest.CaptureFixture[str], in_tmp: Path, good_h5: Path
+) -> None:
+    """FORMATS.md: truth_positions is read by `evaluate`; a recording without it is bad
+    input for evaluate: exit 2, one line naming the file and truth_positions."""
+    rec = dataclasses.replace(read_recording(good_h5), truth_positions_m=None)
+    write_recording(rec, in_tmp / "notruth.h5")
+    assert_bad_input(run(capsys, "evaluate", "notruth.h5"), "notruth.h5", "truth_positions")
+    assert_bad_input(run(capsys, "evaluate", "notruth.h5", "--json"), "notruth.h5", "truth_positions")
+
+
+def test_locate_ignores_truth(capsys: pytest.CaptureFixture[str], in_tmp: Path, good_h5: Path) -> None:
+    """FORMATS.md: truth_positions is "never" read by echoes or locate: removing it does
+    not change their output."""
+    rec = dataclasses.replace(read_recording(good_h5), truth_positions_m=None)
+    write_recording(rec, in_tmp / "notruth.h5")
+    for command in ("echoes", "locate"):
+        with_truth = run(capsys, command, good_h5, "--json")
+        without = run(capsys, command, "notruth.h5", "--json")
+        assert with_truth.code == without.code == 0
+        assert with_truth.out == without.out
+
+
+# ----------------------------------------------------------------------------- bad input
+
+Breaker = Callable[[dict[str, Any], dict[str, Any]], None]
+
+
+def _set_attr(name: str, value: Any) -> Breaker:
+    def breaker(attrs: dict[str, Any], data: dict[str, Any]) -> None:
+        attrs[name] = value
+
+    return breaker
+
+
+def _drop_receiver_channel(attrs: dict[str, Any], data: dict[str, Any]) -> None:
+    data["frames"] = data["frames"][:, :3, :]
+
+
+def _nan_sample(attrs: dict[str, Any], data: dict[str, Any]) -> None:
+    data["frames"][0, 1, 5] = np.nan
+
+
+def _drop_receivers(attrs: dict[str, Any], data: dict[str, Any]) -> None:
+    del data["receivers"]
+
+
+BROKEN_FILES: dict[str, tuple[str, Breaker, tuple[str, ...]]] = {
+    # id: (file name, what breaks, what the message must name besides the file)
+    "channels-vs-receivers": ("channels.h5", _drop_receiver_channel, ("frames", "receivers")),
+    "nan-sample": ("nan.h5", _nan_sample, ("frames",)),
+    "wrong-format": ("format.h5", _set_attr("format", "wav-recording"), ("format",)),
+    "version-2": ("v2.h5", _set_attr("version", 2), ("version",)),
+    "version-2-npz": ("v2.npz", _set_attr("version", 2), ("version",)),
+    "negative-sample-rate": ("rate.h5", _set_attr("sample_rate_hz", -200e3), ("sample_rate_hz",)),
+    "missing-receivers": ("norx.h5", _drop_receivers, ("receivers",)),
+}
+
+
+@pytest.mark.parametrize("command", ["echoes", "locate", "evaluate"])
+@pytest.mark.parametrize("case", BROKEN_FILES.values(), ids=BROKEN_FILES.keys())
+def test_broken_recording_is_bad_input(
+    capsys: pytest.CaptureFixture[str],
+    in_tmp: Path,
+    good_h5: Path,
+    command: str,
+    case: tuple[str, Breaker, tuple[str, ...]],
+) -> None:
+    """FORMATS.md recording file: "A reader rejects with a clear message (exit code 2 on
+    the command line)" a channel count that does not match receivers, NaN samples, a
+    wrong format or version, a sample rate that is not positive, a missing required
+    item; exit codes: one line on stderr naming the file and the field, no traceback."""
+    name, breaker, fields = case
+    broken_copy(good_h5, in_tmp / name, breaker)
+    assert_bad_input(run(capsys, command, name, "--json"), name, *fields)
+
+
+def test_missing_file_is_bad_input(capsys: pytest.CaptureFixture[str], in_tmp: Path) -> None:
+    """FORMATS.md exit codes: a missing recording is exit 2, one line naming the file."""
+    assert_bad_input(run(capsys, "locate", "missing.h5"), "missing.h5")
+
+
+def test_text_file_named_h5_is_bad_input(capsys: pytest.CaptureFixture[str], in_tmp: Path) -> None:
+    """FORMATS.md exit codes: a file that is not HDF5 despite its .h5 name is exit 2,
+    one line naming the file (not an h5py traceback)."""
+    (in_tmp / "notes.h5").write_text("these are my notes, not a recording\n")
+    assert_bad_input(run(capsys, "echoes", "notes.h5"), "notes.h5", "HDF5")
+
+
+def test_unknown_extension_is_bad_input(
+    capsys: pytest.CaptureFixture[str], in_tmp: Path, good_h5: Path
+) -> None:
+    """FORMATS.md: a recording is .h5 or .npz; any other extension is exit 2, one line
+    naming the file and the extension."""
+    shutil.copy(good_h5, in_tmp / "balls.wav")
+    assert_bad_input(run(capsys, "locate", "balls.wav"), "balls.wav", ".wav")
+
+
+def test_directory_as_recording_is_bad_input(capsys: pytest.CaptureFixture[str], in_tmp: Path) -> None:
+    """FORMATS.md exit codes: a directory where a recording is expected is exit 2."""
+    (in_tmp / "folder.h5").mkdir()
+    assert_bad_input(run(capsys, "locate", "folder.h5"), "folder.h5")
+
+
+def test_simulate_scene_with_unknown_key_is_bad_input(
+    capsys: pytest.CaptureFixture[str], in_tmp: Path
+) -> None:
+    """FORMATS.md exit codes: a scene file with an unknown key (a typo) is exit 2, one
+    line naming the file and the key, and no recording is written."""
+    (in_tmp / "bad.toml").write_text("seed = 1\nbogus = 2\n")
+    assert_bad_input(run(capsys, "simulate", "bad.toml", "-o", "out.h5"), "bad.toml", "bogus")
+    assert not (in_tmp / "out.h5").exists()
+
+
+def test_simulate_missing_scene_is_bad_input(capsys: pytest.CaptureFixture[str], in_tmp: Path) -> None:
+    """FORMATS.md exit codes: a missing scene file is exit 2, one line naming it."""
+    assert_bad_input(run(capsys, "simulate", "nope.toml", "-o", "out.h5"), "nope.toml")
+    assert not (in_tmp / "out.h5").exists()
+
+
+@pytest.mark.parametrize(
+    ("command", "option", "value"),
+    [
+        ("locate", "--speed-of-sound", "-1"),
+        ("echoes", "--speed-of-sound", "0"),
+        ("locate", "--speed-of-sound", "nan"),
+        ("locate", "--blanking-s", "-1"),
+        ("echoes", "--blanking-s", "-1"),
+        ("locate", "--path-sigma-m", "0"),
+        ("evaluate", "--match-radius-m", "0"),
+    ],
+)
+def test_bad_option_value_is_bad_input(
+    capsys: pytest.CaptureFixture[str], good_h5: Path, command: str, option: str, value: str
+) -> None:
+    """FORMATS.md exit codes: an option value out of its range (a negative speed of
+    sound or blanking time, ...) is exit 2, one line naming the option."""
+    assert_bad_input(run(capsys, command, good_h5, "--json", option, value), option)
+
+
+@pytest.mark.parametrize(
+    ("command", "option", "value"),
+    [
+        ("locate", "--blanking-s", "nan"),
+        ("locate", "--blanking-s", "inf"),
+        ("locate", "--speed-of-sound", "inf"),
+        ("echoes", "--threshold-db", "nan"),
+    ],
+)
+def test_non_finite_option_value_is_bad_input(
+    capsys: pytest.CaptureFixture[str], good_h5: Path, command: str, option: str, value: str
+) -> None:
+    """FORMATS.md exit codes, user expectation: a NaN or infinite number is never a
+    meaningful option value; it is bad input (exit 2) rather than a run that silently
+    finds nothing."""
+    assert_bad_input(run(capsys, command, good_h5, "--json", option, value), option)
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ("locate", "{good}", "--bogus"),
+        ("echoes", "{good}", "--estimator", "psychic"),
+        ("locate",),
+        ("simulate", "scene.toml"),
+        ("nosuchcommand",),
+    ],
+    ids=["unknown-option", "unknown-estimator", "missing-argument", "missing-output", "unknown-command"],
+)
+def test_click_usage_errors_exit_2(
+    capsys: pytest.CaptureFixture[str], good_h5: Path, args: tuple[str, ...]
+) -> None:
+    """FORMATS.md exit codes: bad usage is exit 2, one line on stderr naming the
+    problem and pointing to the command's --help, no traceback."""
+    result = run(capsys, *(a.format(good=good_h5) for a in args))
+    assert result.code == 2, result
+    assert "Traceback" not in result.out + result.err
+    assert result.out == ""
+    assert len(result.err_lines) == 1, result.err
+    assert result.err_lines[0].startswith("echoloc: error: "), result.err
+    assert "--help" in result.err_lines[0]
+
+
+@pytest.mark.filterwarnings("always::echoloc.recording.RecordingWarning")
+def test_nan_sample_with_repair_warns_and_succeeds(
+    capsys: pytest.CaptureFixture[str], in_tmp: Path, good_h5: Path
+) -> None:
+    """FORMATS.md: NaN samples are rejected "unless asked to repair them";
+    --repair-nonfinite succeeds (exit 0) with one warning line on stderr."""
+    broken_copy(good_h5, in_tmp / "nan.h5", _nan_sample)
+    result = run(capsys, "locate", "nan.h5", "--json", "--repair-nonfinite")
+    assert result.code == 0, result
+    assert len(result.err_lines) == 1, result.err
+    assert result.err_lines[0].startswith("echoloc: warning: nan.h5"), result.err
+    assert "1 non-finite" in result.err
+    assert len(json_lines(result.out)) == N_FRAMES
+
+
+@pytest.mark.filterwarnings("always::echoloc.recording.RecordingWarning")
+def test_dead_channel_warns_and_locates_with_three_receivers(
+    capsys: pytest.CaptureFixture[str], dead_h5: Path
+) -> None:
+    """User expectation: one dead receiver (all zeros) is not fatal: locate exits 0 with
+    a warning on stderr naming the file and receiver, and reports objects supported by
+    the 3 remaining receivers (FORMATS.md `receivers`: how many support the object)."""
+    result = run(capsys, "locate", dead_h5, "--json")
+    assert result.code == 0, result
+    assert "Traceback" not in result.err
+    warning = [line for line in result.err_lines if line.startswith("echoloc: warning: ")]
+    assert warning, result.err
+    assert "dead.h5" in result.err
+    assert re.search(r"receiver\s+2\b", result.err), result.err
+    records = json_lines(result.out)
+    assert len(records) == N_FRAMES
+    for record in records:
+        assert record["objects"], record
+        assert all(obj["receivers"] == 3 for obj in record["objects"]), record
+
+
+@pytest.mark.filterwarnings("always::echoloc.recording.RecordingWarning")
+def test_dead_channel_single_ball_found_with_three_receivers(
+    capsys: pytest.CaptureFixture[str], in_tmp: Path
+) -> None:
+    """User expectation: with one receiver dead, a lone reflector (no ghosts possible)
+    is still located from the 3 remaining receivers, within 5 mm."""
+    ball = default_scene().reflector_positions_m[1:2]
+    scene = dataclasses.replace(default_scene(), reflector_positions_m=ball, reflector_strengths=np.ones(1))
+    rec = simulate(scene, n_frames=2)
+    frames = rec.frames.copy()
+    frames[:, 0, :] = 0.0
+    write_recording(dataclasses.replace(rec, frames=frames), in_tmp / "lone.h5")
+    result = run(capsys, "locate", "lone.h5", "--json")
+    assert result.code == 0, result
+    assert re.search(r"receiver\s+0\b", result.err), result.err
+    for record in json_lines(result.out):
+        (obj,) = record["objects"]
+        assert obj["receivers"] == 3
+        assert np.linalg.norm(np.array(obj["position_m"]) - ball[0]) < 5e-3, obj
+
+
+# ----------------------------------------------------------------------------- help, tables
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_help_for_every_command(capsys: pytest.CaptureFixture[str], command: str) -> None:
+    """User expectation: `echoloc COMMAND --help` (and -h) prints usage, exit 0."""
+    for flag in ("--help", "-h"):
+        result = run(capsys, command, flag)
+        assert result.code == 0, result
+        assert f"Usage: echoloc {command}" in result.out
+        assert result.err == ""
+
+
+def test_help_lists_every_command(capsys: pytest.CaptureFixture[str]) -> None:
+    """User expectation: `echoloc --help` lists every command; --version works."""
+    result = run(capsys, "--help")
+    assert result.code == 0
+    for command in COMMANDS:
+        assert command in result.out
+    assert set(COMMANDS) <= set(cli.cli.commands)
+    version = run(capsys, "--version")
+    assert version.code == 0
+    assert "echoloc" in version.out
+
+
+@pytest.mark.usefixtures("wide_stdout")
+@pytest.mark.parametrize(
+    ("command", "columns"),
+    [
+        ("echoes", ("frame", "receiver", "tof µs", "path m", "amplitude", "SNR dB")),
+        ("locate", ("frame", "x mm", "y mm", "z mm", "±σ x, y, z mm", "range mm", "rx", "score")),
+        ("evaluate", ("figure", "value", "recall", "false objects", "match radius")),
+    ],
+)
+def test_human_tables(
+    capsys: pytest.CaptureFixture[str], good_h5: Path, command: str, columns: tuple[str, ...]
+) -> None:
+    """User expectation: without --json each command prints a readable table with its
+    column names, exit 0, nothing on stderr."""
+    result = run(capsys, command, good_h5)
+    assert result.code == 0, result
+    assert result.err == ""
+    for column in columns:
+        assert column in result.out, column
+    with pytest.raises(json.JSONDecodeError):
+        json.loads(result.out.splitlines()[0])
+
+
+@pytest.mark.usefixtures("wide_stdout")
+def test_human_table_shows_frames_without_objects(capsys: pytest.CaptureFixture[str], good_h5: Path) -> None:
+    """User expectation: a frame where nothing is found (here every echo is blanked)
+    still gets a row of "-" in the table rather than vanishing or failing."""
+    result = run(capsys, "locate", good_h5, "--blanking-s", 0.011)
+    assert result.code == 0, result
+    rows = [line for line in result.out.splitlines() if re.match(r"^│\s+\d+\s+│", line)]
+    assert len(rows) == N_FRAMES, result.out
+    assert all("-" in row for row in rows)
+
+
+@pytest.mark.filterwarnings("always::echoloc.recording.RecordingWarning")
+def test_too_few_working_receivers_is_bad_input(capsys: pytest.CaptureFixture[str], in_tmp: Path) -> None:
+    """FORMATS.md exit codes: two dead receivers leave too few to locate in 3-D; that is
+    bad input (exit 2, one error line naming the file), not an empty result."""
+    rec = simulate(default_scene(), n_frames=1)
+    frames = rec.frames.copy()
+    frames[:, :2, :] = 0.0
+    write_recording(dataclasses.replace(rec, frames=frames), in_tmp / "two-dead.h5")
+    result = run(capsys, "locate", "two-dead.h5", "--json")
+    assert result.code == 2, result
+    assert "Traceback" not in result.err
+    # Each line is a whole warning or the error; exactly one error, naming the file.
+    assert all(line.startswith(("echoloc: warning: ", "echoloc: error: ")) for line in result.err_lines), (
+        result.err
+    )
+    errors = [line for line in result.err_lines if line.startswith("echoloc: error: ")]
+    assert len(errors) == 1, result.err
+    assert errors[0].startswith("echoloc: error: two-dead.h5"), result.err
+
+
+# ----------------------------------------------------------------------------- real subprocess
+
+
+def test_subprocess_locate_json_stdout_is_pure_json_lines(tmp_path: Path, good_h5: Path) -> None:
+    """FORMATS.md `locate --json`: a real run's stdout is nothing but JSON Lines, one
+    per frame, and stderr is empty (no progress bar, no log noise)."""
+    result = run_process("locate", good_h5, "--json", cwd=tmp_path)
+    assert result.code == 0, result
+    assert result.err == ""
+    assert [r["frame"] for r in json_lines(result.out)] == list(range(N_FRAMES))
+
+
+def test_subprocess_missing_file_one_line_no_traceback(tmp_path: Path) -> None:
+    """FORMATS.md exit codes, as a shell sees them: exit 2, one line naming the file."""
+    assert_bad_input(run_process("echoes", "missing.h5", "--json", cwd=tmp_path), "missing.h5")
+
+
+def test_subprocess_bad_option_one_line_no_traceback(tmp_path: Path, good_h5: Path) -> None:
+    """FORMATS.md exit codes, as a shell sees them: --blanking-s -1 is exit 2, one line."""
+    result = run_process("locate", good_h5, "--blanking-s", "-1", cwd=tmp_path)
+    assert_bad_input(result, "--blanking-s")
+
+
+def test_subprocess_unknown_option_is_usage_error(tmp_path: Path, good_h5: Path) -> None:
+    """FORMATS.md exit codes, as a shell sees them: an unknown option is click's usage
+    error, exit 2, no traceback."""
+    result = run_process("locate", good_h5, "--bogus", cwd=tmp_path)
+    assert result.code == 2, result
+    assert "Traceback" not in result.err
+    assert "--bogus" in result.err_lines[-1]
+
+
+def test_subprocess_repair_nonfinite_warns_on_one_line(tmp_path: Path, good_h5: Path) -> None:
+    """FORMATS.md: NaN samples are bad input (exit 2, one line) unless --repair-nonfinite,
+    which succeeds with one warning line; as a shell sees them."""
+    broken_copy(good_h5, tmp_path / "nan.h5", _nan_sample)
+    refused = run_process("locate", "nan.h5", "--json", cwd=tmp_path)
+    assert refused.code == 2, refused
+    assert "Traceback" not in refused.err
+    assert "nan.h5" in refused.err
+    repaired = run_process("locate", "nan.h5", "--json", "--repair-nonfinite", cwd=tmp_path)
+    assert repaired.code == 0, repaired
+    assert "Traceback" not in repaired.err
+    assert repaired.err_lines == ["echoloc: warning: nan.h5: replaced 1 non-finite sample(s) with 0"]
+    assert len(json_lines(repaired.out)) == N_FRAMES
+
+
+def test_subprocess_long_error_message_stays_on_one_line(tmp_path: Path) -> None:
+    """FORMATS.md exit codes: "one line on stderr naming the file and the problem",
+    however long the file's name (stderr piped, so no terminal width applies)."""
+    name = "a-recording-with-a-rather-long-but-perfectly-ordinary-descriptive-file-name.h5"
+    result = run_process("locate", name, cwd=tmp_path)
+    assert_bad_input(result, name)

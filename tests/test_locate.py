@@ -1,0 +1,243 @@
+"""Localisation: closed forms, symmetries, round trips, covariance and ghost rejection."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+
+from echoloc.locate import (
+    LocateOptions,
+    associate,
+    linear_start,
+    model_paths_m,
+    paired_closed_form,
+    solve_positions,
+)
+
+D = 0.25
+TX = np.zeros(3)
+CROSS = np.array([[D, 0, 0], [-D, 0, 0], [0, D, 0], [0, -D, 0]], dtype=float)
+UP = np.array([0.0, 0.0, 1.0])
+
+points_in_front = st.tuples(st.floats(-0.5, 0.5), st.floats(-0.5, 0.5), st.floats(0.2, 1.2)).map(
+    lambda p: np.array(p, dtype=float)
+)
+
+
+@settings(max_examples=50, deadline=None)
+@given(point=points_in_front)
+def test_closed_form_agrees_with_the_general_solver(point: np.ndarray) -> None:
+    """NOTES.md's paired-geometry formulas and the Gauss-Newton solver give the same point."""
+    paths = model_paths_m(TX, CROSS, point[None])
+    closed = paired_closed_form(paths, D)[0]
+    general = solve_positions(TX, CROSS, paths, 0.5e-3).position_m[0]
+    assert closed == pytest.approx(point, abs=1e-9)
+    assert general == pytest.approx(closed, abs=1e-9)
+
+
+@settings(max_examples=50, deadline=None)
+@given(point=points_in_front)
+def test_swapping_the_x_receivers_mirrors_x(point: np.ndarray) -> None:
+    """Exchanging the receivers at +x and -x (paths kept) mirrors the answer in x."""
+    paths = model_paths_m(TX, CROSS, point[None])
+    swapped = CROSS[[1, 0, 2, 3]]
+    mirrored = solve_positions(TX, swapped, paths, 0.5e-3).position_m[0]
+    assert mirrored == pytest.approx(point * np.array([-1, 1, 1]), abs=1e-9)
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    point=points_in_front,
+    offsets=st.lists(
+        st.tuples(st.floats(-0.3, 0.3), st.floats(-0.3, 0.3), st.floats(-0.1, 0.1)), min_size=4, max_size=6
+    ),
+)
+def test_round_trip_for_any_array_of_four_or_more(point: np.ndarray, offsets: list) -> None:
+    """Exact paths to any non-degenerate array of >= 4 receivers give the point back."""
+    receivers = np.array(offsets, dtype=float)
+    # A well-conditioned array: distinct receivers spanning 3-D, none at the point.
+    separations = np.linalg.norm(receivers[:, None] - receivers[None], axis=2)
+    assume(np.min(separations + np.eye(len(receivers))) > 0.05)
+    assume(np.linalg.svd(receivers - TX, compute_uv=False)[-1] > 0.03)
+    assume(np.min(np.linalg.norm(receivers - point, axis=1)) > 0.1)
+    paths = model_paths_m(TX, receivers, point[None])
+    solution = solve_positions(TX, receivers, paths, 0.5e-3)
+    assert solution.converged[0]
+    assert solution.position_m[0] == pytest.approx(point, abs=1e-7)
+    assert solution.chi2[0] < 1e-6
+
+
+@settings(max_examples=50, deadline=None)
+@given(point=points_in_front, angle=st.floats(0, 2 * np.pi))
+def test_flat_array_of_three_receivers(point: np.ndarray, angle: float) -> None:
+    """Three receivers in the transmitter's plane fix the point (z > 0) exactly."""
+    rotation = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    receivers = np.array([[0.3, 0, 0], [-0.15, 0.26, 0], [-0.15, -0.26, 0]]) @ rotation.T
+    paths = model_paths_m(TX, receivers, point[None])
+    solution = solve_positions(TX, receivers, paths, 0.5e-3)
+    assert solution.position_m[0] == pytest.approx(point, abs=1e-7)
+
+
+def test_linear_start_is_exact_for_exact_paths() -> None:
+    """The squared equations are exact, so the linear start is exact with exact paths (NOTES.md)."""
+    points = np.array([[0.1, -0.2, 0.6], [-0.3, 0.3, 0.9], [0.0, 0.0, 0.3]])
+    paths = model_paths_m(TX, CROSS, points)
+    assert linear_start(TX, CROSS, paths, UP) == pytest.approx(points, abs=1e-9)
+
+
+def test_transmitter_away_from_the_origin() -> None:
+    """Coordinates are relative to the transmitter: shifting everything shifts the answer."""
+    shift = np.array([0.4, -0.2, 0.0])
+    point = np.array([0.1, 0.05, 0.7])
+    paths = model_paths_m(TX + shift, CROSS + shift, (point + shift)[None])
+    solution = solve_positions(TX + shift, CROSS + shift, paths, 0.5e-3)
+    assert solution.position_m[0] == pytest.approx(point + shift, abs=1e-9)
+
+
+def test_covariance_matches_the_monte_carlo_spread() -> None:
+    """(J^T W J)^-1 predicts the scatter of positions under Gaussian path noise."""
+    rng = np.random.default_rng(3)
+    point = np.array([0.15, -0.1, 0.8])
+    sigma = 0.5e-3
+    exact = model_paths_m(TX, CROSS, point[None])
+    noisy = exact + rng.normal(0, sigma, size=(4000, 4))
+    solution = solve_positions(TX, CROSS, noisy, sigma)
+    spread = np.cov(solution.position_m.T)
+    predicted = solve_positions(TX, CROSS, exact, sigma).covariance_m2[0]
+    assert np.sqrt(np.diag(spread)) == pytest.approx(np.sqrt(np.diag(predicted)), rel=0.08)
+    assert np.mean(solution.position_m, axis=0) == pytest.approx(point, abs=3e-4)
+    # chi2 with one degree of freedom has mean 1.
+    assert np.mean(solution.chi2) == pytest.approx(1.0, abs=0.1)
+
+
+def _paths_per_receiver(points: np.ndarray, receivers: np.ndarray = CROSS) -> list[np.ndarray]:
+    paths = model_paths_m(TX, receivers, points)
+    return [np.sort(paths[:, i]) for i in range(len(receivers))]
+
+
+def _sigmas(paths: list[np.ndarray], sigma: float = 0.5e-3) -> list[np.ndarray]:
+    return [np.full(len(p), sigma) for p in paths]
+
+
+OPTIONS = LocateOptions(resolution_m=0.0275)
+
+
+def test_three_objects_no_ghosts() -> None:
+    """Three reflectors: twelve echoes, 81 combinations, exactly three objects come out."""
+    points = np.array([[0.01, -0.005, 0.58], [0.03, 0.02, 0.595], [-0.09, 0.12, 0.648]])
+    paths = _paths_per_receiver(points)
+    objects = associate(TX, CROSS, paths, _sigmas(paths), OPTIONS)
+    found = np.array(sorted((o.position_m for o in objects), key=lambda p: p[2]))
+    assert len(objects) == 3
+    assert found == pytest.approx(points, abs=1e-7)
+    assert all(len(o.receivers) == 4 for o in objects)
+
+
+def test_object_seen_by_three_of_four_receivers() -> None:
+    """When two echoes merge on one receiver, the object with the lost echo is still found."""
+    first = np.array([0.05, 0.02, 0.6])
+    # A second point whose path to receiver 3 equals the first's (echoes merge there).
+    second = np.array([-0.12, 0.15, 0.0])
+    target = model_paths_m(TX, CROSS, first[None])[0, 3]
+    lo, hi = 0.3, 1.2
+    for _ in range(100):
+        second[2] = 0.5 * (lo + hi)
+        if model_paths_m(TX, CROSS, second[None])[0, 3] > target:
+            hi = second[2]
+        else:
+            lo = second[2]
+    paths = _paths_per_receiver(np.array([first, second]))
+    paths[3] = paths[3][:1]  # one merged detection
+    objects = associate(TX, CROSS, paths, _sigmas(paths), OPTIONS)
+    assert len(objects) == 2
+    supports = sorted(len(o.receivers) for o in objects)
+    assert supports == [3, 4]
+    for point in (first, second):
+        assert min(np.linalg.norm(o.position_m - point) for o in objects) < 1e-6
+
+
+def test_lone_triple_without_a_merge_is_not_an_object() -> None:
+    """Three echoes that meet, with nothing on the fourth receiver to explain its silence, are rejected."""
+    point = np.array([0.1, 0.1, 0.7])
+    paths = _paths_per_receiver(point[None])
+    paths[2] = np.zeros(0)
+    assert associate(TX, CROSS, paths, _sigmas(paths), OPTIONS) == []
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    points=st.lists(points_in_front, min_size=1, max_size=4),
+)
+def test_random_scenes_round_trip(points: list[np.ndarray]) -> None:
+    """1-4 reflectors with exact paths: every one is found exactly, and nothing else.
+
+    Reflectors must be separable: paths at least 1 mm apart on every receiver and
+    ranges at least 1 mm apart (equal ranges make a cross array ambiguous).
+    """
+    array = np.array(points)
+    paths = model_paths_m(TX, CROSS, array)
+    for i in range(4):
+        gaps = np.diff(np.sort(paths[:, i]))
+        assume(len(gaps) == 0 or gaps.min() > 1e-3)
+    ranges = np.sort(np.linalg.norm(array, axis=1))
+    assume(len(ranges) < 2 or np.diff(ranges).min() > 1e-3)
+    per_receiver = [np.sort(paths[:, i]) for i in range(4)]
+    objects = associate(TX, CROSS, per_receiver, _sigmas(per_receiver), OPTIONS)
+    assert len(objects) == len(points)
+    for point in points:
+        assert min(np.linalg.norm(o.position_m - point) for o in objects) < 1e-6
+
+
+def test_equal_ranges_make_the_cross_array_ambiguous() -> None:
+    """Two reflectors at the same range: swapping x-pair and y-pair echoes gives two other
+    points with exactly the same eight paths. This is why the evaluation scene varies
+    reflector strengths: amplitudes then tell the two solutions apart.
+    """
+    a = np.array([0.15, -0.3, 0.0])
+    b = np.array([-0.4, 0.03, 0.0])
+    r = 0.7
+    a[2] = np.sqrt(r**2 - a[0] ** 2 - a[1] ** 2)
+    b[2] = np.sqrt(r**2 - b[0] ** 2 - b[1] ** 2)
+    ghost_1 = np.array([a[0], b[1], np.sqrt(r**2 - a[0] ** 2 - b[1] ** 2)])
+    ghost_2 = np.array([b[0], a[1], np.sqrt(r**2 - b[0] ** 2 - a[1] ** 2)])
+    truth_paths = np.sort(model_paths_m(TX, CROSS, np.array([a, b])), axis=0)
+    ghost_paths = np.sort(model_paths_m(TX, CROSS, np.array([ghost_1, ghost_2])), axis=0)
+    assert truth_paths == pytest.approx(ghost_paths, abs=1e-12)
+    # Amplitudes from different strengths break the tie.
+    strengths = {0: 2.0, 1: 0.5}
+    paths = [truth_paths[:, i] for i in range(4)]
+    amplitudes = []
+    for i in range(4):
+        per = []
+        for path in paths[i]:
+            k = int(np.argmin([abs(model_paths_m(TX, CROSS, p[None])[0, i] - path) for p in (a, b)]))
+            p = (a, b)[k]
+            per.append(strengths[k] / (np.linalg.norm(p) * np.linalg.norm(p - CROSS[i])))
+        amplitudes.append(np.array(per))
+    objects = associate(TX, CROSS, paths, _sigmas(paths), OPTIONS, amplitudes=amplitudes)
+    assert len(objects) == 2
+    for point in (a, b):
+        assert min(np.linalg.norm(o.position_m - point) for o in objects) < 1e-6
+
+
+def test_points_behind_the_array_are_not_reported() -> None:
+    """The transducers face +z: the mirror solution at -z is never returned."""
+    point = np.array([0.1, -0.2, 0.5])
+    paths = _paths_per_receiver(point[None])
+    objects = associate(TX, CROSS, paths, _sigmas(paths), OPTIONS)
+    assert len(objects) == 1
+    assert objects[0].position_m[2] > 0
+
+
+def test_dead_receiver_is_left_out() -> None:
+    """With receiver 1 unusable, the other three still locate the object."""
+    point = np.array([0.1, -0.2, 0.5])
+    paths = _paths_per_receiver(point[None])
+    paths[1] = np.zeros(0)
+    usable = np.array([True, False, True, True])
+    objects = associate(TX, CROSS, paths, _sigmas(paths), OPTIONS, usable=usable)
+    assert len(objects) == 1
+    assert objects[0].receivers == (0, 2, 3)
+    assert objects[0].position_m == pytest.approx(point, abs=1e-7)
