@@ -58,6 +58,7 @@ def main(argv: list[str]) -> None:
         _run(BIN / "echoloc", "demo", *rest)
     elif job == "test":
         _run(PYTHON, "-m", "ruff", "check", "src", "tests", "benchmarks", "dev.py")
+        _run(PYTHON, "-m", "ruff", "format", "--check", "src", "tests", "benchmarks", "dev.py")
         _run(PYTHON, "-m", "mypy")
         _run(PYTHON, "-m", "pytest", *rest)
     elif job == "bench":

@@ -30,6 +30,8 @@ threshold estimator, the same ratio on the signal's own envelope).
 
 from __future__ import annotations
 
+import cmath
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
@@ -240,26 +242,35 @@ class _Clean:
         return self.table[j], base - self.half
 
     def _fit(self, values: NDArray[np.complex128], peak: int) -> _Component:
-        """Delay and complex amplitude of one echo whose envelope peaks at index ``peak``."""
+        """Delay and complex amplitude of one echo whose envelope peaks at index ``peak``.
+
+        Coarse delay: parabola through the envelope at the peak and its neighbours.
+        Fine delay: the carrier phase, ``arg c[m] = rate (m - tof) + arg(a)``, at the
+        peak and its neighbours (weighted by power). A real echo has arg(a) = 0 or pi,
+        so each sample gives the delay modulo half a carrier period; the candidate
+        nearest the coarse delay is taken. Amplitude: least squares of the template's
+        autocorrelation at that delay over the main lobe.
+        """
         n = len(values)
-        env = np.abs(values)
-        if 0 < peak < n - 1:
-            a, b, c = env[peak - 1], env[peak], env[peak + 1]
+        lo, hi = max(peak - 1, 0), min(peak + 2, n)
+        samples = [complex(v) for v in values[lo:hi]]
+        env = [abs(v) for v in samples]
+        offset = 0.0
+        if hi - lo == 3:
+            a, b, c = env
             denominator = a - 2 * b + c
-            offset = 0.5 * (a - c) / denominator if denominator < 0 else 0.0
-        else:
-            offset = 0.0
-        coarse = peak + float(np.clip(offset, -0.5, 0.5))
-        # Carrier phase at the samples around the peak: arg c[m] = rate * (m - tof) + arg(a).
-        # With a real echo arg(a) is 0 or pi, so each sample gives tof modulo half a
-        # carrier period; take the candidate nearest the envelope's estimate.
+            if denominator < 0:
+                offset = min(max(0.5 * (a - c) / denominator, -0.5), 0.5)
+        coarse = peak + offset
         rate = self.mf.phase_rate_rad_per_sample
-        period = np.pi / rate  # half a carrier cycle, in samples
-        m = np.arange(max(peak - 1, 0), min(peak + 2, n))
-        estimates = m - np.angle(values[m]) / rate
-        estimates = estimates + period * np.round((coarse - estimates) / period)
-        weights = env[m] ** 2
-        tof = float(np.sum(weights * estimates) / np.sum(weights))
+        period = math.pi / rate  # half a carrier cycle, in samples
+        weighted = total = 0.0
+        for m, (value, magnitude) in enumerate(zip(samples, env, strict=True), start=lo):
+            estimate = m - cmath.phase(value) / rate
+            estimate += period * round((coarse - estimate) / period)
+            weighted += magnitude**2 * estimate
+            total += magnitude**2
+        tof = weighted / total if total > 0 else coarse
         if abs(tof - coarse) > 1.5:
             tof = coarse
         shape, start = self._shape(tof)
@@ -304,6 +315,7 @@ class _Clean:
         return merged
 
     def run(self, correlation: NDArray[np.complex128]) -> tuple[list[_Component], float]:
+        """Extract echoes strongest first; re-fit overlapping ones together as they appear."""
         residual = correlation.copy()
         components: list[_Component] = []
         power = noise_power(residual)
@@ -312,30 +324,43 @@ class _Clean:
         strongest = 0.0
         for round_ in range(2):
             while len(components) < self.options.max_echoes:
-                peak = int(np.argmax(np.abs(residual)))
-                height = float(np.abs(residual[peak]))
+                magnitude = np.abs(residual)
+                peak = int(np.argmax(magnitude))
+                height = float(magnitude[peak])
                 if height**2 < threshold * power or height < floor * strongest:
                     break
                 component = self._fit(residual, peak)
                 shape, start = self._shape(component.tof_samples)
                 _subtract(residual, shape, start, component.amplitude)
+                # An echo overlapping earlier ones biased their fits and they biased its:
+                # fit the cluster again, each with the others removed, before going on.
+                cluster = [
+                    c for c in components if abs(c.tof_samples - component.tof_samples) < self.cluster_samples
+                ]
                 components.append(component)
+                if cluster:
+                    self._refit_together([*cluster, component], residual)
                 strongest = max(strongest, abs(component.amplitude))
             if round_ == 0:
                 # The first noise estimate includes the echoes' sidelobes; redo it on the residual.
                 power = noise_power(residual)
+        # Two components may have settled on one echo: fuse them and fit their clusters again.
+        merged = self._merge_close(residual, components)
+        if len(merged) < len(components):
+            for member in merged:
+                cluster = [
+                    c for c in merged if abs(c.tof_samples - member.tof_samples) < self.cluster_samples
+                ]
+                if len(cluster) > 1:
+                    self._refit_together(cluster, residual)
+            merged = self._merge_close(residual, merged)
+        return merged, power
+
+    def _refit_together(self, cluster: list[_Component], residual: NDArray[np.complex128]) -> None:
+        """Successive refinement: fit each member with the others removed, a few passes."""
         for _ in range(self.options.refine_passes):
-            components = self._merge_close(residual, components)
-            # An isolated echo was fitted exactly the first time; only echoes whose main
-            # lobes overlap a neighbour's need fitting again with the neighbour removed.
-            tofs = np.array([c.tof_samples for c in components])
-            for k, component in enumerate(components):
-                others = np.delete(tofs, k)
-                if len(others) and np.min(np.abs(others - component.tof_samples)) < self.cluster_samples:
-                    self._refit(residual, component)
-                    tofs[k] = component.tof_samples
-        components = self._merge_close(residual, components)
-        return components, power
+            for member in cluster:
+                self._refit(residual, member)
 
 
 def matched_filter_echoes(
