@@ -17,6 +17,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from echoloc.errors import SceneError
 from echoloc.scene import Array, RandomReflectors, Scene, default_scene, load_scene
 from echoloc.simulate import path_lengths_m, simulate, synthesize_frames
 
@@ -385,5 +386,5 @@ def test_recording_carries_the_scene() -> None:
 
 def test_zero_frames_raises() -> None:
     """At least one frame."""
-    with pytest.raises(ValueError, match="n_frames"):
+    with pytest.raises(SceneError, match="number of frames"):
         simulate(default_scene(), n_frames=0)

@@ -140,10 +140,14 @@ def _chain(
 
 
 @contextmanager
-def _progress(total: int, label: str, enabled: bool) -> Iterator[Callable[[], None]]:
-    """A rich progress bar on stderr (hidden when not a terminal or when disabled)."""
+def _progress(total: int, label: str, enabled: bool) -> Iterator[Callable[[int], None]]:
+    """A rich progress bar on stderr; ``advance(n)`` moves it. Hidden when not a terminal."""
     if not enabled or not stderr.is_terminal:
-        yield lambda: None
+
+        def ignore(n: int) -> None:
+            del n
+
+        yield ignore
         return
     with Progress(
         TextColumn(label),
@@ -154,7 +158,11 @@ def _progress(total: int, label: str, enabled: bool) -> Iterator[Callable[[], No
         transient=True,
     ) as progress:
         task = progress.add_task(label, total=total)
-        yield lambda: progress.advance(task)
+
+        def advance(n: int) -> None:
+            progress.advance(task, n)
+
+        yield advance
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -278,8 +286,8 @@ def simulate_command(scene_path: Path, output: Path, n_frames: int, seed: int | 
     scene = load_scene(scene_path)
     if seed is not None:
         scene = replace(scene, seed=seed)
-    with _progress(1, "simulating", n_frames > 1000):
-        recording = simulate(scene, n_frames)
+    with _progress(n_frames, "simulating", True) as advance:
+        recording = simulate(scene, n_frames, progress=advance)
     written = write_recording(recording, output)
     stderr.print(
         f"wrote {n_frames} frame(s) × {recording.n_receivers} receivers × "
@@ -428,7 +436,7 @@ def evaluate_command(
     with _progress(len(frames), "locating", not as_json) as advance:
         for index in frames:
             results.append(frame_objects(chain, frame_echoes(chain, index)))
-            advance()
+            advance(1)
     report = evaluate(results, recording.truth_positions_m, match_radius_m)
     if as_json:
         click.echo(json.dumps(_evaluation_record(report, estimator)))

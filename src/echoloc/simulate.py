@@ -10,13 +10,14 @@ pulse after the last sample so that nothing wraps around into the frame.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import scipy.fft
 from numpy.typing import NDArray
 
 from echoloc.air import spreading_gain
+from echoloc.errors import SceneError
 from echoloc.recording import Recording
 from echoloc.scene import Scene
 
@@ -125,13 +126,23 @@ def _frames_in_batches(
         yield frames
 
 
-def simulate(scene: Scene, n_frames: int = 1) -> Recording:
-    """Simulate ``n_frames`` frames of ``scene``; the result carries ``truth_positions_m``."""
+def simulate(
+    scene: Scene, n_frames: int = 1, *, progress: Callable[[int], None] | None = None
+) -> Recording:
+    """Simulate ``n_frames`` frames of ``scene``; the result carries ``truth_positions_m``.
+
+    ``progress``, if given, is called with the number of frames finished after each batch.
+    """
     if n_frames < 1:
-        raise ValueError(f"n_frames must be >= 1, got {n_frames}")
+        raise SceneError(f"the number of frames must be >= 1, got {n_frames}")
     rng = np.random.default_rng(scene.seed)
     positions, strengths = draw_reflectors(scene, n_frames, rng)
-    frames = np.concatenate(list(_frames_in_batches(scene, positions, strengths, rng)), axis=0)
+    batches = []
+    for batch in _frames_in_batches(scene, positions, strengths, rng):
+        batches.append(batch)
+        if progress is not None:
+            progress(len(batch))
+    frames = np.concatenate(batches, axis=0)
     waveform = scene.waveform()
     return Recording(
         sample_rate_hz=scene.sample_rate_hz,
