@@ -6,6 +6,7 @@ internal error.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -13,9 +14,9 @@ import sys
 import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import click
 import numpy as np
@@ -38,7 +39,6 @@ from echoloc.simulate import simulate
 stdout = Console() if sys.stdout.isatty() else Console(width=int(os.environ.get("COLUMNS", 120)))
 # Messages on stderr are one line each, however long: never wrap them.
 stderr = Console(stderr=True, soft_wrap=True)
-F = TypeVar("F", bound=Callable[..., Any])
 
 
 def _frames_option(value: str | None, n_frames: int) -> range:
@@ -60,48 +60,102 @@ def _frames_option(value: str | None, n_frames: int) -> range:
     return range(start, stop)
 
 
-def _processing_options(func: F) -> F:
-    """Options shared by echoes, locate and evaluate."""
-    decorators = [
-        click.argument("recording_path", metavar="RECORDING", type=click.Path(path_type=Path)),
-        click.option(
-            "--estimator",
-            type=click.Choice(sorted(ESTIMATORS)),
-            default="matched",
-            show_default=True,
-            help="Time-of-flight estimator.",
-        ),
-        click.option(
-            "--threshold-db",
-            type=float,
-            default=EchoOptions.threshold_db,
-            show_default=True,
-            help="Detection threshold on the echo's output SNR, dB.",
-        ),
-        click.option(
-            "--blanking-s",
-            type=float,
-            default=0.0,
-            show_default=True,
-            help="Ignore echoes arriving earlier than this (transmitter ring-down), s.",
-        ),
-        click.option(
-            "--speed-of-sound",
-            "speed_of_sound_m_s",
-            type=float,
-            default=None,
-            help="Override the recording's speed of sound, m/s.",
-        ),
-        click.option("--frames", "frames_text", default=None, help="Frames to process: N or START:STOP."),
-        click.option(
-            "--repair-nonfinite",
-            is_flag=True,
-            help="Replace NaN or infinite samples by 0 (with a warning) instead of refusing the file.",
-        ),
-    ]
-    for decorator in reversed(decorators):
-        func = decorator(func)
-    return func
+@dataclass(frozen=True)
+class Processing:
+    """What echoes, locate and evaluate share: the recording and how to process it."""
+
+    recording_path: Path
+    estimator: str
+    threshold_db: float
+    blanking_s: float
+    speed_of_sound_m_s: float | None
+    frames_text: str | None
+    repair_nonfinite: bool
+    path_sigma_m: float | None = None
+
+    def open(self) -> tuple[Recording, Chain, range]:
+        """Read the recording, check the options, prepare the chain and the frames to run."""
+        _finite("--speed-of-sound", self.speed_of_sound_m_s, positive=True)
+        _finite("--blanking-s", self.blanking_s, minimum=0.0)
+        _finite("--threshold-db", self.threshold_db)
+        _finite("--path-sigma-m", self.path_sigma_m, positive=True)
+        recording = read_recording(self.recording_path, repair_nonfinite=self.repair_nonfinite)
+        chain = prepare(
+            recording,
+            estimator=self.estimator,
+            echo_options=EchoOptions(threshold_db=self.threshold_db, blanking_s=self.blanking_s),
+            speed_of_sound_m_s=self.speed_of_sound_m_s,
+        )
+        if self.path_sigma_m is not None:
+            chain = replace(
+                chain, locate_options=replace(chain.locate_options, path_sigma_m=self.path_sigma_m)
+            )
+        return recording, chain, _frames_option(self.frames_text, recording.n_frames)
+
+
+_PROCESSING_FIELDS = [f.name for f in fields(Processing)]
+
+
+def _processing_options(*, locating: bool) -> Callable[[Callable[..., None]], Callable[..., None]]:
+    """Add the shared options to a command and hand it one ``Processing`` value."""
+
+    def decorate(func: Callable[..., None]) -> Callable[..., None]:
+        @functools.wraps(func)
+        def command(**kwargs: Any) -> None:
+            processing = Processing(**{k: kwargs.pop(k) for k in _PROCESSING_FIELDS if k in kwargs})
+            func(processing, **kwargs)
+
+        decorators = [
+            click.argument("recording_path", metavar="RECORDING", type=click.Path(path_type=Path)),
+            click.option(
+                "--estimator",
+                type=click.Choice(sorted(ESTIMATORS)),
+                default="matched",
+                show_default=True,
+                help="Time-of-flight estimator.",
+            ),
+            click.option(
+                "--threshold-db",
+                type=float,
+                default=EchoOptions.threshold_db,
+                show_default=True,
+                help="Detection threshold on the echo's output SNR, dB.",
+            ),
+            click.option(
+                "--blanking-s",
+                type=float,
+                default=0.0,
+                show_default=True,
+                help="Ignore echoes arriving earlier than this (transmitter ring-down), s.",
+            ),
+            click.option(
+                "--speed-of-sound",
+                "speed_of_sound_m_s",
+                type=float,
+                default=None,
+                help="Override the recording's speed of sound, m/s.",
+            ),
+            click.option("--frames", "frames_text", default=None, help="Frames to process: N or START:STOP."),
+            click.option(
+                "--repair-nonfinite",
+                is_flag=True,
+                help="Replace NaN or infinite samples by 0 (with a warning) instead of refusing the file.",
+            ),
+        ]
+        if locating:
+            decorators.append(
+                click.option(
+                    "--path-sigma-m",
+                    type=float,
+                    default=None,
+                    help=f"A-priori path error, m [default: {LocateOptions.path_sigma_m}].",
+                )
+            )
+        for decorator in reversed(decorators):
+            command = decorator(command)
+        return command
+
+    return decorate
 
 
 def _finite(name: str, value: float | None, *, positive: bool = False, minimum: float | None = None) -> None:
@@ -114,29 +168,6 @@ def _finite(name: str, value: float | None, *, positive: bool = False, minimum: 
         raise EchoLocError(f"{name} must be > 0, got {value}")
     if minimum is not None and value < minimum:
         raise EchoLocError(f"{name} must be >= {minimum:g}, got {value}")
-
-
-def _chain(
-    recording: Recording,
-    estimator: str,
-    threshold_db: float,
-    blanking_s: float,
-    speed_of_sound_m_s: float | None,
-    path_sigma_m: float | None = None,
-) -> Chain:
-    _finite("--speed-of-sound", speed_of_sound_m_s, positive=True)
-    _finite("--blanking-s", blanking_s, minimum=0.0)
-    _finite("--threshold-db", threshold_db)
-    _finite("--path-sigma-m", path_sigma_m, positive=True)
-    chain = prepare(
-        recording,
-        estimator=estimator,
-        echo_options=EchoOptions(threshold_db=threshold_db, blanking_s=blanking_s),
-        speed_of_sound_m_s=speed_of_sound_m_s,
-    )
-    if path_sigma_m is not None:
-        chain = replace(chain, locate_options=replace(chain.locate_options, path_sigma_m=path_sigma_m))
-    return chain
 
 
 @contextmanager
@@ -299,27 +330,19 @@ def simulate_command(scene_path: Path, output: Path, n_frames: int, seed: int | 
 
 
 @cli.command()
-@_processing_options
+@_processing_options(locating=False)
 @click.option("--json", "as_json", is_flag=True, help="JSON Lines per FORMATS.md instead of a table.")
-def echoes(
-    recording_path: Path,
-    estimator: str,
-    threshold_db: float,
-    blanking_s: float,
-    speed_of_sound_m_s: float | None,
-    frames_text: str | None,
-    repair_nonfinite: bool,
-    as_json: bool,
-) -> None:
+def echoes(processing: Processing, as_json: bool) -> None:
     """Times of flight of the echoes in every frame of RECORDING, per receiver."""
-    recording = read_recording(recording_path, repair_nonfinite=repair_nonfinite)
-    chain = _chain(recording, estimator, threshold_db, blanking_s, speed_of_sound_m_s)
-    frames = _frames_option(frames_text, recording.n_frames)
+    _, chain, frames = processing.open()
     if as_json:
         for index in frames:
             click.echo(json_line(echoes_record(frame_echoes(chain, index))))
         return
-    table = Table(title=f"Echoes in {recording_path} ({estimator}, c = {chain.speed_of_sound_m_s:.2f} m/s)")
+    table = Table(
+        title=f"Echoes in {processing.recording_path} ({processing.estimator}, "
+        f"c = {chain.speed_of_sound_m_s:.2f} m/s)"
+    )
     for column in ("frame", "receiver", "tof µs", "path m", "amplitude", "SNR dB"):
         table.add_column(column, justify="right")
     for index in frames:
@@ -343,35 +366,17 @@ def _echo_rows(table: Table, result: FrameEchoes) -> None:
 
 
 @cli.command()
-@_processing_options
-@click.option(
-    "--path-sigma-m",
-    type=float,
-    default=None,
-    help=f"A-priori path error, m [default: {LocateOptions.path_sigma_m}].",
-)
+@_processing_options(locating=True)
 @click.option("--json", "as_json", is_flag=True, help="JSON Lines per FORMATS.md instead of a table.")
-def locate(
-    recording_path: Path,
-    estimator: str,
-    threshold_db: float,
-    blanking_s: float,
-    speed_of_sound_m_s: float | None,
-    frames_text: str | None,
-    repair_nonfinite: bool,
-    path_sigma_m: float | None,
-    as_json: bool,
-) -> None:
+def locate(processing: Processing, as_json: bool) -> None:
     """3-D positions of the reflectors in every frame of RECORDING."""
-    recording = read_recording(recording_path, repair_nonfinite=repair_nonfinite)
-    chain = _chain(recording, estimator, threshold_db, blanking_s, speed_of_sound_m_s, path_sigma_m)
+    _, chain, frames = processing.open()
     check_locatable(chain)
-    frames = _frames_option(frames_text, recording.n_frames)
     if as_json:
         for index in frames:
             click.echo(json_line(objects_record(frame_objects(chain, frame_echoes(chain, index)))))
         return
-    table = Table(title=f"Objects in {recording_path} ({estimator})")
+    table = Table(title=f"Objects in {processing.recording_path} ({processing.estimator})")
     for column in ("frame", "x mm", "y mm", "z mm", "±σ x, y, z mm", "range mm", "rx", "score"):
         table.add_column(column, justify="right")
     for index in frames:
@@ -397,13 +402,7 @@ def _object_rows(table: Table, result: FrameObjects) -> None:
 
 
 @cli.command(name="evaluate")
-@_processing_options
-@click.option(
-    "--path-sigma-m",
-    type=float,
-    default=None,
-    help=f"A-priori path error, m [default: {LocateOptions.path_sigma_m}].",
-)
+@_processing_options(locating=True)
 @click.option(
     "--match-radius-m",
     type=float,
@@ -412,26 +411,13 @@ def _object_rows(table: Table, result: FrameObjects) -> None:
     help="Largest distance of a located object from its true reflector, m.",
 )
 @click.option("--json", "as_json", is_flag=True, help="One JSON object with the figures.")
-def evaluate_command(
-    recording_path: Path,
-    estimator: str,
-    threshold_db: float,
-    blanking_s: float,
-    speed_of_sound_m_s: float | None,
-    frames_text: str | None,
-    repair_nonfinite: bool,
-    path_sigma_m: float | None,
-    match_radius_m: float,
-    as_json: bool,
-) -> None:
+def evaluate_command(processing: Processing, match_radius_m: float, as_json: bool) -> None:
     """Compare located objects with the recording's truth_positions: recall, false objects, RMSE."""
-    recording = read_recording(recording_path, repair_nonfinite=repair_nonfinite)
-    if recording.truth_positions_m is None:
-        raise EchoLocError(f"{recording_path}: has no truth_positions to evaluate against")
     _finite("--match-radius-m", match_radius_m, positive=True)
-    chain = _chain(recording, estimator, threshold_db, blanking_s, speed_of_sound_m_s, path_sigma_m)
+    recording, chain, frames = processing.open()
+    if recording.truth_positions_m is None:
+        raise EchoLocError(f"{processing.recording_path}: has no truth_positions to evaluate against")
     check_locatable(chain)
-    frames = _frames_option(frames_text, recording.n_frames)
     results = []
     with _progress(len(frames), "locating", not as_json) as advance:
         for index in frames:
@@ -439,9 +425,9 @@ def evaluate_command(
             advance(1)
     report = evaluate(results, recording.truth_positions_m, match_radius_m)
     if as_json:
-        click.echo(json.dumps(_evaluation_record(report, estimator)))
+        click.echo(json.dumps(_evaluation_record(report, processing.estimator)))
         return
-    _print_evaluation(report, recording_path, estimator)
+    _print_evaluation(report, processing.recording_path, processing.estimator)
 
 
 def _evaluation_record(report: Evaluation, estimator: str) -> dict[str, Any]:
