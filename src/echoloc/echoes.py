@@ -39,6 +39,7 @@ from functools import cached_property
 import numpy as np
 import scipy.fft
 from numpy.typing import NDArray
+from scipy import optimize
 
 from echoloc.errors import EchoLocError
 from echoloc.recording import Recording
@@ -233,14 +234,6 @@ class _Clean:
         self.merge_samples = mf.mainlobe_samples / 4
         self.cluster_samples = 2 * mf.mainlobe_samples
 
-    def _shape(self, tof_samples: float) -> tuple[NDArray[np.complex128], int]:
-        """Template autocorrelation for an echo at ``tof_samples``, and its first index."""
-        base = int(np.floor(tof_samples))
-        j = round((tof_samples - base) * self.mf.oversample)
-        if j == self.mf.oversample:
-            base, j = base + 1, 0
-        return self.table[j], base - self.half
-
     def _fit(self, values: NDArray[np.complex128], peak: int) -> _Component:
         """Delay and complex amplitude of one echo whose envelope peaks at index ``peak``.
 
@@ -280,6 +273,145 @@ class _Clean:
         amplitude = complex(np.vdot(model, segment) / np.vdot(model, model).real)
         return _Component(tof, amplitude)
 
+    def _shape(self, tof_samples: float) -> tuple[NDArray[np.complex128], int]:
+        """Template autocorrelation for an echo at ``tof_samples``, and its first index.
+
+        Linear interpolation between the table's sub-sample shifts, so the shape
+        moves smoothly with the delay (the joint fit differentiates it).
+        """
+        shape, _, start = self._shape_and_slope(tof_samples)
+        return shape, start
+
+    def _shape_and_slope(
+        self, tof_samples: float
+    ) -> tuple[NDArray[np.complex128], NDArray[np.complex128], int]:
+        """The interpolated shape, its derivative in the delay (per sample), and its first index."""
+        u = self.mf.oversample
+        position = tof_samples * u
+        g0 = math.floor(position)
+        weight = position - g0
+        base0, j0 = divmod(g0, u)
+        base1, j1 = divmod(g0 + 1, u)
+        row0 = self.table[j0]
+        row1 = self.table[j1]
+        if base1 != base0:
+            # The next shift belongs to the next whole sample: align it one lag later.
+            shifted = np.zeros_like(row0)
+            shifted[1:] = row1[:-1]
+            row1 = shifted
+        return (1 - weight) * row0 + weight * row1, (row1 - row0) * u, base0 - self.half
+
+    def _joint_fit(
+        self, residual: NDArray[np.complex128], cluster: list[_Component], power: float
+    ) -> list[_Component]:
+        """Fit overlapping echoes together: least squares over every delay and (real) amplitude.
+
+        Successive single fits can settle on a wrong split when main lobes overlap by
+        more than half; the joint fit of the model ``sum_k a_k R(m - tau_k)`` to the
+        data (the residual with the cluster put back) over the cluster's span does
+        not. Components that drift within a quarter main lobe of each other, or fall
+        below the detection threshold, are dropped and the rest fitted again.
+        """
+        for member in cluster:
+            shape, start = self._shape(member.tof_samples)
+            _subtract(residual, shape, start, -member.amplitude)
+        threshold = 10 ** (self.options.threshold_db / 10) * power
+        members = sorted(cluster, key=lambda c: c.tof_samples)
+        for _ in range(len(cluster)):
+            lo = max(math.floor(members[0].tof_samples) - self.fit_half, 0)
+            hi = min(math.ceil(members[-1].tof_samples) + self.fit_half + 1, len(residual))
+            data = residual[lo:hi]
+            lags = np.arange(lo, hi)
+
+            def model(
+                tofs: NDArray[np.float64], lags: NDArray[np.int64] = lags
+            ) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:
+                """Shapes (k, n) and their delay derivatives (k, n) over the window."""
+                shapes = np.zeros((len(tofs), len(lags)), dtype=complex)
+                slopes = np.zeros_like(shapes)
+                for k, tof in enumerate(tofs):
+                    shape, slope, start = self._shape_and_slope(float(tof))
+                    index = lags - start
+                    inside = (index >= 0) & (index < len(shape))
+                    shapes[k, inside] = shape[index[inside]]
+                    slopes[k, inside] = slope[index[inside]]
+                return shapes, slopes
+
+            def split(values: NDArray[np.complex128]) -> NDArray[np.float64]:
+                return np.concatenate([values.real, values.imag], axis=-1)
+
+            def complex_misfit(
+                params: NDArray[np.float64], data: NDArray[np.complex128] = data
+            ) -> NDArray[np.float64]:
+                shapes, _ = model(params[0::3])
+                return split(data - (params[1::3] + 1j * params[2::3]) @ shapes)
+
+            def complex_jacobian(params: NDArray[np.float64]) -> NDArray[np.float64]:
+                shapes, slopes = model(params[0::3])
+                amplitudes = params[1::3] + 1j * params[2::3]
+                # d(data - model)/d(tau_k) = +a_k R'(m - tau_k) ... with R' the slope in tau.
+                columns = np.empty((3 * len(amplitudes), shapes.shape[1]), dtype=complex)
+                columns[0::3] = -amplitudes[:, None] * slopes
+                columns[1::3] = -shapes
+                columns[2::3] = -1j * shapes
+                return split(columns).T
+
+            def real_misfit(
+                params: NDArray[np.float64], data: NDArray[np.complex128] = data
+            ) -> NDArray[np.float64]:
+                shapes, _ = model(params[0::2])
+                return split(data - params[1::2] @ shapes)
+
+            def real_jacobian(params: NDArray[np.float64]) -> NDArray[np.float64]:
+                shapes, slopes = model(params[0::2])
+                columns = np.empty((2 * len(shapes), shapes.shape[1]), dtype=complex)
+                columns[0::2] = -params[1::2, None] * slopes
+                columns[1::2] = -shapes
+                return split(columns).T
+
+            # First with complex amplitudes: the cost is then smooth in the delays (the
+            # envelope), where with real amplitudes it has a minimum every half carrier
+            # cycle. Then with real amplitudes from there: the carrier phase pins the delays.
+            start_params = np.ravel([[m.tof_samples, m.amplitude.real, m.amplitude.imag] for m in members])
+            try:
+                coarse = optimize.least_squares(
+                    complex_misfit, start_params, jac=complex_jacobian, method="lm"
+                )
+                amplitudes = coarse.x[1::3] + 1j * coarse.x[2::3]
+                fine_start = np.ravel(
+                    [
+                        [t, _real_amplitude(complex(a))]
+                        for t, a in zip(coarse.x[0::3], amplitudes, strict=True)
+                    ]
+                )
+                fit = optimize.least_squares(real_misfit, fine_start, jac=real_jacobian, method="lm")
+                diverged = not (
+                    np.all(np.isfinite(fit.x)) and np.all(np.abs(fit.x[0::2] - (lo + hi) / 2) < hi - lo)
+                )
+            except (OverflowError, ValueError):
+                diverged = True
+            if diverged:
+                # A fit that ran away from its window keeps what successive refinement found.
+                break
+            fitted = [_Component(float(t), complex(a)) for t, a in zip(fit.x[0::2], fit.x[1::2], strict=True)]
+            fitted.sort(key=lambda c: c.tof_samples)
+            kept = [c for c in fitted if abs(c.amplitude) ** 2 >= threshold and lo <= c.tof_samples < hi]
+            pruned: list[_Component] = []
+            for c in kept:
+                if pruned and c.tof_samples - pruned[-1].tof_samples < self.merge_samples:
+                    if abs(c.amplitude) > abs(pruned[-1].amplitude):
+                        pruned[-1] = c
+                    continue
+                pruned.append(c)
+            if len(pruned) == len(fitted) or not pruned:
+                members = pruned
+                break
+            members = pruned
+        for member in members:
+            shape, start = self._shape(member.tof_samples)
+            _subtract(residual, shape, start, member.amplitude)
+        return members
+
     def _refit(self, residual: NDArray[np.complex128], component: _Component) -> None:
         """Put the component back into the residual, fit it again alone, take it out again."""
         shape, start = self._shape(component.tof_samples)
@@ -314,53 +446,81 @@ class _Clean:
             merged.append(component)
         return merged
 
-    def run(self, correlation: NDArray[np.complex128]) -> tuple[list[_Component], float]:
-        """Extract echoes strongest first; re-fit overlapping ones together as they appear."""
-        residual = correlation.copy()
-        components: list[_Component] = []
-        power = noise_power(residual)
+    def _extract(self, residual: NDArray[np.complex128], components: list[_Component], power: float) -> int:
+        """Take echoes out of ``residual`` strongest first while above the threshold; how many."""
         threshold = 10 ** (self.options.threshold_db / 10)
         floor = 10 ** (-self.options.dynamic_range_db / 20)
-        strongest = 0.0
-        for round_ in range(2):
-            while len(components) < self.options.max_echoes:
-                magnitude = np.abs(residual)
-                peak = int(np.argmax(magnitude))
-                height = float(magnitude[peak])
-                if height**2 < threshold * power or height < floor * strongest:
-                    break
-                component = self._fit(residual, peak)
-                shape, start = self._shape(component.tof_samples)
-                _subtract(residual, shape, start, component.amplitude)
-                # An echo overlapping earlier ones biased their fits and they biased its:
-                # fit the cluster again, each with the others removed, before going on.
-                cluster = [
-                    c for c in components if abs(c.tof_samples - component.tof_samples) < self.cluster_samples
-                ]
-                components.append(component)
-                if cluster:
-                    self._refit_together([*cluster, component], residual)
-                strongest = max(strongest, abs(component.amplitude))
-            if round_ == 0:
-                # The first noise estimate includes the echoes' sidelobes; redo it on the residual.
-                power = noise_power(residual)
-        # Two components may have settled on one echo: fuse them and fit their clusters again.
-        merged = self._merge_close(residual, components)
-        if len(merged) < len(components):
-            for member in merged:
-                cluster = [
-                    c for c in merged if abs(c.tof_samples - member.tof_samples) < self.cluster_samples
-                ]
-                if len(cluster) > 1:
-                    self._refit_together(cluster, residual)
-            merged = self._merge_close(residual, merged)
-        return merged, power
+        strongest = max((abs(c.amplitude) for c in components), default=0.0)
+        added = 0
+        while len(components) < self.options.max_echoes:
+            magnitude = np.abs(residual)
+            peak = int(np.argmax(magnitude))
+            height = float(magnitude[peak])
+            if height**2 < threshold * power or height < floor * strongest:
+                break
+            component = self._fit(residual, peak)
+            shape, start = self._shape(component.tof_samples)
+            _subtract(residual, shape, start, component.amplitude)
+            cluster = [
+                c for c in components if abs(c.tof_samples - component.tof_samples) < self.cluster_samples
+            ]
+            components.append(component)
+            added += 1
+            if cluster:
+                self._refit_together([*cluster, component], residual)
+            strongest = max(strongest, abs(component.amplitude))
+        return added
 
     def _refit_together(self, cluster: list[_Component], residual: NDArray[np.complex128]) -> None:
         """Successive refinement: fit each member with the others removed, a few passes."""
         for _ in range(self.options.refine_passes):
             for member in cluster:
                 self._refit(residual, member)
+
+    def _fit_cluster(
+        self, residual: NDArray[np.complex128], cluster: list[_Component], power: float
+    ) -> list[_Component]:
+        """A joint fit of a cluster whose main lobes overlap by more than half; else as it is."""
+        delays = sorted(c.tof_samples for c in cluster)
+        if min(np.diff(delays)) < self.mf.mainlobe_samples:
+            return self._joint_fit(residual, cluster, power)
+        return cluster
+
+    def run(self, correlation: NDArray[np.complex128]) -> tuple[list[_Component], float]:
+        """Extract echoes strongest first, then fit overlapping ones together.
+
+        Each new echo is fitted alone (exact when isolated). When it lies within two
+        main lobes of earlier ones, the cluster is fitted again by successive
+        refinement. Clusters whose members are closer than one main lobe are then
+        fitted jointly (:meth:`_joint_fit`).
+        """
+        residual = correlation.copy()
+        components: list[_Component] = []
+        power = noise_power(residual)
+        self._extract(residual, components, power)
+        # The first noise estimate includes the echoes' sidelobes; redo it on the residual.
+        power = noise_power(residual)
+        self._extract(residual, components, power)
+        merged: list[_Component] = []
+        for group in _clusters(self._merge_close(residual, components), self.cluster_samples):
+            merged.extend(self._fit_cluster(residual, group, power) if len(group) > 1 else group)
+        return merged, power
+
+
+def _real_amplitude(amplitude: complex) -> float:
+    """The real amplitude of an RF echo: |a| with the sign of its real part."""
+    return abs(amplitude) if amplitude.real >= 0 else -abs(amplitude)
+
+
+def _clusters(components: list[_Component], gap_samples: float) -> list[list[_Component]]:
+    """Group components whose delays chain together closer than ``gap_samples``."""
+    groups: list[list[_Component]] = []
+    for component in sorted(components, key=lambda c: c.tof_samples):
+        if groups and component.tof_samples - groups[-1][-1].tof_samples < gap_samples:
+            groups[-1].append(component)
+        else:
+            groups.append([component])
+    return groups
 
 
 def matched_filter_echoes(
