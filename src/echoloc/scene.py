@@ -26,15 +26,22 @@ from numpy.typing import NDArray
 
 from echoloc.air import speed_of_sound_m_s
 from echoloc.errors import EchoLocError, SceneError
+from echoloc.transducer import PRESETS, apply_response, impulse_response
 from echoloc.waveform import BARKER_CODES, Carrier, Waveform, barker_waveform
 
 
 @dataclass(frozen=True, eq=False)
 class Array:
-    """Transducer positions in the sensor frame, m: (n_tx, 3) and (n_rx, 3)."""
+    """Transducer positions in the sensor frame, m: (n_tx, 3) and (n_rx, 3).
+
+    ``transmitter_axes`` and ``receiver_axes`` are the unit boresight vectors (None:
+    every transducer faces +z); they matter only with a transducer model.
+    """
 
     transmitters_m: NDArray[np.float64]
     receivers_m: NDArray[np.float64]
+    transmitter_axes: NDArray[np.float64] | None = None
+    receiver_axes: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
         for name in ("transmitters_m", "receivers_m"):
@@ -44,6 +51,36 @@ class Array:
             if not np.all(np.isfinite(value)):
                 raise SceneError(f"array {name} has non-finite coordinates")
             object.__setattr__(self, name, value)
+        for name, positions in (("transmitter_axes", "transmitters_m"), ("receiver_axes", "receivers_m")):
+            axes = getattr(self, name)
+            if axes is None:
+                continue
+            axes = np.asarray(axes, dtype=float)
+            count = len(getattr(self, positions))
+            if axes.shape != (count, 3):
+                raise SceneError(f"array {name} must have shape ({count}, 3), got {axes.shape}")
+            norms = np.linalg.norm(axes, axis=1)
+            if not (np.all(np.isfinite(axes)) and np.all(norms > 0)):
+                raise SceneError(f"array {name} must be finite, non-zero vectors")
+            object.__setattr__(self, name, axes / norms[:, None])
+
+    def axes(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Unit boresights of transmitters and receivers (+z where not given)."""
+        up = np.array([0.0, 0.0, 1.0])
+        tx = (
+            self.transmitter_axes
+            if self.transmitter_axes is not None
+            else np.tile(up, (len(self.transmitters_m), 1))
+        )
+        rx = self.receiver_axes if self.receiver_axes is not None else np.tile(up, (len(self.receivers_m), 1))
+        return tx, rx
+
+    def aimed_at(self, point_m: NDArray[np.float64]) -> Array:
+        """The same array with every transducer facing ``point_m``."""
+        point = np.asarray(point_m, dtype=float)
+        return Array(
+            self.transmitters_m, self.receivers_m, point - self.transmitters_m, point - self.receivers_m
+        )
 
 
 @dataclass(frozen=True)
@@ -92,6 +129,8 @@ class Scene:
     snr_db: float | None = None
     path_jitter_m: float = 0.0
     seed: int | None = 0
+    transducer: str | None = None
+    absorption: bool = False
 
     def __post_init__(self) -> None:
         positions = np.asarray(self.reflector_positions_m, dtype=float).reshape(-1, 3)
@@ -124,6 +163,8 @@ class Scene:
                 raise SceneError(
                     f"random_reflectors.count must be [min, max] with 0 <= min <= max, got {[low, high]}"
                 )
+        if self.transducer is not None and self.transducer not in PRESETS:
+            raise SceneError(f"transducer {self.transducer!r} is not one of {', '.join(PRESETS)}")
         # Raises early for an impossible pulse.
         self.waveform()
 
@@ -136,6 +177,22 @@ class Scene:
             sample_rate_hz=self.sample_rate_hz,
             carrier=self.pulse.carrier,
         )
+
+    def returned_pulse(self) -> NDArray[np.float64]:
+        """The pulse as an ideal point reflector returns it at unit gain (the SENT template).
+
+        The emitted pulse through the transmitter and receiver responses in series,
+        cut where its ringing has fallen below 1e-4 of its peak; without a transducer
+        model, the emitted pulse itself.
+        """
+        pulse = self.waveform().samples
+        if self.transducer is None:
+            return pulse
+        model = PRESETS[self.transducer]
+        ringing = len(impulse_response(model, self.sample_rate_hz))
+        returned = apply_response(np.concatenate([pulse, np.zeros(ringing)]), model, self.sample_rate_hz)
+        significant = np.flatnonzero(np.abs(returned) >= 1e-4 * np.max(np.abs(returned)))
+        return np.asarray(returned[: significant[-1] + 1])
 
     @property
     def speed_of_sound_m_s(self) -> float:
@@ -174,7 +231,8 @@ def default_scene() -> Scene:
 # --- TOML --------------------------------------------------------------------------
 
 _SECTIONS: dict[str, set[str]] = {
-    "array": {"transmitters_m", "receivers_m"},
+    "array": {"transmitters_m", "receivers_m", "transmitter_axes", "receiver_axes", "aim_at_m"},
+    "transducers": {"model", "absorption"},
     "pulse": {"code", "carrier_hz", "cycles_per_bit", "carrier"},
     "acquisition": {"sample_rate_hz", "n_samples", "frame_rate_hz"},
     "air": {"temperature_c", "relative_humidity"},
@@ -231,14 +289,38 @@ def _scene_from_dict(data: Mapping[str, Any], source: str) -> Scene:
     kwargs: dict[str, Any] = {}
 
     array = data.get("array", {})
-    kwargs["array"] = Array(
+    geometry = Array(
         transmitters_m=_points("array.transmitters_m", array["transmitters_m"])
         if "transmitters_m" in array
         else REPORT_ARRAY.transmitters_m,
         receivers_m=_points("array.receivers_m", array["receivers_m"])
         if "receivers_m" in array
         else REPORT_ARRAY.receivers_m,
+        transmitter_axes=_points("array.transmitter_axes", array["transmitter_axes"])
+        if "transmitter_axes" in array
+        else None,
+        receiver_axes=_points("array.receiver_axes", array["receiver_axes"])
+        if "receiver_axes" in array
+        else None,
     )
+    if "aim_at_m" in array:
+        if "transmitter_axes" in array or "receiver_axes" in array:
+            raise SceneError("array.aim_at_m and explicit array axes exclude each other")
+        geometry = geometry.aimed_at(_points("array.aim_at_m", [array["aim_at_m"]])[0])
+    kwargs["array"] = geometry
+
+    transducers = data.get("transducers", {})
+    if "model" in transducers:
+        model = transducers["model"]
+        if not isinstance(model, str) or model not in PRESETS:
+            raise SceneError(f"transducers.model {model!r} is not one of {', '.join(PRESETS)}")
+        kwargs["transducer"] = model
+    if "absorption" in transducers:
+        if not isinstance(transducers["absorption"], bool):
+            raise SceneError(
+                f"transducers.absorption must be true or false, got {transducers['absorption']!r}"
+            )
+        kwargs["absorption"] = transducers["absorption"]
 
     pulse = data.get("pulse", {})
     code = pulse.get("code", "barker13")
