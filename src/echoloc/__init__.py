@@ -4,7 +4,7 @@ The data flow is the architecture: ``scene -> simulate -> Recording -> echoes ->
 locate -> objects``, one module per stage (see DESIGN.md).
 """
 
-from echoloc.air import speed_of_sound_m_s
+from echoloc.air import absorption_db_per_m, speed_of_sound_cramer_m_s, speed_of_sound_m_s
 from echoloc.echoes import ESTIMATORS, ChannelEchoes, EchoOptions, FrameEchoes, MatchedFilter
 from echoloc.errors import EchoLocError, GeometryError, RecordingError, SceneError, WaveformError
 from echoloc.evaluate import Evaluation, evaluate
@@ -20,12 +20,28 @@ from echoloc.pipeline import Chain, find_echoes, frame_echoes, frame_objects, pr
 from echoloc.recording import Recording, RecordingWarning, read_recording, write_recording
 from echoloc.scene import Array, Scene, default_scene, load_scene
 from echoloc.simulate import simulate
-from echoloc.waveform import Waveform, barker, barker_waveform, modulate
+from echoloc.transducer import PRESETS, Transducer, array_factor, piston_beam_angles, piston_directivity
+from echoloc.waveform import (
+    Waveform,
+    WaveformMetrics,
+    barker,
+    barker_waveform,
+    chirp_waveform,
+    code_metrics,
+    golay_pair,
+    kasami_set,
+    mls,
+    modulate,
+    tone_burst,
+    waveform_by_name,
+    waveform_metrics,
+)
 
 __version__ = "0.1.0"
 
 __all__ = [
     "ESTIMATORS",
+    "PRESETS",
     "Array",
     "Chain",
     "ChannelEchoes",
@@ -43,25 +59,40 @@ __all__ = [
     "RecordingWarning",
     "Scene",
     "SceneError",
+    "Transducer",
     "Waveform",
     "WaveformError",
+    "WaveformMetrics",
     "__version__",
+    "absorption_db_per_m",
+    "array_factor",
     "associate",
     "barker",
     "barker_waveform",
+    "chirp_waveform",
+    "code_metrics",
     "default_scene",
     "evaluate",
     "find_echoes",
     "frame_echoes",
     "frame_objects",
+    "golay_pair",
+    "kasami_set",
     "load_scene",
+    "mls",
     "modulate",
     "paired_closed_form",
+    "piston_beam_angles",
+    "piston_directivity",
     "prepare",
     "read_recording",
     "run",
     "simulate",
     "solve_positions",
+    "speed_of_sound_cramer_m_s",
     "speed_of_sound_m_s",
+    "tone_burst",
+    "waveform_by_name",
+    "waveform_metrics",
     "write_recording",
 ]
