@@ -113,3 +113,42 @@ def test_bad_physics_input_is_one_line_and_exit_2(
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1
     assert lines[0].startswith("echoloc: error:")
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ("beam", "--frequency", "1000"),
+        ("air", "--temperature", "-273"),
+    ],
+)
+def test_physically_meaningless_requests_are_refused(
+    capsys: pytest.CaptureFixture[str], args: tuple[str, ...]
+) -> None:
+    """A piston with ka < 1.616 has no -3 dB width; air colder than the formulas allow is refused."""
+    with pytest.raises(SystemExit) as exit_info:
+        main(list(args))
+    assert exit_info.value.code == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1
+
+
+def test_evaluate_json_is_valid_when_nothing_matches(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    """JSON has no NaN: with no object found the RMSE is null, not NaN."""
+    import dataclasses
+
+    import numpy as np
+
+    from echoloc.recording import write_recording
+    from echoloc.scene import default_scene
+    from echoloc.simulate import simulate
+
+    recording = simulate(default_scene(), 1)
+    noise = 1e-3 * np.random.default_rng(0).normal(size=recording.frames.shape)
+    empty = dataclasses.replace(recording, frames=noise)
+    path = write_recording(empty, tmp_path / "empty.h5")
+    record = run_json(capsys, "evaluate", str(path))
+    assert record["recall"] == 0.0
+    assert record["rmse_m"] == [None, None, None]

@@ -451,7 +451,7 @@ def evaluate_command(processing: Processing, match_radius_m: float, as_json: boo
             advance(1)
     report = evaluate(results, recording.truth_positions_m, match_radius_m)
     if as_json:
-        click.echo(json.dumps(_evaluation_record(report, processing.estimator)))
+        click.echo(json.dumps(_json_safe(_evaluation_record(report, processing.estimator)), allow_nan=False))
         return
     _print_evaluation(report, processing.recording_path, processing.estimator)
 
@@ -659,7 +659,9 @@ def air_command(
     plot: Path | None,
 ) -> None:
     """Speed of sound, impedance and absorption (ISO 9613-1) for the given air."""
-    _finite("--temperature", temperature_c, minimum=-273.15)
+    _finite("--temperature", temperature_c, minimum=-90.0)
+    if temperature_c > 100:
+        raise EchoLocError(f"--temperature must be at most 100 °C, got {temperature_c}")
     _finite("--humidity", relative_humidity, minimum=0.0)
     if relative_humidity > 1:
         raise EchoLocError(f"--humidity is a fraction 0..1, got {relative_humidity}")
@@ -783,6 +785,11 @@ def beam_command(
     f = frequency_hz or transducer.centre_frequency_hz
     c = speed_of_sound_m_s
     beam = piston_beam_angles(transducer.radius_m, f, c)
+    if not math.isfinite(beam.full_angle_3db_rad):
+        raise EchoLocError(
+            f"a piston of radius {transducer.radius_m:g} m at {f:g} Hz has ka = {beam.ka:.3g} < 1.616: "
+            "it never falls 3 dB, so it has no beam width (raise --radius-m or --frequency)"
+        )
     wavelength = c / f
     spacing = spacing_m if spacing_m is not None else wavelength / 2
     steer = math.radians(steer_deg)
@@ -894,6 +901,11 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(0)
     except OSError as error:
         stderr.print(f"echoloc: error: {error}", markup=False, highlight=False)
+        sys.exit(2)
+    except MemoryError:
+        stderr.print(
+            "echoloc: error: not enough memory for this request (fewer frames or samples?)", markup=False
+        )
         sys.exit(2)
     except Exception as error:
         stderr.print(

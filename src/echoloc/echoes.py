@@ -171,7 +171,6 @@ class MatchedFilter:
     def mainlobe_samples(self) -> float:
         """Full width of the autocorrelation envelope's main lobe at -6 dB, samples."""
         envelope = np.abs(self.acf_table[0])
-        above = np.flatnonzero(envelope >= 0.5)
         centre = self.half_width
         # Walk out from the peak to the first lag below half on each side.
         right = centre
@@ -180,7 +179,6 @@ class MatchedFilter:
         left = centre
         while left - 1 >= 0 and envelope[left - 1] >= 0.5:
             left -= 1
-        del above
         return float(right - left + 1)
 
     def correlate(self, frames: NDArray[np.floating]) -> NDArray[np.complex128]:
@@ -452,8 +450,11 @@ class _Clean:
         floor = 10 ** (-self.options.dynamic_range_db / 20)
         strongest = max((abs(c.amplitude) for c in components), default=0.0)
         added = 0
+        first = math.ceil(self.options.blanking_s * self.mf.sample_rate_hz)
         while len(components) < self.options.max_echoes:
             magnitude = np.abs(residual)
+            # Nothing is looked for inside the blanking interval (ring-down, direct coupling).
+            magnitude[:first] = 0.0
             peak = int(np.argmax(magnitude))
             height = float(magnitude[peak])
             if height**2 < threshold * power or height < floor * strongest:

@@ -15,6 +15,7 @@ scene's.
 
 from __future__ import annotations
 
+import math
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -163,6 +164,24 @@ class Scene:
                 raise SceneError(
                     f"random_reflectors.count must be [min, max] with 0 <= min <= max, got {[low, high]}"
                 )
+        if self.seed is not None and self.seed < 0:
+            raise SceneError(f"seed must be >= 0, got {self.seed}")
+        if len(self.array.transmitters_m) > 1:
+            raise SceneError(
+                f"the simulator fires one transmitter; this scene has {len(self.array.transmitters_m)}"
+            )
+        transducers = np.vstack([self.array.transmitters_m, self.array.receivers_m])
+        for i, point in enumerate(positions):
+            if np.min(np.linalg.norm(transducers - point, axis=1)) < 1e-3:
+                raise SceneError(f"reflector {i} at {point.tolist()} sits on a transducer")
+            if point[2] <= 0:
+                raise SceneError(
+                    f"reflector {i} at {point.tolist()} is not in front of the array (z must be > 0)"
+                )
+        if self.random is not None and self.random.z_m[0] <= 0:
+            raise SceneError(
+                f"random_reflectors.z_m must lie in front of the array (> 0), got {list(self.random.z_m)}"
+            )
         if self.transducer is not None and self.transducer not in PRESETS:
             raise SceneError(f"transducer {self.transducer!r} is not one of {', '.join(PRESETS)}")
         # Raises early for an impossible pulse.
@@ -244,8 +263,8 @@ _TOP_LEVEL = {*_SECTIONS, "reflectors", "seed"}
 
 
 def _number(where: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise SceneError(f"{where} must be a number, got {value!r}")
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise SceneError(f"{where} must be a finite number, got {value!r}")
     return float(value)
 
 
@@ -325,7 +344,7 @@ def _scene_from_dict(data: Mapping[str, Any], source: str) -> Scene:
     pulse = data.get("pulse", {})
     code = pulse.get("code", "barker13")
     lengths = {f"barker{n}": n for n in BARKER_CODES}
-    if code not in lengths:
+    if not isinstance(code, str) or code not in lengths:
         raise SceneError(f"pulse.code {code!r} is not one of {', '.join(lengths)}")
     cycles = pulse.get("cycles_per_bit", 4)
     if isinstance(cycles, bool) or not isinstance(cycles, int):
@@ -395,8 +414,8 @@ def _scene_from_dict(data: Mapping[str, Any], source: str) -> Scene:
         )
 
     seed = data.get("seed", 0)
-    if isinstance(seed, bool) or not isinstance(seed, int):
-        raise SceneError(f"seed must be a whole number, got {seed!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise SceneError(f"seed must be a whole number >= 0, got {seed!r}")
     kwargs["seed"] = seed
     return Scene(**kwargs)
 
