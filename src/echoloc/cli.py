@@ -32,6 +32,7 @@ from echoloc.air import (
     speed_of_sound_cramer_m_s,
     speed_of_sound_m_s,
 )
+from echoloc.calibrate import fit_calibration, read_calibration, write_calibration
 from echoloc.echoes import ESTIMATORS, EchoOptions, FrameEchoes
 from echoloc.errors import EchoLocError
 from echoloc.evaluate import Evaluation, evaluate, match
@@ -97,6 +98,7 @@ class Processing:
     speed_of_sound_m_s: float | None
     frames_text: str | None
     repair_nonfinite: bool
+    calibration_path: Path | None = None
     path_sigma_m: float | None = None
 
     def open(self) -> tuple[Recording, Chain, range]:
@@ -106,11 +108,17 @@ class Processing:
         _finite("--threshold-db", self.threshold_db)
         _finite("--path-sigma-m", self.path_sigma_m, positive=True)
         recording = read_recording(self.recording_path, repair_nonfinite=self.repair_nonfinite)
+        calibration = (
+            None
+            if self.calibration_path is None
+            else read_calibration(self.calibration_path, recording.n_receivers)
+        )
         chain = prepare(
             recording,
             estimator=self.estimator,
             echo_options=EchoOptions(threshold_db=self.threshold_db, blanking_s=self.blanking_s),
             speed_of_sound_m_s=self.speed_of_sound_m_s,
+            calibration=calibration,
         )
         if self.path_sigma_m is not None:
             chain = replace(
@@ -122,7 +130,9 @@ class Processing:
 _PROCESSING_FIELDS = [f.name for f in fields(Processing)]
 
 
-def _processing_options(*, locating: bool) -> Callable[[Callable[..., None]], Callable[..., None]]:
+def _processing_options(
+    *, locating: bool, calibrated: bool = True
+) -> Callable[[Callable[..., None]], Callable[..., None]]:
     """Add the shared options to a command and hand it one ``Processing`` value."""
 
     def decorate(func: Callable[..., None]) -> Callable[..., None]:
@@ -168,6 +178,16 @@ def _processing_options(*, locating: bool) -> Callable[[Callable[..., None]], Ca
                 help="Replace NaN or infinite samples by 0 (with a warning) instead of refusing the file.",
             ),
         ]
+        if calibrated:
+            decorators.append(
+                click.option(
+                    "--calibration",
+                    "calibration_path",
+                    type=click.Path(path_type=Path),
+                    default=None,
+                    help="Speed of sound and receiver delays from `echoloc calibrate`.",
+                )
+            )
         if locating:
             decorators.append(
                 click.option(
@@ -486,6 +506,31 @@ def _print_evaluation(report: Evaluation, path: Path, estimator: str) -> None:
         )
     table.add_row("match radius", f"{report.match_radius_m * 1e3:g} mm")
     stdout.print(table)
+
+
+@cli.command(name="calibrate")
+@_processing_options(locating=False, calibrated=False)
+@click.option(
+    "-o", "--output", type=click.Path(path_type=Path), required=True, help="Calibration JSON to write."
+)
+def calibrate_command(processing: Processing, output: Path) -> None:
+    """Fit the speed of sound and a delay per receiver from frames with known targets (truth_positions)."""
+    recording, chain, frames = processing.open()
+    if recording.truth_positions_m is None:
+        raise EchoLocError(f"{processing.recording_path}: has no truth_positions to calibrate against")
+    echoes = []
+    with _progress(len(frames), "finding echoes", True) as advance:
+        for index in frames:
+            echoes.append(frame_echoes(chain, index))
+            advance(1)
+    calibration = fit_calibration(recording, echoes, speed_of_sound_m_s=chain.speed_of_sound_m_s)
+    written = write_calibration(calibration, output)
+    delays = ", ".join(f"{d * 1e6:+.3f}" for d in calibration.receiver_delays_s)
+    stdout.print(
+        f"speed of sound {calibration.speed_of_sound_m_s:.3f} m/s (assumed {chain.speed_of_sound_m_s:.3f}); "
+        f"receiver delays {delays} µs; {calibration.echoes_used} echoes, residual "
+        f"{calibration.residual_rms_s * 1e9:.1f} ns rms. Written to {written}."
+    )
 
 
 # --- physics: waveform, air, beam ---------------------------------------------------

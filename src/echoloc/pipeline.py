@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from echoloc.air import speed_of_sound_m_s
+from echoloc.calibrate import Calibration, apply_calibration
 from echoloc.echoes import (
     EchoOptions,
     Estimator,
@@ -47,6 +48,7 @@ class Chain:
     locate_options: LocateOptions
     speed_of_sound_m_s: float
     usable_receivers: NDArray[np.bool_]
+    calibration: Calibration | None = None
 
 
 def prepare(
@@ -56,9 +58,21 @@ def prepare(
     echo_options: EchoOptions | None = None,
     locate_options: LocateOptions | None = None,
     speed_of_sound_m_s: float | None = None,
+    calibration: Calibration | None = None,
 ) -> Chain:
-    """Precompute the chain for ``recording``; options not given take recording-based defaults."""
+    """Precompute the chain for ``recording``; options not given take recording-based defaults.
+
+    With a ``calibration`` its speed of sound is used and its receiver delays are
+    taken off every echo (an explicit ``speed_of_sound_m_s`` still wins).
+    """
     echo_options = echo_options or EchoOptions()
+    if calibration is not None and len(calibration.receiver_delays_s) != recording.n_receivers:
+        raise EchoLocError(
+            f"{recording.source}: the calibration has delays for {len(calibration.receiver_delays_s)} "
+            f"receivers, the recording has {recording.n_receivers}"
+        )
+    if calibration is not None and speed_of_sound_m_s is None:
+        speed_of_sound_m_s = calibration.speed_of_sound_m_s
     c = speed_of_sound_m_s or recording_speed_of_sound_m_s(recording)
     run_estimator = prepare_estimator(recording, echo_options, estimator)
     if locate_options is None:
@@ -84,7 +98,7 @@ def prepare(
     # Dead receivers (the reader warns about them) are left out of localisation.
     usable = np.ones(recording.n_receivers, dtype=bool)
     usable[dead_receivers(recording)] = False
-    return Chain(recording, run_estimator, echo_options, locate_options, c, usable)
+    return Chain(recording, run_estimator, echo_options, locate_options, c, usable, calibration)
 
 
 def check_locatable(chain: Chain) -> None:
@@ -105,7 +119,11 @@ def frame_echoes(chain: Chain, index: int) -> FrameEchoes:
         background = recording.background
         frame = frame - (background[index] if background.ndim == 3 else background)
     channels = chain.estimator(frame)
-    return FrameEchoes(index, frame_time_s(recording, index), chain.speed_of_sound_m_s, tuple(channels))
+    echoes = FrameEchoes(index, frame_time_s(recording, index), chain.speed_of_sound_m_s, tuple(channels))
+    if chain.calibration is not None:
+        echoes = apply_calibration(echoes, chain.calibration)
+        return replace(echoes, speed_of_sound_m_s=chain.speed_of_sound_m_s)
+    return echoes
 
 
 def frame_objects(chain: Chain, echoes: FrameEchoes) -> FrameObjects:

@@ -1,0 +1,184 @@
+"""Calibration: the speed of sound and a fixed delay per receiver, from known targets.
+
+The report corrects its ranges "with a reference distance" (ch. 4, tables 4.1-4.2,
+"after correction"). Generalised: for frames whose reflector positions are known
+(``truth_positions``), every echo's time of flight obeys
+
+    tof_ik = L_ik / c + d_i
+
+with ``L_ik`` the true transmitter -> reflector k -> receiver i path, ``c`` the speed
+of sound and ``d_i`` a fixed delay of receiver i (electronics, transducer group
+delay, trigger offset). Each true path is paired with the echo nearest its predicted
+arrival, and ``(1/c, d_1..d_n)`` follow by robust (soft L1) least squares; pairing
+and fit are repeated with a gate that narrows to a few times the fit's residual.
+
+The file written by ``echoloc calibrate`` is JSON:
+``{"format": "echoloc-calibration", "version": 1, "speed_of_sound_m_s": ...,
+"receiver_delays_s": [...], "echoes_used": ..., "residual_rms_s": ...}``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+from scipy import optimize
+
+from echoloc.echoes import ChannelEchoes, FrameEchoes
+from echoloc.errors import EchoLocError
+from echoloc.locate import model_paths_m
+from echoloc.recording import Recording
+
+CALIBRATION_FORMAT = "echoloc-calibration"
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Fitted speed of sound (m/s) and per-receiver delays (s) to subtract from every tof."""
+
+    speed_of_sound_m_s: float
+    receiver_delays_s: tuple[float, ...]
+    echoes_used: int = 0
+    residual_rms_s: float = 0.0
+
+
+def fit_calibration(
+    recording: Recording,
+    echoes: Sequence[FrameEchoes],
+    *,
+    speed_of_sound_m_s: float,
+    gate_m: float = 0.02,
+) -> Calibration:
+    """Least-squares speed of sound and receiver delays from frames with known reflectors.
+
+    ``echoes`` are the uncorrected echoes of frames of ``recording``; ``gate_m`` is the
+    largest path difference at which an echo counts as a target's.
+    """
+    truth = recording.truth_positions_m
+    if truth is None:
+        raise EchoLocError(f"{recording.source}: calibration needs truth_positions")
+    n_rx = recording.n_receivers
+    slowness, delays = 1.0 / speed_of_sound_m_s, np.zeros(n_rx)
+    # The first pairing allows for the speed of sound being off by 5 %; each pass then
+    # narrows the gate to a few times the residual of the previous fit.
+    relative_gate, absolute_gate_m = 0.05, gate_m
+    rows: list[tuple[float, int, float]] = []
+    for _ in range(8):
+        rows = []
+        for frame in echoes:
+            points = truth[frame.frame]
+            points = points[np.all(np.isfinite(points), axis=1)]
+            if len(points) == 0:
+                continue
+            tx = 0 if recording.frame_transmitter is None else int(recording.frame_transmitter[frame.frame])
+            paths = model_paths_m(recording.transmitters_m[tx], recording.receivers_m, points)
+            for i, channel in enumerate(frame.channels):
+                if len(channel.tof_s) == 0:
+                    continue
+                predicted = paths[:, i] * slowness + delays[i]
+                gap = np.abs(channel.tof_s[None, :] - predicted[:, None])
+                nearest = np.argmin(gap, axis=1)
+                for k, j in enumerate(nearest):
+                    allowed = relative_gate * paths[k, i] + absolute_gate_m
+                    if gap[k, j] / slowness <= allowed:
+                        rows.append((float(paths[k, i]), i, float(channel.tof_s[j])))
+        seen = {i for _, i, _ in rows}
+        if len(rows) < n_rx + 1 or len(seen) < n_rx:
+            raise EchoLocError(
+                f"{recording.source}: too few echoes match the known targets to calibrate "
+                f"({len(rows)} echoes on {len(seen)} of {n_rx} receivers)"
+            )
+        design = np.zeros((len(rows), n_rx + 1))
+        observed = np.empty(len(rows))
+        for r, (path, i, tof) in enumerate(rows):
+            design[r, 0] = path
+            design[r, 1 + i] = 1.0
+            observed[r] = tof
+        # Robust (soft L1) least squares: a wrongly paired echo does not drag the fit.
+        start = np.concatenate([[slowness], delays])
+        fit = optimize.least_squares(
+            lambda x, a=design, b=observed: a @ x - b,
+            start,
+            loss="soft_l1",
+            f_scale=1e-6,
+            x_scale=np.abs(start) + 1e-6,
+        )
+        solution = fit.x
+        slowness, delays = float(solution[0]), np.asarray(solution[1:], dtype=float)
+        if not slowness > 0:
+            raise EchoLocError(f"{recording.source}: the targets do not determine a speed of sound")
+        spread_m = float(np.median(np.abs(design @ solution - observed))) / slowness
+        relative_gate, absolute_gate_m = 0.0, max(5 * spread_m, 1e-3)
+    residual = observed - design @ solution
+    return Calibration(
+        speed_of_sound_m_s=1.0 / slowness,
+        receiver_delays_s=tuple(float(d) for d in delays),
+        echoes_used=len(rows),
+        residual_rms_s=float(np.sqrt(np.mean(residual**2))),
+    )
+
+
+def apply_calibration(echoes: FrameEchoes, calibration: Calibration) -> FrameEchoes:
+    """The frame's echoes with each receiver's delay removed and the calibrated speed of sound."""
+    channels = tuple(
+        ChannelEchoes(channel.tof_s - delay, channel.amplitude, channel.snr_db)
+        for channel, delay in zip(echoes.channels, calibration.receiver_delays_s, strict=True)
+    )
+    return replace(echoes, channels=channels, speed_of_sound_m_s=calibration.speed_of_sound_m_s)
+
+
+def write_calibration(calibration: Calibration, path: str | os.PathLike[str]) -> Path:
+    """Write the calibration JSON (see the module docstring)."""
+    target = Path(path)
+    record = {
+        "format": CALIBRATION_FORMAT,
+        "version": 1,
+        "speed_of_sound_m_s": calibration.speed_of_sound_m_s,
+        "receiver_delays_s": list(calibration.receiver_delays_s),
+        "echoes_used": calibration.echoes_used,
+        "residual_rms_s": calibration.residual_rms_s,
+    }
+    try:
+        target.write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")
+    except OSError as error:
+        raise EchoLocError(f"{target}: cannot write calibration ({error.strerror})") from None
+    return target
+
+
+def read_calibration(path: str | os.PathLike[str], n_receivers: int | None = None) -> Calibration:
+    """Read and check a calibration file; ``n_receivers`` must match when given."""
+    source = Path(path)
+    try:
+        record = json.loads(source.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise EchoLocError(f"{source}: no such calibration file") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise EchoLocError(f"{source}: not a calibration file ({error})") from None
+    if not isinstance(record, dict) or record.get("format") != CALIBRATION_FORMAT:
+        raise EchoLocError(f"{source}: format is not {CALIBRATION_FORMAT!r}")
+    if record.get("version") != 1:
+        raise EchoLocError(f"{source}: unsupported calibration version {record.get('version')!r}")
+    speed = record.get("speed_of_sound_m_s")
+    delays = record.get("receiver_delays_s")
+    if not (isinstance(speed, int | float) and math.isfinite(speed) and speed > 0):
+        raise EchoLocError(f"{source}: speed_of_sound_m_s must be a positive number, got {speed!r}")
+    if not (
+        isinstance(delays, list)
+        and all(isinstance(d, int | float) and not isinstance(d, bool) and math.isfinite(d) for d in delays)
+    ):
+        raise EchoLocError(f"{source}: receiver_delays_s must be a list of finite numbers")
+    if n_receivers is not None and len(delays) != n_receivers:
+        raise EchoLocError(
+            f"{source}: has delays for {len(delays)} receivers, the recording has {n_receivers}"
+        )
+    return Calibration(
+        speed_of_sound_m_s=float(speed),
+        receiver_delays_s=tuple(float(d) for d in delays),
+        echoes_used=int(record.get("echoes_used", 0)),
+        residual_rms_s=float(record.get("residual_rms_s", 0.0)),
+    )
