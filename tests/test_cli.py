@@ -32,6 +32,7 @@ from echoloc import cli
 from echoloc.recording import Recording, read_recording, write_recording
 from echoloc.scene import default_scene
 from echoloc.simulate import path_lengths_m, simulate
+from raw_files import write_raw
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 ECHOLOC = Path(sys.executable).parent / "echoloc"
@@ -146,16 +147,6 @@ def read_h5(path: Path) -> tuple[dict[str, Any], dict[str, Any]]:
     return attrs, data
 
 
-def write_h5(path: Path, attrs: dict[str, Any], data: dict[str, Any]) -> Path:
-    """Write attributes and datasets as given, without any validation."""
-    with h5py.File(path, "w") as f:
-        for name, value in attrs.items():
-            f.attrs[name] = value
-        for name, value in data.items():
-            f.create_dataset(name, data=value)
-    return path
-
-
 def broken_copy(good: Path, target: Path, breaker: Callable[[dict[str, Any], dict[str, Any]], None]) -> Path:
     """Copy every field of a good HDF5 recording to ``target``, then let ``breaker`` break one."""
     attrs, data = read_h5(good)
@@ -163,7 +154,7 @@ def broken_copy(good: Path, target: Path, breaker: Callable[[dict[str, Any], dic
     if target.suffix == ".npz":
         np.savez(target, **{name: np.asarray(value) for name, value in {**attrs, **data}.items()})
         return target
-    return write_h5(target, attrs, data)
+    return write_raw(target, attrs, data)
 
 
 def true_paths(rec: Recording, positions: np.ndarray) -> np.ndarray:

@@ -24,6 +24,7 @@ from echoloc.recording import (
     validate_recording,
     write_recording,
 )
+from raw_files import write_raw
 
 N_FRAMES, N_RX, N_SAMPLES, N_TX = 2, 4, 64, 1
 EXTENSIONS = (".h5", ".npz")
@@ -86,20 +87,6 @@ def file_items(rec: Recording) -> tuple[Attrs, Data]:
         "truth_positions": rec.truth_positions_m,
     }
     return attrs, {name: value for name, value in fields.items() if value is not None}
-
-
-def write_raw(path: Path, attrs: Attrs, data: Data) -> Path:
-    """Write attributes and datasets as given, without any validation."""
-    if path.suffix == ".npz":
-        items: dict[str, Any] = {k: np.asarray(v) for k, v in {**attrs, **data}.items()}
-        np.savez(path, **items)
-    else:
-        with h5py.File(path, "w") as f:
-            for name, value in attrs.items():
-                f.attrs[name] = value
-            for name, value in data.items():
-                f.create_dataset(name, data=value)
-    return path
 
 
 def assert_same(a: Recording, b: Recording) -> None:
