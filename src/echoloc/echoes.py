@@ -168,9 +168,21 @@ class MatchedFilter:
         return float(2 * np.pi * np.sum(freqs * power) / np.sum(power))
 
     @cached_property
+    def autocorrelation(self) -> NDArray[np.complex128]:
+        """Analytic autocorrelation R(m) for lags -half_width..half_width (row 0 of the table)."""
+        power = np.abs(scipy.fft.rfft(self.template, self.n_fft)) ** 2
+        full = scipy.fft.ifft(power * _analytic_weights(self.n_fft) / self.energy, self.n_fft)
+        lags = np.arange(-self.half_width, self.half_width + 1)
+        return np.asarray(full[lags % self.n_fft])
+
+    @cached_property
     def mainlobe_samples(self) -> float:
-        """Full width of the autocorrelation envelope's main lobe at -6 dB, samples."""
-        envelope = np.abs(self.acf_table[0])
+        """Full width of the autocorrelation envelope's main lobe at -6 dB, samples.
+
+        Computed from the autocorrelation alone, so asking for it does not build the
+        sub-sample table.
+        """
+        envelope = np.abs(self.autocorrelation)
         centre = self.half_width
         # Walk out from the peak to the first lag below half on each side.
         right = centre
