@@ -148,21 +148,19 @@ def _air_absorption_db_per_m(scene: Scene, freqs_hz: NDArray[np.float64]) -> NDA
 
 def _frames_in_batches(
     scene: Scene,
+    returned_pulse: NDArray[np.float64],
+    emitted_peak: float,
     positions: NDArray[np.float64],
     strengths: NDArray[np.float64],
     rng: np.random.Generator,
 ) -> Iterator[NDArray[np.float64]]:
-    waveform = scene.returned_pulse()
+    waveform = returned_pulse
     c = scene.speed_of_sound_m_s
     transmitter = scene.array.transmitters_m[0]
     receivers = scene.array.receivers_m
     tx_axes, rx_axes = scene.array.axes()
-    # The noise convention refers to the emitted pulse's peak (FORMATS-independent, scene.py).
-    noise_std = (
-        None
-        if scene.snr_db is None
-        else 10.0 ** (-scene.snr_db / 20.0) * np.max(np.abs(scene.waveform().samples))
-    )
+    # scene.py's noise convention refers to the emitted pulse's peak.
+    noise_std = None if scene.snr_db is None else 10.0 ** (-scene.snr_db / 20.0) * emitted_peak
     absorption = partial(_air_absorption_db_per_m, scene) if scene.absorption else None
     for start in range(0, len(positions), _BATCH_FRAMES):
         batch = positions[start : start + _BATCH_FRAMES]
@@ -196,19 +194,21 @@ def simulate(scene: Scene, n_frames: int = 1, *, progress: Callable[[int], None]
         raise SceneError(f"the number of frames must be >= 1, got {n_frames}")
     rng = np.random.default_rng(scene.seed)
     positions, strengths = draw_reflectors(scene, n_frames, rng)
+    waveform = scene.waveform()
+    returned = scene.returned_pulse()
+    emitted_peak = float(np.max(np.abs(waveform.samples)))
     batches = []
-    for batch in _frames_in_batches(scene, positions, strengths, rng):
+    for batch in _frames_in_batches(scene, returned, emitted_peak, positions, strengths, rng):
         batches.append(batch)
         if progress is not None:
             progress(len(batch))
     frames = np.concatenate(batches, axis=0)
-    waveform = scene.waveform()
     return Recording(
         sample_rate_hz=scene.sample_rate_hz,
         transmitters_m=scene.array.transmitters_m,
         receivers_m=scene.array.receivers_m,
         frames=frames,
-        waveform=scene.returned_pulse(),
+        waveform=returned,
         transmitter_axes=scene.array.transmitter_axes,
         receiver_axes=scene.array.receiver_axes,
         signal_kind="rf",
