@@ -170,3 +170,14 @@ def test_matched_filter_is_unbiased_in_noise_at_the_reports_snr() -> None:
         errors.append((channel.tof_s[0] - delay / FS) * c)
     assert abs(np.mean(errors)) < 0.02e-3
     assert np.std(errors) < 0.05e-3
+
+
+def test_blanked_ring_down_does_not_set_the_dynamic_range_floor() -> None:
+    """A ring-down 60 dB above a later echo, inside the blanking interval, must not hide it.
+
+    Were the blanked ring-down extracted first, it would set the 40 dB dynamic-range
+    floor and the weak echo below it would be dropped.
+    """
+    frames = frames_with_echoes([20.0, 1200.0], [1000.0, 1.0], noise_std=1e-4)
+    channel = run("matched", frames, EchoOptions(blanking_s=400 / FS))[0]
+    assert channel.tof_s == pytest.approx([1200.0 / FS], abs=1e-9)
