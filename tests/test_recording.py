@@ -16,6 +16,7 @@ from echoloc.errors import RecordingError
 from echoloc.recording import (
     FORMAT_NAME,
     FORMAT_VERSION,
+    QUATERNION_NORM_TOLERANCE,
     Recording,
     RecordingWarning,
     dead_receivers,
@@ -28,6 +29,7 @@ from raw_files import write_raw
 
 N_FRAMES, N_RX, N_SAMPLES, N_TX = 2, 4, 64, 1
 EXTENSIONS = (".h5", ".npz")
+NEW_DATASETS = ("sensor_poses", "receiver_gain", "transmitter_waveforms")
 
 Attrs = dict[str, Any]
 Data = dict[str, Any]
@@ -59,6 +61,12 @@ def make_recording(*, full: bool = False, seed: int = 0, **changes: Any) -> Reco
             transmitter_axes=np.array([[0.0, 0.0, 1.0]]),
             receiver_axes=np.tile([0.0, 0.6, 0.8], (N_RX, 1)),
             truth_positions_m=truth,
+            sensor_poses=np.array(
+                [[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], [1.0, -2.0, 0.5, 0.0, 0.6, 0.0, 0.8]]
+            ),
+            receiver_gain=np.geomspace(1.0, 100.0, N_SAMPLES),
+            transmitter_waveforms=np.pad(rec.waveform, (0, 4))[None, :],  # type: ignore[arg-type]
+            firing="sequential",
         )
     return dataclasses.replace(rec, **changes)
 
@@ -71,7 +79,7 @@ def file_items(rec: Recording) -> tuple[Attrs, Data]:
         "sample_rate_hz": rec.sample_rate_hz,
         "signal_kind": rec.signal_kind,
     }
-    for name in ("carrier_hz", "speed_of_sound_m_s", "temperature_c", "relative_humidity"):
+    for name in ("firing", "carrier_hz", "speed_of_sound_m_s", "temperature_c", "relative_humidity"):
         if getattr(rec, name) is not None:
             attrs[name] = getattr(rec, name)
     fields = {
@@ -85,6 +93,9 @@ def file_items(rec: Recording) -> tuple[Attrs, Data]:
         "transmitter_axes": rec.transmitter_axes,
         "receiver_axes": rec.receiver_axes,
         "truth_positions": rec.truth_positions_m,
+        "sensor_poses": rec.sensor_poses,
+        "receiver_gain": rec.receiver_gain,
+        "transmitter_waveforms": rec.transmitter_waveforms,
     }
     return attrs, {name: value for name, value in fields.items() if value is not None}
 
@@ -133,6 +144,59 @@ def test_round_trip_iq_envelope_and_float32(tmp_path: Path, ext: str) -> None:
     assert back.frames.dtype == np.float64
     assert back.waveform is None
     assert np.array_equal(back.frames, np.abs(iq_frames))
+
+
+def two_transmitter_recording(*, iq: bool = False) -> Recording:
+    """Two transmitters firing simultaneously with different codes (complex baseband if ``iq``)."""
+    rng = np.random.default_rng(5)
+    codes = np.array([[1.0, 1.0, -1.0, 1.0, 0.0, 0.0], [1.0, -1.0, -1.0, -1.0, 1.0, -1.0]])
+    frames = rng.standard_normal((N_FRAMES, N_RX, N_SAMPLES))
+    rec = make_recording(
+        transmitters_m=np.array([[-0.02, 0.0, 0.0], [0.02, 0.0, 0.0]]),
+        waveform=codes[0, :4],  # transmitter 0's code without its zero padding
+        transmitter_waveforms=codes,
+        firing="simultaneous",
+        frames=frames,
+    )
+    if iq:
+        rec = dataclasses.replace(
+            rec,
+            signal_kind="iq",
+            frames=frames * np.exp(1j),
+            waveform=codes[0] * np.exp(0.5j),
+            transmitter_waveforms=codes * np.exp(0.5j),
+        )
+    return rec
+
+
+@pytest.mark.parametrize("ext", EXTENSIONS)
+@pytest.mark.parametrize("iq", [False, True])
+def test_round_trip_transmitter_waveforms_and_simultaneous_firing(tmp_path: Path, ext: str, iq: bool) -> None:
+    rec = validate_recording(two_transmitter_recording(iq=iq))
+    back = read_recording(write_recording(rec, tmp_path / f"rec{ext}"))
+    assert_same(rec, back)
+    assert back.firing == "simultaneous"
+    assert back.transmitter_waveforms is not None
+    assert back.transmitter_waveforms.dtype == (np.complex128 if iq else np.float64)
+
+
+@pytest.mark.parametrize("ext", EXTENSIONS)
+def test_new_fields_are_optional_extensions(tmp_path: Path, ext: str) -> None:
+    """What a reader that knows only the old fields sees: the same recording, minus the new ones."""
+    rec = make_recording(full=True)
+    attrs, data = file_items(rec)
+    for name in NEW_DATASETS:
+        del data[name]
+    del attrs["firing"]
+    old = dataclasses.replace(
+        rec, sensor_poses=None, receiver_gain=None, transmitter_waveforms=None, firing=None
+    )
+    assert_same(old, read_recording(write_raw(tmp_path / f"old{ext}", attrs, data)))
+    with h5py.File(write_recording(rec, tmp_path / "new.h5"), "r") as f:
+        assert f.attrs["firing"] == "sequential"
+        assert {f[name].dtype for name in NEW_DATASETS} == {np.dtype(np.float64)}
+        assert f["sensor_poses"].shape == (N_FRAMES, 7)
+        assert f["receiver_gain"].shape == (N_SAMPLES,)
 
 
 def test_optional_none_fields_not_written(tmp_path: Path) -> None:
@@ -318,6 +382,45 @@ BROKEN: list[tuple[str, Breaker, str]] = [
     ("truth 2-D", _set("data", "truth_positions", np.zeros((N_FRAMES, 3))), "truth_positions"),
     ("inf in truth", _poke("truth_positions", (0, 0, 0), np.inf), "truth_positions"),
     ("half-NaN truth row", _poke("truth_positions", (0, 1, 0), 1.0), "truth_positions"),
+    ("sensor_poses wrong shape", _set("data", "sensor_poses", np.zeros((N_FRAMES, 6))), "sensor_poses"),
+    ("sensor_poses 1-D", _set("data", "sensor_poses", np.zeros(7)), "sensor_poses"),
+    ("nan sensor pose", _poke("sensor_poses", (1, 2), np.nan), "sensor_poses"),
+    ("non-unit quaternion", _poke("sensor_poses", (1, 6), 0.9), "sensor_poses.1. .*unit quaternion"),
+    ("zero quaternion", _set("data", "sensor_poses", np.zeros((N_FRAMES, 7))), "unit quaternion"),
+    ("integer sensor_poses", _set("data", "sensor_poses", np.zeros((N_FRAMES, 7), int)), "sensor_poses"),
+    ("zero receiver_gain", _poke("receiver_gain", (5,), 0.0), r"receiver_gain\[5\] is 0.0, expected > 0"),
+    ("negative receiver_gain", _poke("receiver_gain", (0,), -2.0), "receiver_gain"),
+    ("inf receiver_gain", _poke("receiver_gain", (1,), np.inf), "receiver_gain"),
+    ("receiver_gain wrong shape", _set("data", "receiver_gain", np.ones(N_SAMPLES - 1)), "receiver_gain"),
+    ("receiver_gain per channel", _set("data", "receiver_gain", np.ones((N_RX, N_SAMPLES))), "receiver_gain"),
+    (
+        "transmitter_waveforms wrong count",
+        _set("data", "transmitter_waveforms", np.ones((N_TX + 1, 16))),
+        "transmitter_waveforms",
+    ),
+    (
+        "transmitter_waveforms 1-D",
+        _set("data", "transmitter_waveforms", np.ones(16)),
+        "transmitter_waveforms",
+    ),
+    ("nan transmitter_waveforms", _poke("transmitter_waveforms", (0, 2), np.nan), "transmitter_waveforms"),
+    (
+        "complex transmitter_waveforms for rf",
+        _set("data", "transmitter_waveforms", np.ones((N_TX, 16), dtype=complex)),
+        "transmitter_waveforms",
+    ),
+    (
+        "transmitter_waveforms[0] not the waveform",
+        _poke("transmitter_waveforms", (0, 3), 7.0),
+        r"transmitter_waveforms\[0\] differs from waveform",
+    ),
+    (
+        "waveform padding not zero in transmitter_waveforms[0]",
+        _poke("transmitter_waveforms", (0, 17), 0.5),
+        "transmitter_waveforms",
+    ),
+    ("unknown firing", _set("attr", "firing", "round-robin"), "firing is 'round-robin', expected one of"),
+    ("numeric firing", _set("attr", "firing", 1), "firing"),
 ]
 
 
@@ -411,6 +514,44 @@ def test_validate_rejects_non_array_field() -> None:
     rec = make_recording(receivers_m=[[0.0, 0.0, 0.0]] * N_RX)
     with pytest.raises(RecordingError, match="receivers must be a numpy array"):
         validate_recording(rec)
+
+
+def test_validate_non_unit_quaternion_message() -> None:
+    poses = np.tile([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], (N_FRAMES, 1))
+    poses[1, 3:] = [0.0, 0.0, 0.6, 0.81]  # norm 1.00654...: not normalised, rejected
+    with pytest.raises(RecordingError) as info:
+        validate_recording(make_recording(source="mem", sensor_poses=poses))
+    assert str(info.value) == (
+        "mem: sensor_poses[1] has quaternion [qx, qy, qz, qw] = [0.0, 0.0, 0.6, 0.81] "
+        "of norm 1.00801786, expected a unit quaternion (|norm - 1| <= 1e-06)"
+    )
+    within = poses.copy()
+    within[1, 3:] = [0.0, 0.0, 0.6, 0.8 + 0.5 * QUATERNION_NORM_TOLERANCE]
+    assert validate_recording(make_recording(sensor_poses=within)).sensor_poses is within
+
+
+@pytest.mark.parametrize("gain", [0.0, -1.0])
+def test_validate_receiver_gain_must_be_positive(gain: float) -> None:
+    rec = make_recording(source="mem", receiver_gain=np.full(N_SAMPLES, gain))
+    with pytest.raises(RecordingError) as info:
+        validate_recording(rec)
+    assert str(info.value) == f"mem: receiver_gain[0] is {gain!r}, expected > 0 (a linear gain)"
+
+
+def test_validate_unknown_firing_message() -> None:
+    with pytest.raises(RecordingError) as info:
+        validate_recording(make_recording(source="mem", firing="alternate"))
+    assert str(info.value) == "mem: firing is 'alternate', expected one of 'sequential', 'simultaneous'"
+
+
+def test_validate_waveform_and_transmitter_0_may_differ_only_by_zero_padding() -> None:
+    rec = two_transmitter_recording()
+    assert rec.transmitter_waveforms is not None
+    longer = dataclasses.replace(rec, waveform=np.pad(rec.transmitter_waveforms[0], (0, 10)))
+    assert validate_recording(longer) is longer
+    codes = rec.transmitter_waveforms[::-1].copy()  # transmitter 0 got transmitter 1's code
+    with pytest.raises(RecordingError, match=r"^<memory>: transmitter_waveforms\[0\] differs from waveform"):
+        validate_recording(dataclasses.replace(rec, transmitter_waveforms=codes))
 
 
 def test_validate_envelope_without_waveform_and_per_frame_background() -> None:

@@ -5,6 +5,11 @@ units in the field names. :func:`read_recording` and :func:`write_recording` mov
 to and from disk; :func:`validate_recording` enforces every rule of the contract
 and raises :class:`~echoloc.errors.RecordingError` naming the file, the field and the
 value.
+
+:func:`write_recording_stream` writes a recording too long to hold in memory: a
+header :class:`Recording` (every per-recording field, no frames; see
+:func:`as_header`) and an iterable of :class:`FrameBatch`, one batch in memory at a
+time.
 """
 
 from __future__ import annotations
@@ -12,21 +17,26 @@ from __future__ import annotations
 import contextlib
 import os
 import secrets
+import shutil
+import tempfile
 import warnings
 import zipfile
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import h5py
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import DTypeLike, NDArray
 
 from echoloc.errors import RecordingError
 
 FORMAT_NAME = "echoloc-recording"
 FORMAT_VERSION = 1
 SIGNAL_KINDS = ("rf", "envelope", "iq")
+FIRING_MODES = ("sequential", "simultaneous")
+QUATERNION_NORM_TOLERANCE = 1e-6
 
 
 @dataclass(frozen=True, eq=False)
@@ -50,6 +60,21 @@ class Recording:
     truth_positions_m
         (n_frames, n_max, 3) known reflector positions, NaN rows as padding; used by
         ``calibrate`` and ``evaluate`` only.
+    sensor_poses
+        (n_frames, 7) pose of the sensor frame in a fixed world frame at each frame's
+        emission, ``[x, y, z, qx, qy, qz, qw]``: position in m and a unit quaternion
+        (ROS order), so that ``p_world = R(q) @ p_sensor + [x, y, z]``.
+    receiver_gain
+        (n_samples,) linear amplitude gain the receive amplifier applied to each
+        sample (time-varying gain), all > 0; ``frames / receiver_gain`` is the signal
+        at the transducer.
+    transmitter_waveforms
+        (n_tx, n_w) SENT template of each transmitter when they use different codes,
+        zero-padded to a common length; ``waveform`` is transmitter 0's template.
+    firing
+        ``"sequential"`` (each frame fires the transmitter in ``frame_transmitter``;
+        also the meaning of ``None``) or ``"simultaneous"`` (every transmitter fires
+        at the start of every frame, each with its own template).
     source
         Where the recording came from (a path, or ``"<memory>"``), for messages.
     """
@@ -70,6 +95,10 @@ class Recording:
     transmitter_axes: NDArray[np.float64] | None = None
     receiver_axes: NDArray[np.float64] | None = None
     truth_positions_m: NDArray[np.float64] | None = None
+    sensor_poses: NDArray[np.float64] | None = None
+    receiver_gain: NDArray[np.float64] | None = None
+    transmitter_waveforms: NDArray[np.float64] | NDArray[np.complex128] | None = None
+    firing: str | None = None
     source: str = "<memory>"
 
     @property
@@ -91,6 +120,7 @@ class RecordingWarning(UserWarning):
 
 # Contract (file) names of the root attributes and datasets, mapped to Recording fields.
 _REQUIRED_ATTRS = ("format", "version", "sample_rate_hz")
+_STR_ATTRS = ("signal_kind", "firing")
 _OPTIONAL_FLOAT_ATTRS = ("carrier_hz", "speed_of_sound_m_s", "temperature_c", "relative_humidity")
 _DATASET_FIELDS: dict[str, str] = {
     "transmitters": "transmitters_m",
@@ -103,12 +133,23 @@ _DATASET_FIELDS: dict[str, str] = {
     "transmitter_axes": "transmitter_axes",
     "receiver_axes": "receiver_axes",
     "truth_positions": "truth_positions_m",
+    "sensor_poses": "sensor_poses",
+    "receiver_gain": "receiver_gain",
+    "transmitter_waveforms": "transmitter_waveforms",
+}
+# The datasets with one row per frame: what a FrameBatch carries besides ``frames``.
+_PER_FRAME_DATASETS: dict[str, str] = {
+    "frame_times": "frame_times_s",
+    "frame_transmitter": "frame_transmitter",
+    "truth_positions": "truth_positions_m",
+    "sensor_poses": "sensor_poses",
 }
 _REQUIRED_DATASETS = ("transmitters", "receivers", "frames")
 _HDF5_SUFFIXES = (".h5", ".hdf5")
 _NPZ_SUFFIXES = (".npz",)
 _ABSOLUTE_ZERO_C = -273.15
 _ZIP_MAGIC = b"PK\x03\x04"
+_CHUNK_BYTES = 1 << 20  # target size of a streamed HDF5 chunk (h5py's default chunk cache)
 
 _AnyArray = NDArray[Any]
 
@@ -214,8 +255,154 @@ def _check_nonnegative(source: str, name: str, arr: _AnyArray) -> None:
         )
 
 
-def _validate(rec: Recording, *, allow_nonfinite: bool) -> None:
-    """Check every rule of the contract; non-finite samples may be let through."""
+def _check_frames_layout(source: str, value: object, signal_kind: str, n_rx: int) -> _AnyArray:
+    """Check the ``frames`` of a recording, a header or a batch, of any frame count.
+
+    They must be 3-D, of a sample dtype that fits ``signal_kind``, with ``n_rx``
+    channels and at least one sample.
+    """
+    frames = _check_array(source, "frames", value)
+    if frames.ndim != 3:
+        raise _error(source, f"frames has shape {frames.shape}, expected 3-D (n_frames, n_rx, n_samples)")
+    is_complex = frames.dtype.kind == "c"
+    if not _is_sample_dtype(frames.dtype):
+        raise _error(source, f"frames has dtype {frames.dtype}, expected float32, float64 or complex64")
+    if is_complex and signal_kind != "iq":
+        raise _error(
+            source,
+            f"frames has complex dtype {frames.dtype} but signal_kind is "
+            f"{signal_kind!r} (complex samples need signal_kind 'iq')",
+        )
+    if not is_complex and signal_kind == "iq":
+        raise _error(source, f"frames has real dtype {frames.dtype} but signal_kind 'iq' needs complex")
+    if frames.shape[1] != n_rx:
+        raise _error(source, f"frames has {frames.shape[1]} channels but receivers has {n_rx}")
+    if frames.shape[2] < 1:
+        raise _error(source, f"frames has shape {frames.shape}: no samples")
+    return frames
+
+
+def _check_samples(source: str, frames: _AnyArray, signal_kind: str, allow_nonfinite: bool) -> None:
+    """The values of ``frames``: finite (unless allowed otherwise), non-negative envelopes."""
+    if not allow_nonfinite:
+        _check_finite(source, "frames", frames)
+    if signal_kind == "envelope":
+        _check_nonnegative(source, "frames", frames)
+
+
+def _check_per_frame(
+    source: str,
+    n_frames: int,
+    n_tx: int,
+    frame_times_s: object,
+    frame_transmitter: object,
+    truth_positions_m: object,
+    sensor_poses: object,
+) -> None:
+    """The datasets with one row per frame (those of a recording or of one batch)."""
+    if frame_times_s is not None:
+        times = _check_array(source, "frame_times", frame_times_s)
+        _check_real_float(source, "frame_times", times)
+        _check_shape(source, "frame_times", times, (n_frames,))
+        _check_finite(source, "frame_times", times)
+    if frame_transmitter is not None:
+        fired = _check_array(source, "frame_transmitter", frame_transmitter)
+        if fired.dtype.kind not in "iu":
+            raise _error(source, f"frame_transmitter has dtype {fired.dtype}, expected an integer dtype")
+        _check_shape(source, "frame_transmitter", fired, (n_frames,))
+        outside = (fired < 0) | (fired >= n_tx)
+        if outside.any():
+            k = int(np.argmax(outside))
+            raise _error(
+                source,
+                f"frame_transmitter[{k}] is {int(fired[k])}, expected 0..{n_tx - 1} "
+                f"(transmitters has {n_tx})",
+            )
+    if truth_positions_m is not None:
+        truth = _check_array(source, "truth_positions", truth_positions_m)
+        _check_real_float(source, "truth_positions", truth)
+        if truth.ndim != 3 or truth.shape[0] != n_frames or truth.shape[2] != 3:
+            raise _error(source, f"truth_positions has shape {truth.shape}, expected ({n_frames}, n_max, 3)")
+        if np.isinf(truth).any():
+            raise _error(source, "truth_positions has infinite values (only NaN rows are padding)")
+        nan = np.isnan(truth)
+        partial = nan.any(axis=2) & ~nan.all(axis=2)
+        if partial.any():
+            frame, row = (int(i) for i in np.argwhere(partial)[0])
+            raise _error(
+                source,
+                f"truth_positions[{frame}, {row}] is {truth[frame, row].tolist()}: "
+                "a padding row must be NaN in all three coordinates",
+            )
+    if sensor_poses is not None:
+        poses = _check_array(source, "sensor_poses", sensor_poses)
+        _check_real_float(source, "sensor_poses", poses)
+        _check_shape(source, "sensor_poses", poses, (n_frames, 7))
+        _check_finite(source, "sensor_poses", poses)
+        norms = np.linalg.norm(poses[:, 3:], axis=1)
+        off = np.abs(norms - 1.0) > QUATERNION_NORM_TOLERANCE
+        if off.any():
+            k = int(np.argmax(off))
+            raise _error(
+                source,
+                f"sensor_poses[{k}] has quaternion [qx, qy, qz, qw] = {poses[k, 3:].tolist()} "
+                f"of norm {float(norms[k]):.9g}, expected a unit quaternion "
+                f"(|norm - 1| <= {QUATERNION_NORM_TOLERANCE:g})",
+            )
+
+
+def _check_templates(
+    source: str, signal_kind: str, waveform: object, transmitter_waveforms: object, n_tx: int
+) -> None:
+    """``waveform`` and ``transmitter_waveforms``, and that they agree on transmitter 0."""
+    allowed = "fc" if signal_kind == "iq" else "f"
+    expected = "float64 or complex" if signal_kind == "iq" else "float64"
+    first: _AnyArray | None = None
+    if waveform is None:
+        if signal_kind in ("rf", "iq"):
+            raise _error(source, f"waveform is missing; it is required for signal_kind {signal_kind!r}")
+    else:
+        first = _check_array(source, "waveform", waveform)
+        if first.dtype.kind not in allowed:
+            raise _error(source, f"waveform has dtype {first.dtype}, expected {expected}")
+        if first.ndim != 1 or first.shape[0] < 1:
+            raise _error(source, f"waveform has shape {first.shape}, expected (n_w,) with n_w >= 1")
+        _check_finite(source, "waveform", first)
+    if transmitter_waveforms is None:
+        return
+    codes = _check_array(source, "transmitter_waveforms", transmitter_waveforms)
+    if codes.dtype.kind not in allowed:
+        raise _error(source, f"transmitter_waveforms has dtype {codes.dtype}, expected {expected}")
+    if codes.ndim != 2 or codes.shape[0] != n_tx or codes.shape[1] < 1:
+        raise _error(
+            source, f"transmitter_waveforms has shape {codes.shape}, expected ({n_tx}, n_w) with n_w >= 1"
+        )
+    _check_finite(source, "transmitter_waveforms", codes)
+    if first is None:
+        return
+    # ``waveform`` is transmitter 0's template; either may carry trailing zero padding.
+    n = max(first.shape[0], codes.shape[1])
+    a = np.zeros(n, dtype=np.result_type(first, codes))
+    b = np.zeros_like(a)
+    a[: first.shape[0]] = first
+    b[: codes.shape[1]] = codes[0]
+    scale = max(float(np.max(np.abs(a))), float(np.max(np.abs(b))))
+    difference = np.abs(a - b)
+    if (difference > 1e-6 * scale).any():
+        k = int(np.argmax(difference))
+        raise _error(
+            source,
+            f"transmitter_waveforms[0] differs from waveform (by {float(difference[k]):.3g} at sample {k}); "
+            "waveform must be transmitter 0's template",
+        )
+
+
+def _validate(rec: Recording, *, allow_nonfinite: bool, header_only: bool = False) -> None:
+    """Check every rule of the contract; non-finite samples may be let through.
+
+    With ``header_only`` the frames' count and values are not checked and the
+    per-frame fields must be absent (a stream header, see :func:`validate_header`).
+    """
     src = rec.source
 
     # Scalars.
@@ -227,6 +414,9 @@ def _validate(rec: Recording, *, allow_nonfinite: bool) -> None:
     if rec.signal_kind not in SIGNAL_KINDS:
         kinds = ", ".join(repr(k) for k in SIGNAL_KINDS)
         raise _error(src, f"signal_kind is {rec.signal_kind!r}, expected one of {kinds}")
+    if rec.firing is not None and rec.firing not in FIRING_MODES:
+        modes = ", ".join(repr(m) for m in FIRING_MODES)
+        raise _error(src, f"firing is {rec.firing!r}, expected one of {modes}")
     _check_optional_float(src, "carrier_hz", rec.carrier_hz, 0.0, False)
     _check_optional_float(src, "speed_of_sound_m_s", rec.speed_of_sound_m_s, 0.0, False)
     _check_optional_float(src, "temperature_c", rec.temperature_c, _ABSOLUTE_ZERO_C, False)
@@ -237,66 +427,36 @@ def _validate(rec: Recording, *, allow_nonfinite: bool) -> None:
     rx = _check_geometry(src, "receivers", rec.receivers_m, None)
     n_tx, n_rx = int(tx.shape[0]), int(rx.shape[0])
 
-    # Frames.
-    frames = _check_array(src, "frames", rec.frames)
-    if frames.ndim != 3:
-        raise _error(src, f"frames has shape {frames.shape}, expected 3-D (n_frames, n_rx, n_samples)")
-    is_complex = frames.dtype.kind == "c"
-    if not _is_sample_dtype(frames.dtype):
-        raise _error(src, f"frames has dtype {frames.dtype}, expected float32, float64 or complex64")
-    if is_complex and rec.signal_kind != "iq":
-        raise _error(
-            src,
-            f"frames has complex dtype {frames.dtype} but signal_kind is "
-            f"{rec.signal_kind!r} (complex samples need signal_kind 'iq')",
-        )
-    if not is_complex and rec.signal_kind == "iq":
-        raise _error(src, f"frames has real dtype {frames.dtype} but signal_kind 'iq' needs complex")
-    n_frames, n_ch, n_samples = (int(n) for n in frames.shape)
-    if n_ch != n_rx:
-        raise _error(src, f"frames has {n_ch} channels but receivers has {n_rx}")
-    if n_frames < 1:
-        raise _error(src, f"frames has shape {frames.shape}: no frames")
-    if n_samples < 1:
-        raise _error(src, f"frames has shape {frames.shape}: no samples")
-    if not allow_nonfinite:
-        _check_finite(src, "frames", frames)
-    if rec.signal_kind == "envelope":
-        _check_nonnegative(src, "frames", frames)
-
-    # Waveform.
-    if rec.waveform is None:
-        if rec.signal_kind in ("rf", "iq"):
-            raise _error(src, f"waveform is missing; it is required for signal_kind {rec.signal_kind!r}")
+    # Frames and the per-frame fields.
+    frames = _check_frames_layout(src, rec.frames, rec.signal_kind, n_rx)
+    n_frames, n_samples = int(frames.shape[0]), int(frames.shape[2])
+    per_frame = {name: getattr(rec, field) for name, field in _PER_FRAME_DATASETS.items()}
+    if header_only:
+        for name, value in per_frame.items():
+            if value is not None:
+                raise _error(
+                    src,
+                    f"{name} is a per-frame field, which a stream header does not carry "
+                    "(pass it in the batches; as_header() strips it)",
+                )
     else:
-        waveform = _check_array(src, "waveform", rec.waveform)
-        allowed = "fc" if rec.signal_kind == "iq" else "f"
-        if waveform.dtype.kind not in allowed:
-            expected = "float64 or complex" if rec.signal_kind == "iq" else "float64"
-            raise _error(src, f"waveform has dtype {waveform.dtype}, expected {expected}")
-        if waveform.ndim != 1 or waveform.shape[0] < 1:
-            raise _error(src, f"waveform has shape {waveform.shape}, expected (n_w,) with n_w >= 1")
-        _check_finite(src, "waveform", waveform)
+        if n_frames < 1:
+            raise _error(src, f"frames has shape {frames.shape}: no frames")
+        _check_samples(src, frames, rec.signal_kind, allow_nonfinite)
+        _check_per_frame(src, n_frames, n_tx, *per_frame.values())
 
-    # Per-frame metadata.
-    if rec.frame_times_s is not None:
-        times = _check_array(src, "frame_times", rec.frame_times_s)
-        _check_real_float(src, "frame_times", times)
-        _check_shape(src, "frame_times", times, (n_frames,))
-        _check_finite(src, "frame_times", times)
-    if rec.frame_transmitter is not None:
-        fired = _check_array(src, "frame_transmitter", rec.frame_transmitter)
-        if fired.dtype.kind not in "iu":
-            raise _error(src, f"frame_transmitter has dtype {fired.dtype}, expected an integer dtype")
-        _check_shape(src, "frame_transmitter", fired, (n_frames,))
-        outside = (fired < 0) | (fired >= n_tx)
-        if outside.any():
-            k = int(np.argmax(outside))
-            raise _error(
-                src,
-                f"frame_transmitter[{k}] is {int(fired[k])}, expected 0..{n_tx - 1} "
-                f"(transmitters has {n_tx})",
-            )
+    # Templates.
+    _check_templates(src, rec.signal_kind, rec.waveform, rec.transmitter_waveforms, n_tx)
+
+    # Receiver gain.
+    if rec.receiver_gain is not None:
+        gain = _check_array(src, "receiver_gain", rec.receiver_gain)
+        _check_real_float(src, "receiver_gain", gain)
+        _check_shape(src, "receiver_gain", gain, (n_samples,))
+        _check_finite(src, "receiver_gain", gain)
+        if (gain <= 0).any():
+            k = int(np.argmax(gain <= 0))
+            raise _error(src, f"receiver_gain[{k}] is {float(gain[k])!r}, expected > 0 (a linear gain)")
 
     # Background.
     if rec.background is not None:
@@ -305,6 +465,12 @@ def _validate(rec: Recording, *, allow_nonfinite: bool) -> None:
         if bg.dtype.kind not in allowed:
             expected = "float or complex" if rec.signal_kind == "iq" else "float"
             raise _error(src, f"background has dtype {bg.dtype}, expected a {expected} dtype")
+        if header_only and bg.shape != (n_rx, n_samples):
+            raise _error(
+                src,
+                f"background has shape {bg.shape}, expected ({n_rx}, {n_samples}) "
+                "(a stream header carries no per-frame background)",
+            )
         if bg.shape not in ((n_rx, n_samples), (n_frames, n_rx, n_samples)):
             raise _error(
                 src,
@@ -329,24 +495,6 @@ def _validate(rec: Recording, *, allow_nonfinite: bool) -> None:
             k = int(np.argmax(lengths == 0))
             raise _error(src, f"{name}[{k}] is {arr[k].tolist()}, a zero-length axis")
 
-    # Truth.
-    if rec.truth_positions_m is not None:
-        truth = _check_array(src, "truth_positions", rec.truth_positions_m)
-        _check_real_float(src, "truth_positions", truth)
-        if truth.ndim != 3 or truth.shape[0] != n_frames or truth.shape[2] != 3:
-            raise _error(src, f"truth_positions has shape {truth.shape}, expected ({n_frames}, n_max, 3)")
-        if np.isinf(truth).any():
-            raise _error(src, "truth_positions has infinite values (only NaN rows are padding)")
-        nan = np.isnan(truth)
-        partial = nan.any(axis=2) & ~nan.all(axis=2)
-        if partial.any():
-            frame, row = (int(i) for i in np.argwhere(partial)[0])
-            raise _error(
-                src,
-                f"truth_positions[{frame}, {row}] is {truth[frame, row].tolist()}: "
-                "a padding row must be NaN in all three coordinates",
-            )
-
 
 def validate_recording(rec: Recording) -> Recording:
     """Check a recording against every rule of the interchange contract.
@@ -368,6 +516,62 @@ def validate_recording(rec: Recording) -> Recording:
     """
     _validate(rec, allow_nonfinite=False)
     return rec
+
+
+def validate_header(header: Recording) -> Recording:
+    """Check a header for :func:`write_recording_stream`.
+
+    A header is a :class:`Recording` that carries every per-recording field and no
+    per-frame one: its ``frames`` only give (n_rx, n_samples) and the dtype kind
+    (real or complex) and may hold 0 frames, whose values are not checked;
+    ``frame_times_s``, ``frame_transmitter``, ``truth_positions_m`` and
+    ``sensor_poses`` must be ``None`` and ``background``, if given, (n_rx, n_samples).
+    Build one with :func:`as_header`, or directly with
+    ``frames=np.empty((0, n_rx, n_samples))``.
+
+    Parameters
+    ----------
+    header
+        The header to check.
+
+    Returns
+    -------
+    Recording
+        ``header`` itself, unchanged.
+
+    Raises
+    ------
+    RecordingError
+        One line naming ``header.source``, the offending field and its value or shape.
+    """
+    _validate(header, allow_nonfinite=False, header_only=True)
+    return header
+
+
+def as_header(rec: Recording) -> Recording:
+    """The per-recording part of ``rec``, as a header for :func:`write_recording_stream`.
+
+    Parameters
+    ----------
+    rec
+        A recording, or a header.
+
+    Returns
+    -------
+    Recording
+        A copy with ``frames`` emptied to (0, n_rx, n_samples) of the same dtype and the
+        per-frame fields (``frame_times_s``, ``frame_transmitter``,
+        ``truth_positions_m``, ``sensor_poses``) set to ``None``. Not validated.
+    """
+    frames = np.empty((0, *np.shape(rec.frames)[1:]), dtype=np.asarray(rec.frames).dtype)
+    return replace(
+        rec,
+        frames=frames,
+        frame_times_s=None,
+        frame_transmitter=None,
+        truth_positions_m=None,
+        sensor_poses=None,
+    )
 
 
 def _zero_nonfinite(arr: _AnyArray) -> tuple[_AnyArray, int]:
@@ -487,6 +691,7 @@ def _build(source: str, attrs: dict[str, object], data: dict[str, _AnyArray]) ->
         )
     sample_rate_hz = _attr_float(source, "sample_rate_hz", attrs["sample_rate_hz"])
     signal_kind = _attr_str(source, "signal_kind", attrs.get("signal_kind", "rf"))
+    firing = _attr_str(source, "firing", attrs["firing"]) if "firing" in attrs else None
     optional = {
         name: _attr_float(source, name, attrs[name]) if name in attrs else None
         for name in _OPTIONAL_FLOAT_ATTRS
@@ -506,7 +711,7 @@ def _build(source: str, attrs: dict[str, object], data: dict[str, _AnyArray]) ->
             if not _is_sample_dtype(arr.dtype):
                 raise _error(source, f"frames has dtype {arr.dtype}, expected float32, float64 or complex64")
             fields[field] = _as_samples(source, name, arr, allow_complex=True)
-        elif name in ("waveform", "background"):
+        elif name in ("waveform", "background", "transmitter_waveforms"):
             fields[field] = _as_samples(source, name, arr, allow_complex=iq)
         else:
             fields[field] = _as_real(source, name, arr)
@@ -518,6 +723,7 @@ def _build(source: str, attrs: dict[str, object], data: dict[str, _AnyArray]) ->
         speed_of_sound_m_s=optional["speed_of_sound_m_s"],
         temperature_c=optional["temperature_c"],
         relative_humidity=optional["relative_humidity"],
+        firing=firing,
         source=source,
         **fields,
     )
@@ -529,7 +735,7 @@ def _load_hdf5(source: str, path: Path) -> tuple[dict[str, object], dict[str, _A
     if not h5py.is_hdf5(path):
         raise _error(source, "not an HDF5 file (no HDF5 signature)")
     with h5py.File(path, "r") as f:
-        for name in (*_REQUIRED_ATTRS, "signal_kind", *_OPTIONAL_FLOAT_ATTRS):
+        for name in (*_REQUIRED_ATTRS, *_STR_ATTRS, *_OPTIONAL_FLOAT_ATTRS):
             if name in f.attrs:
                 attrs[name] = f.attrs[name]
         for name in _DATASET_FIELDS:
@@ -554,7 +760,7 @@ def _load_npz(source: str, path: Path) -> tuple[dict[str, object], dict[str, _An
             raise _error(source, "not an NPZ archive (it holds a single .npy array)")
         with loaded:
             keys = set(loaded.files)
-            for name in (*_REQUIRED_ATTRS, "signal_kind", *_OPTIONAL_FLOAT_ATTRS):
+            for name in (*_REQUIRED_ATTRS, *_STR_ATTRS, *_OPTIONAL_FLOAT_ATTRS):
                 if name in keys:
                     attrs[name] = loaded[name]
             for name in _DATASET_FIELDS:
@@ -660,6 +866,8 @@ def _file_items(rec: Recording) -> tuple[dict[str, object], dict[str, _AnyArray]
         "sample_rate_hz": float(rec.sample_rate_hz),
         "signal_kind": rec.signal_kind,
     }
+    if rec.firing is not None:
+        attrs["firing"] = rec.firing
     for name in _OPTIONAL_FLOAT_ATTRS:
         value = getattr(rec, name)
         if value is not None:
@@ -708,6 +916,53 @@ def _fsync(path: Path, directory: bool = False) -> None:
         os.close(fd)
 
 
+@contextlib.contextmanager
+def _write_errors(source: str) -> Iterator[None]:
+    """Turn a failure of the file system or of h5py/zipfile into a one-line RecordingError."""
+    try:
+        yield
+    except RecordingError:
+        raise
+    except (OSError, ValueError, TypeError, RuntimeError) as exc:
+        raise _error(source, f"cannot write: {exc}") from exc
+
+
+def _target(path: str | os.PathLike[str]) -> tuple[Path, str, bool]:
+    """The target path, its name for messages, and whether it is HDF5 (else NPZ)."""
+    target = Path(path)
+    suffix = target.suffix.lower()
+    if suffix not in _HDF5_SUFFIXES + _NPZ_SUFFIXES:
+        raise _error(str(path), f"unknown extension {target.suffix!r}, expected .h5, .hdf5 or .npz")
+    return target, str(path), suffix in _HDF5_SUFFIXES
+
+
+def _atomic_write(target: Path, source: str, write: Callable[[Path], None]) -> Path:
+    """Run ``write`` on a new temporary file next to ``target``, then rename it over ``target``.
+
+    On any exception (KeyboardInterrupt too) the temporary file is removed, ``target``
+    is left as it was, and the exception propagates; ``write`` converts its own I/O
+    errors (see :func:`_write_errors`) and lets everything else through.
+    """
+    parent = target.parent
+    if not parent.is_dir():
+        raise _error(source, f"directory {str(parent)!r} does not exist")
+    if target.is_dir():
+        raise _error(source, "is a directory")
+    tmp = parent / f".{target.name}.{secrets.token_hex(6)}.tmp"
+    try:
+        with _write_errors(source), open(tmp, "xb"):  # created with the user's umask, like open()
+            pass
+        write(tmp)
+        with _write_errors(source):
+            _fsync(tmp)
+            os.replace(tmp, target)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    _fsync(parent, directory=True)
+    return target
+
+
 def write_recording(rec: Recording, path: str | os.PathLike[str]) -> Path:
     """Validate ``rec`` and write it atomically as ``.h5``/``.hdf5`` or ``.npz``.
 
@@ -734,34 +989,307 @@ def write_recording(rec: Recording, path: str | os.PathLike[str]) -> Path:
         If ``rec`` is invalid, the extension is unknown, the directory does not
         exist, or the file cannot be written.
     """
-    target = Path(path)
-    source = str(path)
-    suffix = target.suffix.lower()
-    if suffix not in _HDF5_SUFFIXES + _NPZ_SUFFIXES:
-        raise _error(source, f"unknown extension {target.suffix!r}, expected .h5, .hdf5 or .npz")
+    target, source, hdf5 = _target(path)
     validate_recording(rec)
-    parent = target.parent
-    if not parent.is_dir():
-        raise _error(source, f"directory {str(parent)!r} does not exist")
-    if target.is_dir():
-        raise _error(source, "is a directory")
 
-    tmp = parent / f".{target.name}.{secrets.token_hex(6)}.tmp"
+    def write(tmp: Path) -> None:
+        with _write_errors(source):
+            (_write_hdf5 if hdf5 else _write_npz)(tmp, rec)
+
+    return _atomic_write(target, source, write)
+
+
+# ----------------------------------------------------------------------------- streaming
+
+
+@dataclass(frozen=True, eq=False)
+class FrameBatch:
+    """Consecutive frames and their per-frame fields, for :func:`write_recording_stream`.
+
+    Attributes
+    ----------
+    frames
+        (n, n_rx, n_samples), real or complex as the header's ``frames``.
+    frame_times_s, frame_transmitter, truth_positions_m, sensor_poses
+        The per-frame fields of :class:`Recording` for these n frames, or ``None``;
+        every batch of a stream carries the same ones, with the same n_max.
+    """
+
+    frames: NDArray[np.floating] | NDArray[np.complexfloating]
+    frame_times_s: NDArray[np.float64] | None = None
+    frame_transmitter: NDArray[np.int64] | None = None
+    truth_positions_m: NDArray[np.float64] | None = None
+    sensor_poses: NDArray[np.float64] | None = None
+
+    @property
+    def n_frames(self) -> int:
+        return int(np.shape(self.frames)[0])
+
+
+def _storage_dtype(source: str, frames_dtype: DTypeLike, is_complex: bool) -> np.dtype[Any]:
+    """float32/float64 as asked, or its complex counterpart (complex64/complex128)."""
     try:
-        with open(tmp, "xb"):  # created with the user's umask, like a plain open()
-            pass
-        if suffix in _HDF5_SUFFIXES:
-            _write_hdf5(tmp, rec)
-        else:
-            _write_npz(tmp, rec)
-        _fsync(tmp)
-        os.replace(tmp, target)
-    except BaseException as exc:
-        tmp.unlink(missing_ok=True)
-        if isinstance(exc, OSError | ValueError | TypeError | RuntimeError) and not isinstance(
-            exc, RecordingError
+        real = np.dtype(frames_dtype)
+    except TypeError:
+        real = None
+    if real is None or real not in (np.dtype(np.float32), np.dtype(np.float64)):
+        raise _error(source, f"frames_dtype is {frames_dtype!r}, expected float32 or float64")
+    return np.result_type(real, np.complex64) if is_complex else real
+
+
+def _to_storage(source: str, frames: _AnyArray, storage: np.dtype[Any]) -> _AnyArray:
+    """``frames`` (already checked finite) in the storage dtype; overflow is an error."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        stored = frames.astype(storage, copy=False)
+    if stored is not frames and not np.isfinite(stored).all():
+        peak = float(np.max(np.abs(frames)))
+        raise _error(source, f"frames has a value of magnitude {peak:g}, beyond the range of {storage}")
+    return stored
+
+
+class _Hdf5Sink:
+    """Appends per-frame datasets to an open HDF5 file, each resizable along axis 0."""
+
+    def __init__(self, file: Any) -> None:
+        self._file = file
+        self._empty: dict[str, tuple[np.dtype[Any], tuple[int, ...], int]] = {}
+
+    def append(self, name: str, arr: _AnyArray) -> None:
+        n, row_shape = int(arr.shape[0]), tuple(int(d) for d in arr.shape[1:])
+        if arr[0].size == 0:  # e.g. truth with n_max = 0: HDF5 cannot chunk it; made in finish()
+            _, _, rows = self._empty.get(name, (arr.dtype, row_shape, 0))
+            self._empty[name] = (arr.dtype, row_shape, rows + n)
+            return
+        if name not in self._file:
+            rows_per_chunk = max(1, min(n, _CHUNK_BYTES // arr[0].nbytes))
+            self._file.create_dataset(
+                name,
+                shape=(0, *row_shape),
+                maxshape=(None, *row_shape),
+                dtype=arr.dtype,
+                chunks=(rows_per_chunk, *row_shape),
+            )
+        dataset = self._file[name]
+        start = int(dataset.shape[0])
+        dataset.resize(start + n, axis=0)
+        dataset[start:] = arr
+
+    def finish(self) -> None:
+        for name, (dtype, row_shape, rows) in self._empty.items():
+            self._file.create_dataset(name, shape=(rows, *row_shape), dtype=dtype)
+
+
+@dataclass
+class _Spool:
+    """The raw C-order bytes of one per-frame dataset, in an anonymous temporary file."""
+
+    file: IO[bytes]
+    dtype: np.dtype[Any]
+    row_shape: tuple[int, ...]
+    rows: int = 0
+
+
+class _NpzSink(contextlib.AbstractContextManager["_NpzSink"]):
+    """Spools per-frame datasets to disk, then writes them into a zip as ``.npy`` members."""
+
+    def __init__(self, directory: Path) -> None:
+        self._directory = directory
+        self._spools: dict[str, _Spool] = {}
+
+    def append(self, name: str, arr: _AnyArray) -> None:
+        spool = self._spools.get(name)
+        if spool is None:
+            # Closed in __exit__; anonymous, so nothing is left behind even on a crash.
+            file = tempfile.TemporaryFile(dir=self._directory, prefix=".echoloc-spool-")  # noqa: SIM115
+            spool = self._spools[name] = _Spool(file, arr.dtype, tuple(int(d) for d in arr.shape[1:]))
+        spool.file.write(np.ascontiguousarray(arr).reshape(-1).view(np.uint8).data)
+        spool.rows += int(arr.shape[0])
+
+    def write_members(self, archive: zipfile.ZipFile) -> None:
+        for name, spool in self._spools.items():
+            header = {
+                "descr": np.lib.format.dtype_to_descr(spool.dtype),
+                "fortran_order": False,
+                "shape": (spool.rows, *spool.row_shape),
+            }
+            spool.file.seek(0)
+            with archive.open(f"{name}.npy", "w", force_zip64=True) as member:
+                np.lib.format.write_array_header_1_0(member, header)
+                shutil.copyfileobj(spool.file, member, _CHUNK_BYTES)
+
+    def __exit__(self, *exc_info: object) -> None:
+        for spool in self._spools.values():
+            spool.file.close()
+
+
+def _append_batch(
+    source: str,
+    header: Recording,
+    batch: object,
+    layout: dict[str, tuple[int, ...]] | None,
+    storage: np.dtype[Any],
+    append: Callable[[str, _AnyArray], None],
+) -> tuple[int, dict[str, tuple[int, ...]]]:
+    """Check one batch against the header and the first batch's ``layout``, and append it.
+
+    ``source`` names the file and the batch. Returns the batch's frame count and its
+    layout: the row shape of each per-frame dataset it carries.
+    """
+    if not isinstance(batch, FrameBatch):
+        raise _error(source, f"is a {type(batch).__name__}, expected a FrameBatch")
+    n_rx, n_samples = (int(d) for d in header.frames.shape[1:])
+    frames = _check_frames_layout(source, batch.frames, header.signal_kind, n_rx)
+    if frames.shape[2] != n_samples:
+        raise _error(
+            source, f"frames has shape {frames.shape}, expected (n, {n_rx}, {n_samples}) as in the header"
+        )
+    n = int(frames.shape[0])
+    _check_samples(source, frames, header.signal_kind, allow_nonfinite=False)
+    values = {name: getattr(batch, field) for name, field in _PER_FRAME_DATASETS.items()}
+    _check_per_frame(source, n, int(header.transmitters_m.shape[0]), *values.values())
+    present = {
+        name: tuple(int(d) for d in value.shape[1:]) for name, value in values.items() if value is not None
+    }
+    if layout is not None and present.keys() != layout.keys():
+        have, had = (", ".join(fields) or "none" for fields in (present, layout))
+        raise _error(
+            source,
+            f"carries per-frame fields {have} but batch 0 carried {had} (every batch must carry the same)",
+        )
+    for name, row_shape in (layout or {}).items():
+        if present[name] != row_shape:
+            shape = (n, *present[name])
+            raise _error(source, f"{name} has shape {shape}, expected {(n, *row_shape)} as in batch 0")
+    if n == 0:
+        return 0, present
+
+    stored = _to_storage(source, frames, storage)
+    with _write_errors(source):
+        append("frames", stored)
+        del stored
+        for name, value in values.items():
+            if value is not None:
+                dtype = np.int64 if name == "frame_transmitter" else np.float64
+                append(name, np.asarray(value, dtype=dtype))
+    return n, present
+
+
+def _append_batches(
+    source: str,
+    header: Recording,
+    batches: Iterable[FrameBatch],
+    storage: np.dtype[Any],
+    append: Callable[[str, _AnyArray], None],
+) -> int:
+    """Check and append every batch, holding one at a time; returns the frame count (>= 1)."""
+    layout: dict[str, tuple[int, ...]] | None = None
+    total = 0
+    index = 0
+    # Not enumerate(): its reused result tuple would keep the previous batch alive while
+    # the iterator makes the next one. Exceptions of the iterator propagate unchanged.
+    for batch in batches:
+        where = f"{source}: batch {index} (from frame {total})"
+        n, present = _append_batch(where, header, batch, layout, storage, append)
+        del batch  # not alive while the iterator makes the next one
+        layout = present if layout is None else layout
+        total += n
+        index += 1  # noqa: SIM113 (see above)
+    if total == 0:
+        raise _error(source, "no frames: the batches held none (a recording needs at least 1 frame)")
+    return total
+
+
+def _stream_hdf5(
+    tmp: Path, source: str, header: Recording, batches: Iterable[FrameBatch], storage: np.dtype[Any]
+) -> None:
+    attrs, data = _file_items(header)
+    del data["frames"]
+    with _write_errors(source):
+        file = h5py.File(tmp, "w")
+    with file:
+        with _write_errors(source):
+            for name, value in attrs.items():
+                file.attrs[name] = value
+            for name, arr in data.items():
+                file.create_dataset(name, data=arr)
+        sink = _Hdf5Sink(file)
+        _append_batches(source, header, batches, storage, sink.append)
+        with _write_errors(source):
+            sink.finish()
+
+
+def _stream_npz(
+    tmp: Path, source: str, header: Recording, batches: Iterable[FrameBatch], storage: np.dtype[Any]
+) -> None:
+    attrs, data = _file_items(header)
+    del data["frames"]
+    items: dict[str, _AnyArray] = {name: np.asarray(value) for name, value in attrs.items()}
+    items.update(data)
+    with _NpzSink(tmp.parent) as sink:
+        _append_batches(source, header, batches, storage, sink.append)
+        with (
+            _write_errors(source),
+            open(tmp, "r+b") as fh,
+            zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED, allowZip64=True) as archive,
         ):
-            raise _error(source, f"cannot write: {exc}") from exc
-        raise
-    _fsync(parent, directory=True)
-    return target
+            for name, arr in items.items():  # as np.savez writes them
+                with archive.open(f"{name}.npy", "w", force_zip64=True) as member:
+                    np.lib.format.write_array(member, arr, allow_pickle=False)
+            sink.write_members(archive)
+
+
+def write_recording_stream(
+    header: Recording,
+    batches: Iterable[FrameBatch],
+    path: str | os.PathLike[str],
+    *,
+    frames_dtype: DTypeLike = np.float32,
+) -> Path:
+    """Write a recording batch by batch, holding one batch in memory, atomically.
+
+    The file reads back with :func:`read_recording` as the concatenated recording
+    written by :func:`write_recording` would, with ``frames`` rounded to
+    ``frames_dtype``. HDF5 (``.h5``/``.hdf5``) is the streaming format: each batch is
+    appended to resizable chunked datasets (chunks of up to one batch and about 1 MiB).
+    For ``.npz`` the per-frame datasets are spooled to anonymous temporary files in
+    the target directory and copied into the archive at the end (memory stays flat,
+    the target's disk briefly holds the data twice).
+
+    Each batch is checked as it arrives (shapes against the header and against
+    batch 0, which fixes the per-frame fields present and n_max; finite samples;
+    unit quaternions; transmitter indices); nothing is read back. As with
+    :func:`write_recording`, the file is written under a temporary name and renamed
+    over ``path`` only when complete: on any exception, including one raised by
+    ``batches`` and KeyboardInterrupt, the temporary file is removed, ``path`` is
+    left as it was, and the exception propagates.
+
+    Parameters
+    ----------
+    header
+        Every per-recording field (see :func:`validate_header` and :func:`as_header`);
+        its ``frames`` only give (n_rx, n_samples) and real or complex.
+    batches
+        The frames in order, at least one frame in all; an empty batch is allowed.
+    path
+        The target file; its extension selects the format.
+    frames_dtype
+        float32 or float64: the stored dtype of real ``frames``; complex (``iq``)
+        frames are stored as complex64 or complex128 respectively.
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Raises
+    ------
+    RecordingError
+        If the header or a batch is invalid, batches disagree, there are no frames,
+        the extension or ``frames_dtype`` is unsupported, the directory does not
+        exist, or the file cannot be written. Batch errors name the batch.
+    """
+    target, source, hdf5 = _target(path)
+    validate_header(header)
+    storage = _storage_dtype(source, frames_dtype, header.frames.dtype.kind == "c")
+    stream = _stream_hdf5 if hdf5 else _stream_npz
+    return _atomic_write(target, source, lambda tmp: stream(tmp, source, header, batches, storage))
