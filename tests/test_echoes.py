@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from echoloc.echoes import ESTIMATORS, ChannelEchoes, EchoOptions, MatchedFilter, noise_power
 from echoloc.recording import Recording
-from echoloc.simulate import synthesize_frames
+from echoloc.synthesis import synthesize_frames
 from echoloc.waveform import barker_waveform
 
 FS = 200e3

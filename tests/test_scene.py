@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from echoloc.errors import EchoLocError, SceneError
-from echoloc.scene import Array, Scene, default_scene, load_scene
+from echoloc.scene import Array, Scene, default_scene
+from echoloc.scenefile import load_scene
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 REPORT_TOML = EXAMPLES / "report-three-balls.toml"
@@ -34,7 +35,7 @@ def test_default_scene_array_is_the_reports() -> None:
 def test_default_scene_pulse_and_air_are_the_reports() -> None:
     """Barker-13 × 4 cycles at 50 kHz, sampled at 200 kHz, 20 °C dry air (343.2 m/s)."""
     scene = default_scene()
-    assert scene.pulse.barker_length == 13
+    assert scene.pulse.code == "barker13"
     assert scene.pulse.cycles_per_bit == 4
     assert scene.pulse.carrier_hz == 50e3
     assert scene.sample_rate_hz == 200e3

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
 from echoloc.errors import SceneError
-from echoloc.scene import REPORT_ARRAY, Array, Scene, scene_from_dict
+from echoloc.scene import REPORT_ARRAY, Array, Scene
+from echoloc.scenefile import scene_from_dict
 
 ONE = [{"position_m": [0.0, 0.0, 0.6]}]
 
@@ -22,12 +25,35 @@ ONE = [{"position_m": [0.0, 0.0, 0.6]}]
         ({"reflectors": [{"position_m": [0.0, 0.0, -0.5]}]}, "not in front"),
         ({"reflectors": [{"position_m": [0.25, 0.0, 0.0]}]}, "sits on a transducer"),
         ({"random_reflectors": {"z_m": [-0.2, 1.0]}}, "random_reflectors.z_m"),
-        ({"array": {"transmitters_m": [[0, 0, 0], [0.1, 0, 0]]}, "reflectors": ONE}, "one transmitter"),
+        (
+            {
+                "array": {"transmitters_m": [[0, 0, 0], [0.1, 0, 0]], "firing": "simultaneous"},
+                "reflectors": ONE,
+            },
+            "different code per transmitter",
+        ),
+        (
+            {
+                "pulse": {"codes": ["barker13"]},
+                "array": {"transmitters_m": [[0, 0, 0], [0.1, 0, 0]]},
+                "reflectors": ONE,
+            },
+            "pulse.codes",
+        ),
+        ({"receiver": {"signal_kind": "audio"}, "reflectors": ONE}, "receiver.signal_kind"),
+        ({"receiver": {"gain": {"kind": "stepped", "step_s": 0.0}}, "reflectors": ONE}, "step_s"),
+        ({"reflectors": [{"kind": "plane", "centre_m": [0, 0, 1], "normal": [0, 0, 0]}]}, "width_m"),
+        ({"reflectors": [{"kind": "sphere", "centre_m": [0, 0, 1], "radius_m": -0.1}]}, "radius"),
+        ({"reflectors": [{"kind": "disc", "centre_m": [0, 0, 1]}]}, "reflectors[0].kind"),
+        ({"reflectors": [{"kind": "sphere", "centre_m": [0, 0, 1], "radius": 0.1}]}, "'radius'"),
+        ({"max_order": 3, "reflectors": ONE}, "max_order"),
+        ({"air": {"turbulence": 0.5}, "reflectors": ONE}, "air.turbulence"),
+        ({"motion": {"velocity_m_s": [1, 0]}, "reflectors": ONE}, "motion.velocity_m_s"),
     ],
 )
 def test_unsimulatable_values_are_named(data: dict, named: str) -> None:  # type: ignore[type-arg]
-    """NaN, infinities, negative seeds, reflectors behind the array or on a transducer, two transmitters."""
-    with pytest.raises(SceneError, match=named.replace(".", r"\.")):
+    """NaN, infinities, negative seeds, reflectors behind the array or on a transducer, bad specs."""
+    with pytest.raises(SceneError, match=re.escape(named)):
         scene_from_dict(data, "scene.toml")
 
 

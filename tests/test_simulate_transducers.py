@@ -11,7 +11,8 @@ import pytest
 from echoloc.air import absorption_db_per_m
 from echoloc.errors import SceneError
 from echoloc.pipeline import find_echoes
-from echoloc.scene import Array, Scene, load_scene
+from echoloc.scene import Array, Scene
+from echoloc.scenefile import load_scene
 from echoloc.simulate import simulate
 from echoloc.transducer import PRESETS, apply_response, directivity
 

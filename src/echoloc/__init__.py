@@ -18,7 +18,8 @@ from echoloc.locate import (
 )
 from echoloc.pipeline import Chain, find_echoes, frame_echoes, frame_objects, prepare, run
 from echoloc.recording import Recording, RecordingWarning, read_recording, write_recording
-from echoloc.scene import Array, Scene, default_scene, load_scene
+from echoloc.scene import Array, Scene, default_scene
+from echoloc.scenefile import load_scene
 from echoloc.simulate import simulate
 from echoloc.transducer import PRESETS, Transducer, array_factor, piston_beam_angles, piston_directivity
 from echoloc.waveform import (

@@ -40,8 +40,9 @@ from echoloc.locate import FrameObjects, LocateOptions
 from echoloc.output import echoes_record, json_line, objects_record
 from echoloc.pipeline import Chain, check_locatable, frame_echoes, frame_objects, prepare
 from echoloc.recording import Recording, read_recording, write_recording
-from echoloc.scene import default_scene, load_scene
-from echoloc.simulate import simulate
+from echoloc.scene import default_scene
+from echoloc.scenefile import load_scene
+from echoloc.simulate import recording_header, simulate, simulate_to_file
 from echoloc.transducer import (
     PRESETS,
     ShadingKind,
@@ -363,12 +364,12 @@ def simulate_command(scene_path: Path, output: Path, n_frames: int, seed: int | 
     scene = load_scene(scene_path)
     if seed is not None:
         scene = replace(scene, seed=seed)
+    header = recording_header(scene)
     with _progress(n_frames, "simulating", True) as advance:
-        recording = simulate(scene, n_frames, progress=advance)
-    written = write_recording(recording, output)
+        written = simulate_to_file(scene, n_frames, output, progress=advance)
     stderr.print(
-        f"wrote {n_frames} frame(s) × {recording.n_receivers} receivers × "
-        f"{recording.n_samples} samples to {written}"
+        f"wrote {n_frames} frame(s) × {header.n_receivers} receivers × "
+        f"{header.n_samples} {header.signal_kind} samples to {written}"
     )
 
 

@@ -1,34 +1,36 @@
 """Scenes: the sensor head, the emitted pulse, the air and the reflectors.
 
 A :class:`Scene` is everything :func:`echoloc.simulate.simulate` needs. It is read
-from TOML by :func:`load_scene` (every key checked; an unknown key is an error that
-names it) or built in code; :func:`default_scene` is the report's set-up.
+from TOML by :func:`echoloc.scenefile.load_scene` (every key checked; an unknown key
+is an error that names it) or built in code; :func:`default_scene` is the report's
+set-up.
 
 Noise convention (documented once, used everywhere): ``snr_db`` is the per-sample
 amplitude signal-to-noise ratio, ``20 log10(A / sigma)``, of the echo from a
 unit-strength point reflector with 1 m from the transmitter and 1 m to the
 receiver, where ``A`` is the emitted pulse's peak amplitude (1) and ``sigma`` the
-standard deviation of the white noise added to every sample. Closer or stronger
-reflectors have proportionally higher SNR: the noise is the receiver's, not the
-scene's.
+standard deviation of the noise in the recorded rf samples at ``sample_rate_hz``
+(after any decimation from the ADC rate, before the receiver's gain). Closer or
+stronger reflectors have proportionally higher SNR: the noise is the receiver's, not
+the scene's.
 """
 
 from __future__ import annotations
 
 import math
-import tomllib
-from collections.abc import Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from echoloc.air import speed_of_sound_m_s
-from echoloc.errors import EchoLocError, SceneError
+from echoloc.errors import SceneError, WaveformError
+from echoloc.receiver import AdcSpec, GainSpec, SignalKind
+from echoloc.reflectors import Reflector
 from echoloc.transducer import PRESETS, apply_response, impulse_response
-from echoloc.waveform import BARKER_CODES, Carrier, Waveform, barker_waveform
+from echoloc.waveform import Carrier, Waveform, waveform_by_name
 
 
 @dataclass(frozen=True, eq=False)
@@ -86,17 +88,27 @@ class Array:
 
 @dataclass(frozen=True)
 class PulseSpec:
-    """The emitted code: a Barker sequence of ``barker_length`` on a carrier."""
+    """The emitted pulse: a code or chirp by name (:func:`echoloc.waveform.waveform_by_name`).
 
-    barker_length: int = 13
+    ``code`` is e.g. ``barker13``, ``golay16a``, ``mls7``, ``kasami6:2``, ``tone16``,
+    ``lfm``; codes ride on ``carrier_hz`` with ``cycles_per_bit`` carrier cycles per
+    chip; chirps sweep ``chirp_bandwidth_hz`` in ``chirp_duration_s``.
+    """
+
+    code: str = "barker13"
     carrier_hz: float = 50e3
     cycles_per_bit: int = 4
     carrier: Carrier = "sine"
+    chirp_bandwidth_hz: float = 20e3
+    chirp_duration_s: float = 1e-3
 
 
 @dataclass(frozen=True)
 class RandomReflectors:
-    """Draw ``count`` (an inclusive range) point reflectors uniformly in a box per frame."""
+    """Draw ``count`` (an inclusive range) point reflectors uniformly in a box per frame.
+
+    The box is in the sensor frame of each frame (the reflectors move with the sensor).
+    """
 
     count: tuple[int, int] = (1, 5)
     x_m: tuple[float, float] = (-0.5, 0.5)
@@ -105,16 +117,146 @@ class RandomReflectors:
     strength: tuple[float, float] = (1.0, 1.0)
 
 
+@dataclass(frozen=True)
+class AirDrift:
+    """How the air changes during a recording.
+
+    Temperature and relative humidity drift linearly with time; ``turbulence`` is the
+    relative standard deviation of a random speed-of-sound error drawn anew each
+    frame and shared by every path of that frame (slow air movement, thermal plumes).
+    """
+
+    temperature_c_per_s: float = 0.0
+    relative_humidity_per_s: float = 0.0
+    turbulence: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("temperature_c_per_s", "relative_humidity_per_s", "turbulence"):
+            _finite(f"air.{name}", getattr(self, name))
+        if not 0 <= self.turbulence < 0.1:
+            raise SceneError(f"air.turbulence must be a relative std in [0, 0.1), got {self.turbulence}")
+
+
+@dataclass(frozen=True)
+class RingDown:
+    """The transmitter's ring-down that every receiver records at the start of a frame.
+
+    ``level`` is the peak of the ring-down at each receiver relative to the emitted
+    pulse's peak (electrical and mechanical crosstalk; real heads reach 10-100, far
+    above any echo). The ringing is the drive through a resonator at the carrier whose
+    envelope decays as ``exp(-t / decay_s)`` after the drive stops. ``direct_path``
+    adds the acoustic wave that travels straight from the transmitter to each receiver
+    (weighted by both beams at 90° off boresight for a flat head).
+    """
+
+    level: float = 0.0
+    decay_s: float = 0.3e-3
+    direct_path: bool = False
+
+    def __post_init__(self) -> None:
+        _finite("ring_down.level", self.level)
+        _finite("ring_down.decay_s", self.decay_s)
+        if self.level < 0:
+            raise SceneError(f"ring_down.level must be >= 0, got {self.level}")
+        if not self.decay_s > 0:
+            raise SceneError(f"ring_down.decay_s must be > 0, got {self.decay_s}")
+
+
+@dataclass(frozen=True)
+class ReceiverSpec:
+    """The receiver chain after the transducer, in the order the signal meets it.
+
+    1. The ADC samples at ``adc_rate_hz`` (default: the scene's ``sample_rate_hz``);
+       white noise is scaled so that its standard deviation is the scene's noise
+       level once decimated to ``sample_rate_hz``; ``noise = "band"`` passes it through
+       the receiver transducer's band first (same standard deviation).
+    2. The amplifier applies ``gain`` (time-varying gain, TVG).
+    3. The ADC clips and quantises (``adc``; None: an ideal converter).
+    4. The samples are decimated to ``sample_rate_hz`` (the report: 5 MHz to 200 kHz).
+    5. They are recorded as ``signal_kind`` at ``output_rate_hz`` (default
+       ``sample_rate_hz``): ``rf``, ``iq`` (complex baseband) or ``envelope`` (the
+       magnitude a ToF chip reports, typically at ~20 kHz).
+    """
+
+    signal_kind: SignalKind = "rf"
+    output_rate_hz: float | None = None
+    adc_rate_hz: float | None = None
+    noise: Literal["white", "band"] = "white"
+    gain: GainSpec = field(default_factory=GainSpec)
+    adc: AdcSpec | None = None
+
+    def __post_init__(self) -> None:
+        if self.signal_kind not in ("rf", "envelope", "iq"):
+            raise SceneError(
+                f"receiver.signal_kind must be 'rf', 'envelope' or 'iq', got {self.signal_kind!r}"
+            )
+        if self.noise not in ("white", "band"):
+            raise SceneError(f"receiver.noise must be 'white' or 'band', got {self.noise!r}")
+        for name in ("output_rate_hz", "adc_rate_hz"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise SceneError(f"receiver.{name} must be > 0, got {value}")
+
+
+@dataclass(frozen=True, eq=False)
+class SensorMotion:
+    """Constant velocity (m/s) and angular velocity (deg/s) of the sensor head.
+
+    Both are in the world frame, which is the sensor frame at time 0; the pose at time
+    ``t`` is a rotation by ``angular_velocity * t`` about its axis and a translation
+    ``velocity * t``. Reflectors are placed in the world frame.
+    """
+
+    velocity_m_s: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+    angular_velocity_deg_s: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+
+    def __post_init__(self) -> None:
+        for name in ("velocity_m_s", "angular_velocity_deg_s"):
+            value = np.asarray(getattr(self, name), dtype=float)
+            if value.shape != (3,) or not np.all(np.isfinite(value)):
+                raise SceneError(f"motion.{name} must be a finite [x, y, z], got {value.tolist()}")
+            object.__setattr__(self, name, value)
+
+    @property
+    def moving(self) -> bool:
+        return bool(np.any(self.velocity_m_s) or np.any(self.angular_velocity_deg_s))
+
+    def poses(self, times_s: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """World-from-sensor rotations (n, 3, 3) and translations (n, 3) at ``times_s``."""
+        times = np.asarray(times_s, dtype=float)
+        rotvec = np.radians(self.angular_velocity_deg_s)[None, :] * times[:, None]
+        rotation = Rotation.from_rotvec(rotvec).as_matrix()
+        return rotation, self.velocity_m_s[None, :] * times[:, None]
+
+    def pose_quaternions(self, times_s: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Poses as rows ``[x, y, z, qx, qy, qz, qw]`` (ROS order), world from sensor."""
+        times = np.asarray(times_s, dtype=float)
+        rotvec = np.radians(self.angular_velocity_deg_s)[None, :] * times[:, None]
+        quaternion = Rotation.from_rotvec(rotvec).as_quat()
+        return np.hstack([self.velocity_m_s[None, :] * times[:, None], quaternion])
+
+
+Firing = Literal["sequential", "simultaneous"]
+
+
 @dataclass(frozen=True, eq=False)
 class Scene:
     """A complete simulation set-up.
 
-    ``reflector_positions_m`` (n, 3) and ``reflector_strengths`` (n,) are fixed
-    point reflectors; a reflector's echo amplitude is ``strength / (r_tx r_rx)``
-    times the emitted pulse (strength in m²). ``random`` adds reflectors drawn anew
-    each frame. ``path_jitter_m`` is the standard deviation of an independent random
-    error on every transmitter-reflector-receiver path (air turbulence, transducer
-    jitter). ``snr_db`` follows the module's noise convention; None means no noise.
+    Reflectors: ``reflector_positions_m`` (n, 3) with ``reflector_strengths`` (n,) are
+    fixed point reflectors (echo amplitude ``strength / (r_tx r_rx)`` times the pulse,
+    strength in m); ``objects`` holds any :mod:`echoloc.reflectors` kind (points,
+    spheres, finite planes, edges, corners), each possibly moving; ``random`` adds
+    point reflectors drawn anew each frame. ``max_order = 2`` adds the double
+    reflections between them (the "ghosts" localisation must reject).
+
+    ``path_jitter_m`` is the standard deviation of an independent random error on
+    every path (transducer jitter); ``drift.turbulence`` is the shared per-frame one.
+    ``snr_db`` follows the module's noise convention; None means no noise.
+
+    Transmitters: with several, ``firing = "sequential"`` fires one per frame in turn
+    (frame k fires transmitter k mod n_tx) and ``"simultaneous"`` fires all at once,
+    which needs a different code per transmitter (``transmitter_codes``).
     """
 
     array: Array
@@ -126,12 +268,20 @@ class Scene:
     relative_humidity: float = 0.0
     reflector_positions_m: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
     reflector_strengths: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    objects: tuple[Reflector, ...] = ()
     random: RandomReflectors | None = None
     snr_db: float | None = None
     path_jitter_m: float = 0.0
     seed: int | None = 0
     transducer: str | None = None
     absorption: bool = False
+    max_order: int = 1
+    drift: AirDrift = field(default_factory=AirDrift)
+    ring_down: RingDown = field(default_factory=RingDown)
+    receiver: ReceiverSpec = field(default_factory=ReceiverSpec)
+    motion: SensorMotion = field(default_factory=SensorMotion)
+    firing: Firing = "sequential"
+    transmitter_codes: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         positions = np.asarray(self.reflector_positions_m, dtype=float).reshape(-1, 3)
@@ -142,11 +292,12 @@ class Scene:
             raise SceneError("reflector positions and strengths must be finite")
         object.__setattr__(self, "reflector_positions_m", positions)
         object.__setattr__(self, "reflector_strengths", strengths)
-        if not self.sample_rate_hz > 0:
+        object.__setattr__(self, "objects", tuple(self.objects))
+        if not (math.isfinite(self.sample_rate_hz) and self.sample_rate_hz > 0):
             raise SceneError(f"sample_rate_hz must be > 0, got {self.sample_rate_hz}")
         if self.n_samples < 1:
             raise SceneError(f"n_samples must be >= 1, got {self.n_samples}")
-        if not self.frame_rate_hz > 0:
+        if not (math.isfinite(self.frame_rate_hz) and self.frame_rate_hz > 0):
             raise SceneError(f"frame_rate_hz must be > 0, got {self.frame_rate_hz}")
         if not self.temperature_c > -273.15:
             raise SceneError(f"air.temperature_c must be above absolute zero, got {self.temperature_c}")
@@ -156,7 +307,9 @@ class Scene:
             )
         if self.path_jitter_m < 0:
             raise SceneError(f"path_jitter_m must be >= 0, got {self.path_jitter_m}")
-        if self.random is None and len(positions) == 0:
+        if self.max_order not in (1, 2):
+            raise SceneError(f"max_order must be 1 or 2, got {self.max_order}")
+        if self.random is None and len(positions) == 0 and not self.objects:
             raise SceneError("the scene has no reflectors: give [[reflectors]] or [random_reflectors]")
         if self.random is not None:
             low, high = self.random.count
@@ -166,10 +319,22 @@ class Scene:
                 )
         if self.seed is not None and self.seed < 0:
             raise SceneError(f"seed must be >= 0, got {self.seed}")
-        if len(self.array.transmitters_m) > 1:
-            raise SceneError(
-                f"the simulator fires one transmitter; this scene has {len(self.array.transmitters_m)}"
-            )
+        n_tx = len(self.array.transmitters_m)
+        if self.firing not in ("sequential", "simultaneous"):
+            raise SceneError(f"array.firing must be 'sequential' or 'simultaneous', got {self.firing!r}")
+        if self.transmitter_codes is not None:
+            object.__setattr__(self, "transmitter_codes", tuple(self.transmitter_codes))
+            if len(self.transmitter_codes) != n_tx:
+                raise SceneError(
+                    f"pulse.codes names {len(self.transmitter_codes)} codes for {n_tx} transmitters"
+                )
+        if self.firing == "simultaneous" and n_tx > 1:
+            codes = self.codes()
+            if len({code.strip().lower() for code in codes}) < n_tx:
+                raise SceneError(
+                    "simultaneous firing needs a different code per transmitter (pulse.codes), "
+                    f"got {list(codes)}"
+                )
         transducers = np.vstack([self.array.transmitters_m, self.array.receivers_m])
         for i, point in enumerate(positions):
             if np.min(np.linalg.norm(transducers - point, axis=1)) < 1e-3:
@@ -184,38 +349,89 @@ class Scene:
             )
         if self.transducer is not None and self.transducer not in PRESETS:
             raise SceneError(f"transducer {self.transducer!r} is not one of {', '.join(PRESETS)}")
+        if self.receiver.noise == "band" and self.transducer is None:
+            raise SceneError("receiver.noise = 'band' needs a transducer model ([transducers] model)")
+        adc_rate = self.adc_rate_hz
+        if adc_rate < self.sample_rate_hz:
+            raise SceneError(
+                f"receiver.adc_rate_hz ({adc_rate:g}) must be >= acquisition.sample_rate_hz "
+                f"({self.sample_rate_hz:g})"
+            )
+        if self.output_rate_hz > self.sample_rate_hz:
+            raise SceneError(
+                f"receiver.output_rate_hz ({self.output_rate_hz:g}) must be <= acquisition.sample_rate_hz "
+                f"({self.sample_rate_hz:g})"
+            )
         # Raises early for an impossible pulse.
-        self.waveform()
+        for transmitter in range(n_tx):
+            self.waveform(transmitter)
 
-    def waveform(self) -> Waveform:
-        """The sampled emitted pulse (peak amplitude 1)."""
-        return barker_waveform(
-            self.pulse.barker_length,
-            carrier_hz=self.pulse.carrier_hz,
-            cycles_per_bit=self.pulse.cycles_per_bit,
-            sample_rate_hz=self.sample_rate_hz,
-            carrier=self.pulse.carrier,
-        )
+    # --- derived values --------------------------------------------------------
 
-    def returned_pulse(self) -> NDArray[np.float64]:
+    @property
+    def adc_rate_hz(self) -> float:
+        """Rate at which the ADC samples (before decimation to ``sample_rate_hz``)."""
+        return self.receiver.adc_rate_hz or self.sample_rate_hz
+
+    @property
+    def output_rate_hz(self) -> float:
+        """Rate of the recorded samples (``sample_rate_hz`` unless the receiver says otherwise)."""
+        return self.receiver.output_rate_hz or self.sample_rate_hz
+
+    @property
+    def frame_duration_s(self) -> float:
+        return self.n_samples / self.sample_rate_hz
+
+    def codes(self) -> tuple[str, ...]:
+        """The code each transmitter emits."""
+        if self.transmitter_codes is not None:
+            return self.transmitter_codes
+        return (self.pulse.code,) * len(self.array.transmitters_m)
+
+    def waveform(self, transmitter: int = 0, sample_rate_hz: float | None = None) -> Waveform:
+        """The sampled pulse ``transmitter`` emits (peak amplitude 1)."""
+        try:
+            return waveform_by_name(
+                self.codes()[transmitter],
+                carrier_hz=self.pulse.carrier_hz,
+                cycles_per_bit=self.pulse.cycles_per_bit,
+                sample_rate_hz=sample_rate_hz or self.sample_rate_hz,
+                carrier=self.pulse.carrier,
+                chirp_bandwidth_hz=self.pulse.chirp_bandwidth_hz,
+                chirp_duration_s=self.pulse.chirp_duration_s,
+            )
+        except WaveformError as error:
+            key = "pulse.code" if self.transmitter_codes is None else f"pulse.codes[{transmitter}]"
+            raise SceneError(f"{key} {self.codes()[transmitter]!r}: {error}") from None
+
+    def returned_pulse(
+        self, transmitter: int = 0, sample_rate_hz: float | None = None
+    ) -> NDArray[np.float64]:
         """The pulse as an ideal point reflector returns it at unit gain (the SENT template).
 
         The emitted pulse through the transmitter and receiver responses in series,
         cut where its ringing has fallen below 1e-4 of its peak; without a transducer
         model, the emitted pulse itself.
         """
-        pulse = self.waveform().samples
+        rate = sample_rate_hz or self.sample_rate_hz
+        pulse = self.waveform(transmitter, rate).samples
         if self.transducer is None:
             return pulse
         model = PRESETS[self.transducer]
-        ringing = len(impulse_response(model, self.sample_rate_hz))
-        returned = apply_response(np.concatenate([pulse, np.zeros(ringing)]), model, self.sample_rate_hz)
+        ringing = len(impulse_response(model, rate))
+        returned = apply_response(np.concatenate([pulse, np.zeros(ringing)]), model, rate)
         significant = np.flatnonzero(np.abs(returned) >= 1e-4 * np.max(np.abs(returned)))
         return np.asarray(returned[: significant[-1] + 1])
 
     @property
     def speed_of_sound_m_s(self) -> float:
+        """Speed of sound at the start of the recording."""
         return float(speed_of_sound_m_s(self.temperature_c, self.relative_humidity))
+
+
+def _finite(where: str, value: float) -> None:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise SceneError(f"{where} must be a finite number, got {value!r}")
 
 
 REPORT_ARRAY = Array(
@@ -245,190 +461,3 @@ def default_scene() -> Scene:
         snr_db=13.5,
         seed=2026,
     )
-
-
-# --- TOML --------------------------------------------------------------------------
-
-_SECTIONS: dict[str, set[str]] = {
-    "array": {"transmitters_m", "receivers_m", "transmitter_axes", "receiver_axes", "aim_at_m"},
-    "transducers": {"model", "absorption"},
-    "pulse": {"code", "carrier_hz", "cycles_per_bit", "carrier"},
-    "acquisition": {"sample_rate_hz", "n_samples", "frame_rate_hz"},
-    "air": {"temperature_c", "relative_humidity"},
-    "noise": {"snr_db", "path_jitter_m"},
-    "random_reflectors": {"count", "x_m", "y_m", "z_m", "strength"},
-}
-_REFLECTOR_KEYS = {"position_m", "strength"}
-_TOP_LEVEL = {*_SECTIONS, "reflectors", "seed"}
-
-
-def _number(where: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise SceneError(f"{where} must be a finite number, got {value!r}")
-    return float(value)
-
-
-def _pair(where: str, value: Any) -> tuple[float, float]:
-    if not isinstance(value, list) or len(value) != 2:
-        raise SceneError(f"{where} must be [min, max], got {value!r}")
-    low, high = (_number(where, v) for v in value)
-    if low > high:
-        raise SceneError(f"{where} must be [min, max] with min <= max, got {value!r}")
-    return low, high
-
-
-def _points(where: str, value: Any) -> NDArray[np.float64]:
-    if not isinstance(value, list) or not all(isinstance(p, list) and len(p) == 3 for p in value):
-        raise SceneError(f"{where} must be a list of [x, y, z] points, got {value!r}")
-    return np.array([[_number(where, c) for c in p] for p in value], dtype=float)
-
-
-def _check_keys(where: str, table: Mapping[str, Any], allowed: set[str]) -> None:
-    unknown = sorted(set(table) - allowed)
-    if unknown:
-        raise SceneError(f"{where}: unknown key {unknown[0]!r} (allowed: {', '.join(sorted(allowed))})")
-
-
-def scene_from_dict(data: Mapping[str, Any], source: str = "<scene>") -> Scene:
-    """Build a :class:`Scene` from a parsed TOML table, checking every key and value."""
-    try:
-        return _scene_from_dict(data, source)
-    except EchoLocError as error:
-        message = str(error)
-        raise SceneError(message if message.startswith(source) else f"{source}: {message}") from None
-
-
-def _scene_from_dict(data: Mapping[str, Any], source: str) -> Scene:
-    _check_keys("top level", data, _TOP_LEVEL)
-    for name, allowed in _SECTIONS.items():
-        section = data.get(name, {})
-        if not isinstance(section, dict):
-            raise SceneError(f"[{name}] must be a table")
-        _check_keys(f"[{name}]", section, allowed)
-    kwargs: dict[str, Any] = {}
-
-    array = data.get("array", {})
-    geometry = Array(
-        transmitters_m=_points("array.transmitters_m", array["transmitters_m"])
-        if "transmitters_m" in array
-        else REPORT_ARRAY.transmitters_m,
-        receivers_m=_points("array.receivers_m", array["receivers_m"])
-        if "receivers_m" in array
-        else REPORT_ARRAY.receivers_m,
-        transmitter_axes=_points("array.transmitter_axes", array["transmitter_axes"])
-        if "transmitter_axes" in array
-        else None,
-        receiver_axes=_points("array.receiver_axes", array["receiver_axes"])
-        if "receiver_axes" in array
-        else None,
-    )
-    if "aim_at_m" in array:
-        if "transmitter_axes" in array or "receiver_axes" in array:
-            raise SceneError("array.aim_at_m and explicit array axes exclude each other")
-        geometry = geometry.aimed_at(_points("array.aim_at_m", [array["aim_at_m"]])[0])
-    kwargs["array"] = geometry
-
-    transducers = data.get("transducers", {})
-    if "model" in transducers:
-        model = transducers["model"]
-        if not isinstance(model, str) or model not in PRESETS:
-            raise SceneError(f"transducers.model {model!r} is not one of {', '.join(PRESETS)}")
-        kwargs["transducer"] = model
-    if "absorption" in transducers:
-        if not isinstance(transducers["absorption"], bool):
-            raise SceneError(
-                f"transducers.absorption must be true or false, got {transducers['absorption']!r}"
-            )
-        kwargs["absorption"] = transducers["absorption"]
-
-    pulse = data.get("pulse", {})
-    code = pulse.get("code", "barker13")
-    lengths = {f"barker{n}": n for n in BARKER_CODES}
-    if not isinstance(code, str) or code not in lengths:
-        raise SceneError(f"pulse.code {code!r} is not one of {', '.join(lengths)}")
-    cycles = pulse.get("cycles_per_bit", 4)
-    if isinstance(cycles, bool) or not isinstance(cycles, int):
-        raise SceneError(f"pulse.cycles_per_bit must be a whole number, got {cycles!r}")
-    carrier = pulse.get("carrier", "sine")
-    if carrier not in ("sine", "square"):
-        raise SceneError(f"pulse.carrier must be 'sine' or 'square', got {carrier!r}")
-    kwargs["pulse"] = PulseSpec(
-        barker_length=lengths[code],
-        carrier_hz=_number("pulse.carrier_hz", pulse.get("carrier_hz", 50e3)),
-        cycles_per_bit=cycles,
-        carrier=carrier,
-    )
-
-    acquisition = data.get("acquisition", {})
-    kwargs["sample_rate_hz"] = _number("acquisition.sample_rate_hz", acquisition.get("sample_rate_hz", 200e3))
-    n_samples = acquisition.get("n_samples", 2400)
-    if isinstance(n_samples, bool) or not isinstance(n_samples, int):
-        raise SceneError(f"acquisition.n_samples must be a whole number, got {n_samples!r}")
-    kwargs["n_samples"] = n_samples
-    kwargs["frame_rate_hz"] = _number("acquisition.frame_rate_hz", acquisition.get("frame_rate_hz", 100.0))
-
-    air = data.get("air", {})
-    kwargs["temperature_c"] = _number("air.temperature_c", air.get("temperature_c", 20.0))
-    humidity = _number("air.relative_humidity", air.get("relative_humidity", 0.0))
-    if not 0 <= humidity <= 1:
-        raise SceneError(f"air.relative_humidity must be a fraction in 0..1, got {humidity}")
-    kwargs["relative_humidity"] = humidity
-
-    noise = data.get("noise", {})
-    if "snr_db" in noise:
-        kwargs["snr_db"] = _number("noise.snr_db", noise["snr_db"])
-    kwargs["path_jitter_m"] = _number("noise.path_jitter_m", noise.get("path_jitter_m", 0.0))
-
-    reflectors = data.get("reflectors", [])
-    if not isinstance(reflectors, list):
-        raise SceneError("[[reflectors]] must be an array of tables")
-    positions, strengths = [], []
-    for i, reflector in enumerate(reflectors):
-        where = f"reflectors[{i}]"
-        if not isinstance(reflector, dict):
-            raise SceneError(f"{where} must be a table")
-        _check_keys(where, reflector, _REFLECTOR_KEYS)
-        if "position_m" not in reflector:
-            raise SceneError(f"{where} needs position_m = [x, y, z]")
-        positions.append(_points(f"{where}.position_m", [reflector["position_m"]])[0])
-        strengths.append(_number(f"{where}.strength", reflector.get("strength", 1.0)))
-    kwargs["reflector_positions_m"] = np.array(positions).reshape(-1, 3)
-    kwargs["reflector_strengths"] = np.array(strengths)
-
-    if "random_reflectors" in data:
-        table = data["random_reflectors"]
-        count = table.get("count", [1, 5])
-        if not (
-            isinstance(count, list)
-            and len(count) == 2
-            and all(isinstance(c, int) and not isinstance(c, bool) for c in count)
-        ):
-            raise SceneError(f"random_reflectors.count must be [min, max] whole numbers, got {count!r}")
-        defaults = RandomReflectors()
-        kwargs["random"] = RandomReflectors(
-            count=(count[0], count[1]),
-            x_m=_pair("random_reflectors.x_m", table.get("x_m", list(defaults.x_m))),
-            y_m=_pair("random_reflectors.y_m", table.get("y_m", list(defaults.y_m))),
-            z_m=_pair("random_reflectors.z_m", table.get("z_m", list(defaults.z_m))),
-            strength=_pair("random_reflectors.strength", table.get("strength", list(defaults.strength))),
-        )
-
-    seed = data.get("seed", 0)
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise SceneError(f"seed must be a whole number >= 0, got {seed!r}")
-    kwargs["seed"] = seed
-    return Scene(**kwargs)
-
-
-def load_scene(path: str | Path) -> Scene:
-    """Read and validate a scene TOML file."""
-    path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise SceneError(f"{path}: no such scene file") from None
-    except (OSError, UnicodeDecodeError) as error:
-        raise SceneError(f"{path}: cannot read scene file ({error})") from None
-    except tomllib.TOMLDecodeError as error:
-        raise SceneError(f"{path}: not valid TOML ({error})") from None
-    return scene_from_dict(data, source=str(path))

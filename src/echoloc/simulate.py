@@ -1,36 +1,81 @@
 """Scene -> Recording: what the receivers of a sensor head record.
 
-Each echo is the emitted pulse, delayed by its exact path time and scaled by
-spherical spreading. Delays are band-limited fractional delays applied in the
-frequency domain, ``Y(f) = W(f) * sum_k a_k exp(-2j pi f tau_k)``: the sampled
-result equals sampling the band-limited (sinc) interpolation of the pulse shifted
-by ``tau_k``, not a shift rounded to a sample. The FFT length leaves room for the
-pulse after the last sample so that nothing wraps around into the frame.
+Per frame, in the order the sound meets them:
+
+1. **Air.** The speed of sound follows the air's temperature and humidity at that
+   frame's time (linear drift), times ``1 + turbulence * N(0, 1)`` drawn per frame.
+2. **Sensor pose.** The head moves with constant velocity and angular velocity;
+   reflectors live in the world frame (the sensor frame at t = 0) and are moved into
+   each frame's sensor frame. Random reflectors are drawn in the sensor frame.
+3. **Echo paths** (:mod:`echoloc.reflectors`): points, spheres, finite planes by the
+   image-source method, edges, and with ``max_order = 2`` the double reflections.
+4. **Motion during the frame.** Each path's length is taken at the instant of
+   reflection (first order in the time of flight of the first leg), and the echo is
+   compressed in time by the Doppler factor ``alpha = (c - dr_rx/dt) / (c + dr_tx/dt)``
+   of its first and last legs (exact for a reflector moving at constant velocity
+   in still air; Kinsler et al., *Fundamentals of Acoustics*, 4th ed., sec. 11.9).
+5. **Transducers.** Both beams' piston directivity at the carrier, the band-pass
+   of the transmitter and receiver (in the returned pulse), ISO 9613-1 absorption
+   per frequency over each path, and the transmitter's ring-down at the frame start.
+6. **Echo synthesis** (:mod:`echoloc.synthesis`): band-limited fractional delays.
+7. **Receiver chain** (:mod:`echoloc.receiver`): noise, time-varying gain, ADC
+   clipping and quantisation, decimation, and the recorded signal kind.
+
+Frames are made in batches so that :func:`simulate_to_file` writes any number of them
+with flat memory; :func:`simulate` collects them into one :class:`Recording`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from functools import partial
+from pathlib import Path
+from typing import Any
 
 import numpy as np
-import scipy.fft
+import scipy.signal
 from numpy.typing import NDArray
 
-from echoloc.air import absorption_db_per_m, spreading_gain
+from echoloc.air import absorption_db_per_m, speed_of_sound_m_s
 from echoloc.errors import SceneError
-from echoloc.recording import Recording
+from echoloc.receiver import (
+    band_limited_noise,
+    gain_curve,
+    quantise,
+    resample,
+    template_for_kind,
+    to_signal_kind,
+    white_noise,
+)
+from echoloc.recording import FrameBatch, Recording, write_recording_stream
+from echoloc.reflectors import (
+    EchoPaths,
+    Plane,
+    PointReflector,
+    Reflector,
+    ReflectorStates,
+    echo_paths,
+    states_at,
+    truth_positions_m,
+)
 from echoloc.scene import Scene
+from echoloc.synthesis import PulseTable, pulse_table, synthesize
 from echoloc.transducer import PRESETS, directivity
 
-_BATCH_FRAMES = 64
+FloatArray = NDArray[np.float64]
+
+BATCH_FRAMES = 64
+"""Frames made at once: large enough to amortise numpy's overhead, small enough for cache."""
+
+_RATE_STEP_S = 1e-3
+"""Time step of the finite difference that gives each path's rate of change (Doppler)."""
 
 
 def path_lengths_m(
-    transmitter_m: NDArray[np.float64],
-    receivers_m: NDArray[np.float64],
-    points_m: NDArray[np.float64],
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    transmitter_m: FloatArray, receivers_m: FloatArray, points_m: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Transmitter -> point -> receiver geometry for points (..., 3).
 
     Returns ``(path_m, r_tx_m, r_rx_m)`` with shapes (..., n_rx), (...,), (..., n_rx).
@@ -40,183 +85,367 @@ def path_lengths_m(
     return r_tx[..., None] + r_rx, r_tx, r_rx
 
 
-def draw_reflectors(
-    scene: Scene, n_frames: int, rng: np.random.Generator
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Reflector positions (n_frames, n_max, 3) with NaN padding, and strengths (NaN-padded).
+@dataclass(frozen=True, eq=False)
+class _Plan:
+    """What stays the same for every frame of a recording, computed once."""
 
-    Fixed reflectors come first in every frame; random ones are drawn per frame.
+    objects: tuple[Reflector, ...]
+    tables: tuple[PulseTable, ...]  # per transmitter, at the ADC rate
+    frame_start: FloatArray  # (n_tx, n_rx, n_adc): ring-down and direct path, added to every frame
+    n_adc: int
+    noise_sigma_adc: float | None
+    gain_adc: FloatArray | None  # (n_adc,) linear
+    moving: bool
+
+
+def _objects(scene: Scene) -> tuple[Reflector, ...]:
+    """The scene's fixed point reflectors as objects, followed by its other objects."""
+    points = tuple(
+        PointReflector(position_m=p, strength_m=float(s))
+        for p, s in zip(scene.reflector_positions_m, scene.reflector_strengths, strict=True)
+    )
+    return points + scene.objects
+
+
+def _is_moving(scene: Scene, objects: tuple[Reflector, ...]) -> bool:
+    if scene.motion.moving:
+        return True
+    return any(
+        bool(np.any(obj.velocity_m_s)) or (isinstance(obj, Plane) and obj.angular_velocity_deg_s != 0)
+        for obj in objects
+    )
+
+
+def _max_path_m(scene: Scene) -> float:
+    """Longest path that can still arrive within the frame (absorption table range)."""
+    slowest = scene.speed_of_sound_m_s * (1 + 5 * scene.drift.turbulence) + 50.0
+    return scene.frame_duration_s * slowest
+
+
+def _ring_down(scene: Scene, transmitter: int, n_adc: int) -> FloatArray:
+    """The transmitter's ring-down at every receiver (n_rx, n_adc).
+
+    The electrical drive through a two-pole resonator at the carrier whose impulse
+    response decays as ``exp(-t / decay_s)``, scaled to a peak of ``level``.
     """
-    fixed = scene.reflector_positions_m
-    n_fixed = len(fixed)
-    spec = scene.random
-    n_random_max = spec.count[1] if spec is not None else 0
-    positions = np.full((n_frames, n_fixed + n_random_max, 3), np.nan)
-    strengths = np.full((n_frames, n_fixed + n_random_max), np.nan)
-    positions[:, :n_fixed] = fixed
-    strengths[:, :n_fixed] = scene.reflector_strengths
-    if spec is not None:
-        counts = rng.integers(spec.count[0], spec.count[1] + 1, size=n_frames)
-        low = np.array([spec.x_m[0], spec.y_m[0], spec.z_m[0]])
-        high = np.array([spec.x_m[1], spec.y_m[1], spec.z_m[1]])
-        drawn = rng.uniform(low, high, size=(n_frames, n_random_max, 3))
-        drawn_strength = rng.uniform(*spec.strength, size=(n_frames, n_random_max))
-        present = np.arange(n_random_max) < counts[:, None]
-        positions[:, n_fixed:] = np.where(present[..., None], drawn, np.nan)
-        strengths[:, n_fixed:] = np.where(present, drawn_strength, np.nan)
-    return positions, strengths
+    rate = scene.adc_rate_hz
+    n_rx = len(scene.array.receivers_m)
+    spec = scene.ring_down
+    if spec.level == 0:
+        return np.zeros((n_rx, n_adc))
+    drive = np.zeros(n_adc)
+    pulse = scene.waveform(transmitter, rate).samples[:n_adc]
+    drive[: len(pulse)] = pulse
+    radius = np.exp(-1.0 / (spec.decay_s * rate))
+    omega = 2 * np.pi * scene.pulse.carrier_hz / rate
+    ringing = scipy.signal.lfilter([1.0], [1.0, -2 * radius * np.cos(omega), radius**2], drive)
+    ringing *= spec.level / np.max(np.abs(ringing))
+    return np.tile(ringing, (n_rx, 1))
 
 
-def synthesize_frames(
-    waveform: NDArray[np.float64],
-    tof_s: NDArray[np.float64],
-    amplitude: NDArray[np.float64],
-    *,
-    sample_rate_hz: float,
-    n_samples: int,
-    path_m: NDArray[np.float64] | None = None,
-    absorption_db_per_m: Callable[[NDArray[np.float64]], NDArray[np.float64]] | None = None,
-) -> NDArray[np.float64]:
-    """Sum of delayed, scaled copies of ``waveform``, band-limited fractional delays.
-
-    ``tof_s`` and ``amplitude`` have shape (n_frames, n_rx, n_echoes); NaN entries
-    (padding) contribute nothing. With ``absorption_db_per_m`` (a function of
-    frequency, e.g. ISO 9613-1) every echo is also attenuated by
-    ``10**(-alpha(f) path / 20)`` at each frequency over its ``path_m``.
-    Returns (n_frames, n_rx, n_samples).
-    """
-    guard = 64  # samples of room for the band-limited pulse's tails
-    n_fft = scipy.fft.next_fast_len(n_samples + 2 * len(waveform) + 2 * guard, real=True)
-    spectrum = scipy.fft.rfft(waveform, n_fft)
-    freqs_hz = scipy.fft.rfftfreq(n_fft, 1.0 / sample_rate_hz)
-    # An echo arriving after the frame has ended leaves no trace in it; left in, the
-    # circular FFT would wrap it round into the frame.
-    arrives_in_time = tof_s * sample_rate_hz < n_samples + guard
-    valid = np.isfinite(tof_s) & np.isfinite(amplitude) & arrives_in_time
-    tof = np.where(valid, tof_s, 0.0)
-    amp = np.where(valid, amplitude, 0.0)
-    # exp(-(alpha(f) L + 2j pi f tau)): absorption in nepers per metre over path L.
-    exponent = 2j * np.pi * freqs_hz
-    nepers = np.zeros_like(freqs_hz)
-    if absorption_db_per_m is not None:
-        if path_m is None:
-            raise ValueError("absorption needs the path lengths")
-        nepers = np.asarray(absorption_db_per_m(freqs_hz)) * np.log(10) / 20
-        paths = np.where(valid, path_m, 0.0)
-    # sum_k a_k exp(-2j pi f tau_k), accumulated echo by echo to bound memory.
-    total = np.zeros((*tof.shape[:2], len(freqs_hz)), dtype=complex)
-    for k in range(tof.shape[2]):
-        phase = exponent * tof[..., k, None]
-        if absorption_db_per_m is not None:
-            phase = phase + nepers * paths[..., k, None]
-        total += amp[..., k, None] * np.exp(-phase)
-    frames = scipy.fft.irfft(total * spectrum, n_fft, axis=-1)[..., :n_samples]
-    return np.asarray(frames)
-
-
-def beam_gain(
-    scene: Scene,
-    points_m: NDArray[np.float64],
-    transmitter_m: NDArray[np.float64],
-    transmitter_axis: NDArray[np.float64],
-    receivers_m: NDArray[np.float64],
-    receiver_axes: NDArray[np.float64],
-) -> NDArray[np.float64]:
-    """Transmit times receive directivity of the scene's transducer for points (..., 3): (..., n_rx).
-
-    Piston directivity at the carrier frequency (narrow-band), each at the angle
-    between the transducer's boresight and the direction to the point.
-    """
-    assert scene.transducer is not None
-    model = PRESETS[scene.transducer]
-    f = scene.pulse.carrier_hz
-    c = scene.speed_of_sound_m_s
-    to_point = points_m - transmitter_m
-    cos_tx = (to_point @ transmitter_axis) / np.linalg.norm(to_point, axis=-1)
-    from_rx = points_m[..., None, :] - receivers_m
-    cos_rx = np.sum(from_rx * receiver_axes, axis=-1) / np.linalg.norm(from_rx, axis=-1)
-    theta_tx = np.arccos(np.clip(np.nan_to_num(cos_tx, nan=1.0), -1, 1))
-    theta_rx = np.arccos(np.clip(np.nan_to_num(cos_rx, nan=1.0), -1, 1))
-    gain = directivity(model, theta_tx, f, c)[..., None] * directivity(model, theta_rx, f, c)
-    return np.asarray(gain)
-
-
-def _air_absorption_db_per_m(scene: Scene, freqs_hz: NDArray[np.float64]) -> NDArray[np.float64]:
-    """ISO 9613-1 absorption in the scene's air (dB/m); DC is taken as 1 Hz."""
-    return absorption_db_per_m(np.maximum(freqs_hz, 1.0), scene.temperature_c, scene.relative_humidity)
-
-
-def _frames_in_batches(
-    scene: Scene,
-    returned_pulse: NDArray[np.float64],
-    emitted_peak: float,
-    positions: NDArray[np.float64],
-    strengths: NDArray[np.float64],
-    rng: np.random.Generator,
-) -> Iterator[NDArray[np.float64]]:
-    waveform = returned_pulse
-    c = scene.speed_of_sound_m_s
-    transmitter = scene.array.transmitters_m[0]
+def _direct_path(scene: Scene, transmitter: int, table: PulseTable, n_adc: int) -> FloatArray:
+    """The wave straight from the transmitter to each receiver (n_rx, n_adc), spreading 1/d."""
+    tx = scene.array.transmitters_m[transmitter]
     receivers = scene.array.receivers_m
+    offset = receivers - tx
+    distance = np.linalg.norm(offset, axis=1)
+    gain = 1.0 / np.maximum(distance, 1e-6)
+    if scene.transducer is not None:
+        tx_axes, rx_axes = scene.array.axes()
+        unit = offset / np.maximum(distance, 1e-12)[:, None]
+        gain = (
+            gain * _beam(scene, unit @ tx_axes[transmitter]) * _beam(scene, np.sum(-unit * rx_axes, axis=1))
+        )
+    delay = distance / scene.speed_of_sound_m_s
+    frames = synthesize(table, delay[None, :, None], np.asarray(gain)[None, :, None], n_adc)
+    return np.asarray(frames[0], dtype=float)
+
+
+def _beam(scene: Scene, cos_angle: FloatArray) -> FloatArray:
+    """Piston directivity of the scene's transducer at the carrier for angles given by their cosine."""
+    assert scene.transducer is not None
+    theta = np.arccos(np.clip(np.nan_to_num(cos_angle, nan=1.0), -1.0, 1.0))
+    return np.asarray(
+        directivity(PRESETS[scene.transducer], theta, scene.pulse.carrier_hz, scene.speed_of_sound_m_s)
+    )
+
+
+def _plan(scene: Scene) -> _Plan:
+    rate = scene.adc_rate_hz
+    n_adc = int(np.ceil(scene.n_samples * rate / scene.sample_rate_hz - 1e-9))
+    absorption: Callable[[FloatArray], FloatArray] | None = None
+    if scene.absorption:
+        absorption = partial(absorption_db_per_m, temperature_c=scene.temperature_c,
+                             relative_humidity=scene.relative_humidity)  # fmt: skip
+    n_tx = len(scene.array.transmitters_m)
+    tables = tuple(
+        pulse_table(
+            scene.returned_pulse(tx, rate),
+            rate,
+            absorption_db_per_m=absorption,
+            max_path_m=_max_path_m(scene),
+        )
+        for tx in range(n_tx)
+    )
+    frame_start = np.stack([_ring_down(scene, tx, n_adc) for tx in range(n_tx)])
+    if scene.ring_down.direct_path:
+        frame_start += np.stack([_direct_path(scene, tx, tables[tx], n_adc) for tx in range(n_tx)])
+    noise_sigma = None
+    if scene.snr_db is not None:
+        emitted_peak = float(np.max(np.abs(scene.waveform(0).samples)))
+        noise_sigma = 10.0 ** (-scene.snr_db / 20.0) * emitted_peak
+        if scene.receiver.noise == "white":
+            # White noise keeps sigma after decimation only if it starts sqrt(ratio) larger.
+            noise_sigma *= float(np.sqrt(rate / scene.sample_rate_hz))
+    gain = None
+    if scene.receiver.gain.kind != "none" or scene.receiver.gain.gain_db != 0:
+        gain = gain_curve(scene.receiver.gain, n_adc, rate)
+    objects = _objects(scene)
+    return _Plan(
+        objects=objects,
+        tables=tables,
+        frame_start=frame_start,
+        n_adc=n_adc,
+        noise_sigma_adc=noise_sigma,
+        gain_adc=gain,
+        moving=_is_moving(scene, objects),
+    )
+
+
+def _states(
+    scene: Scene,
+    objects: tuple[Reflector, ...],
+    times_s: FloatArray,
+    drawn: tuple[FloatArray, FloatArray] | None,
+) -> ReflectorStates:
+    """Every reflector at ``times_s`` in that instant's sensor frame."""
+    world = states_at(
+        objects, times_s, frequency_hz=scene.pulse.carrier_hz, speed_of_sound_m_s=scene.speed_of_sound_m_s
+    )
+    states = world
+    if scene.motion.moving:
+        rotation, translation = scene.motion.poses(times_s)
+        to_sensor = np.transpose(rotation, (0, 2, 1))
+        states = world.transformed(to_sensor, -np.einsum("fij,fj->fi", to_sensor, translation))
+    if drawn is not None:
+        states = states.with_points(*drawn)
+    return states
+
+
+def _draw_random(scene: Scene, n: int, rng: np.random.Generator) -> tuple[FloatArray, FloatArray] | None:
+    """Random point reflectors (n, n_max, 3) and strengths (n, n_max), NaN-padded."""
+    spec = scene.random
+    if spec is None:
+        return None
+    n_max = spec.count[1]
+    counts = rng.integers(spec.count[0], spec.count[1] + 1, size=n)
+    low = np.array([spec.x_m[0], spec.y_m[0], spec.z_m[0]])
+    high = np.array([spec.x_m[1], spec.y_m[1], spec.z_m[1]])
+    drawn = rng.uniform(low, high, size=(n, n_max, 3))
+    strength = rng.uniform(*spec.strength, size=(n, n_max))
+    present = np.arange(n_max) < counts[:, None]
+    return np.where(present[..., None], drawn, np.nan), np.where(present, strength, np.nan)
+
+
+def _echo_gain(scene: Scene, paths: EchoPaths, transmitter: int) -> FloatArray:
+    """Path gain times both beams' directivity, (n, n_rx, n_paths)."""
+    gain = np.where(np.isfinite(paths.path_m), paths.gain, np.nan)
+    if scene.transducer is None:
+        return gain
     tx_axes, rx_axes = scene.array.axes()
-    # scene.py's noise convention refers to the emitted pulse's peak.
-    noise_std = None if scene.snr_db is None else 10.0 ** (-scene.snr_db / 20.0) * emitted_peak
-    absorption = partial(_air_absorption_db_per_m, scene) if scene.absorption else None
-    for start in range(0, len(positions), _BATCH_FRAMES):
-        batch = positions[start : start + _BATCH_FRAMES]
-        path, r_tx, r_rx = path_lengths_m(transmitter, receivers, batch)
+    cos_tx = paths.departure @ tx_axes[transmitter]
+    cos_rx = np.einsum("frpk,rk->frp", paths.arrival, rx_axes)
+    return gain * _beam(scene, cos_tx) * _beam(scene, cos_rx)
+
+
+def _batch(scene: Scene, plan: _Plan, first_frame: int, n: int, rng: np.random.Generator) -> FrameBatch:
+    frame = first_frame + np.arange(n)
+    times = frame / scene.frame_rate_hz
+    temperature = scene.temperature_c + scene.drift.temperature_c_per_s * times
+    humidity = np.clip(scene.relative_humidity + scene.drift.relative_humidity_per_s * times, 0.0, 1.0)
+    c = np.asarray(speed_of_sound_m_s(temperature, humidity), dtype=float)
+    if scene.drift.turbulence > 0:
+        c = c * (1.0 + scene.drift.turbulence * rng.standard_normal(n))
+    drawn = _draw_random(scene, n, rng)
+    states = _states(scene, plan.objects, times, drawn)
+    later = _states(scene, plan.objects, times + _RATE_STEP_S, drawn) if plan.moving else None
+
+    n_tx = len(scene.array.transmitters_m)
+    receivers = scene.array.receivers_m
+    if scene.firing == "simultaneous":
+        fired = np.ones((n_tx, n), dtype=bool)
+        frame_transmitter = np.zeros(n, dtype=np.int64)
+    else:
+        frame_transmitter = (frame % n_tx).astype(np.int64)
+        fired = frame_transmitter[None, :] == np.arange(n_tx)[:, None]
+
+    analog = np.zeros((n, len(receivers), plan.n_adc))
+    truth: FloatArray | None = None
+    c_col = c[:, None, None]
+    for tx in range(n_tx):
+        if not np.any(fired[tx]):
+            continue
+        tx_m = scene.array.transmitters_m[tx]
+        paths = echo_paths(tx_m, receivers, states, max_order=scene.max_order)
+        path = paths.path_m
+        alpha = None
+        if later is not None:
+            moved = echo_paths(tx_m, receivers, later, max_order=scene.max_order)
+            first_rate = np.nan_to_num((moved.first_leg_m - paths.first_leg_m) / _RATE_STEP_S)
+            last_rate = np.nan_to_num((moved.last_leg_m - paths.last_leg_m) / _RATE_STEP_S)
+            # The path as it is when the pulse reaches the (first) reflection point.
+            path = path + (first_rate + last_rate) * paths.first_leg_m / c_col
+            alpha = (c_col - last_rate) / (c_col + first_rate)
         if scene.path_jitter_m > 0:
             path = path + rng.normal(0.0, scene.path_jitter_m, size=path.shape)
-        amplitude = strengths[start : start + _BATCH_FRAMES, :, None] * spreading_gain(r_tx[..., None], r_rx)
-        if scene.transducer is not None:
-            amplitude = amplitude * beam_gain(scene, batch, transmitter, tx_axes[0], receivers, rx_axes)
-        # (frames, echoes, rx) -> (frames, rx, echoes)
-        frames = synthesize_frames(
-            waveform,
-            np.swapaxes(path / c, 1, 2),
-            np.swapaxes(amplitude, 1, 2),
+        gain = np.where(fired[tx][:, None, None], _echo_gain(scene, paths, tx), np.nan)
+        analog += synthesize(plan.tables[tx], path / c_col, gain, plan.n_adc, time_scale=alpha, path_m=path)
+        analog[fired[tx]] += plan.frame_start[tx]
+        seen = truth_positions_m(tx_m, states)
+        truth = seen if truth is None else np.where(fired[tx][:, None, None], seen, truth)
+    assert truth is not None
+
+    frames = _receive(scene, plan, analog, rng)
+    poses = scene.motion.pose_quaternions(times) if scene.motion.moving else None
+    return FrameBatch(
+        frames=frames,
+        frame_times_s=times,
+        frame_transmitter=frame_transmitter,
+        truth_positions_m=truth,
+        sensor_poses=poses,
+    )
+
+
+Samples = NDArray[np.floating[Any]] | NDArray[np.complexfloating[Any, Any]]
+
+
+def _receive(scene: Scene, plan: _Plan, analog: FloatArray, rng: np.random.Generator) -> Samples:
+    """The receiver chain: noise, gain, ADC, decimation and signal kind."""
+    spec = scene.receiver
+    signal = analog
+    if plan.noise_sigma_adc is not None:
+        if spec.noise == "band":
+            assert scene.transducer is not None
+            signal = signal + band_limited_noise(
+                signal.shape, plan.noise_sigma_adc, rng, PRESETS[scene.transducer], scene.adc_rate_hz
+            )
+        else:
+            signal = signal + white_noise(signal.shape, plan.noise_sigma_adc, rng)
+    if plan.gain_adc is not None:
+        signal = signal * plan.gain_adc
+    if spec.adc is not None:
+        signal = quantise(signal, spec.adc)
+    if scene.adc_rate_hz != scene.sample_rate_hz:
+        signal = resample(signal, scene.adc_rate_hz, scene.sample_rate_hz)[..., : scene.n_samples]
+    if spec.signal_kind != "rf" or scene.output_rate_hz != scene.sample_rate_hz:
+        recorded: Samples = to_signal_kind(
+            signal,
+            spec.signal_kind,
             sample_rate_hz=scene.sample_rate_hz,
-            n_samples=scene.n_samples,
-            path_m=np.swapaxes(path, 1, 2),
-            absorption_db_per_m=absorption,
+            carrier_hz=scene.pulse.carrier_hz,
+            output_rate_hz=scene.output_rate_hz,
         )
-        if noise_std is not None:
-            frames = frames + rng.normal(0.0, noise_std, size=frames.shape)
-        yield frames
+        return recorded
+    return signal
 
 
-def simulate(scene: Scene, n_frames: int = 1, *, progress: Callable[[int], None] | None = None) -> Recording:
-    """Simulate ``n_frames`` frames of ``scene``; the result carries ``truth_positions_m``.
+def _templates(scene: Scene) -> list[NDArray[np.generic]]:
+    """Each transmitter's echo template in the recorded representation and rate."""
+    return [
+        template_for_kind(
+            scene.returned_pulse(tx),
+            scene.receiver.signal_kind,
+            sample_rate_hz=scene.sample_rate_hz,
+            carrier_hz=scene.pulse.carrier_hz,
+            output_rate_hz=scene.output_rate_hz,
+        )
+        for tx in range(len(scene.array.transmitters_m))
+    ]
 
-    ``progress``, if given, is called with the number of frames finished after each batch.
-    """
-    if n_frames < 1:
-        raise SceneError(f"the number of frames must be >= 1, got {n_frames}")
-    rng = np.random.default_rng(scene.seed)
-    positions, strengths = draw_reflectors(scene, n_frames, rng)
-    waveform = scene.waveform()
-    returned = scene.returned_pulse()
-    emitted_peak = float(np.max(np.abs(waveform.samples)))
-    batches = []
-    for batch in _frames_in_batches(scene, returned, emitted_peak, positions, strengths, rng):
-        batches.append(batch)
-        if progress is not None:
-            progress(len(batch))
-    frames = np.concatenate(batches, axis=0)
+
+def recording_header(scene: Scene) -> Recording:
+    """Every per-recording field of what ``scene`` records; ``frames`` has 0 frames."""
+    templates = _templates(scene)
+    n_out = scene.n_samples
+    if scene.output_rate_hz != scene.sample_rate_hz:
+        n_out = int(np.ceil(scene.n_samples * scene.output_rate_hz / scene.sample_rate_hz - 1e-9))
+    shape = (0, len(scene.array.receivers_m), n_out)
+    frames: Samples = (
+        np.zeros(shape, dtype=np.complex128) if scene.receiver.signal_kind == "iq" else np.zeros(shape)
+    )
+    n_tx = len(scene.array.transmitters_m)
+    transmitter_waveforms = None
+    if n_tx > 1 and len(set(scene.codes())) > 1:
+        width = max(len(t) for t in templates)
+        transmitter_waveforms = np.zeros((n_tx, width), dtype=templates[0].dtype)
+        for i, template in enumerate(templates):
+            transmitter_waveforms[i, : len(template)] = template
+    receiver_gain = None
+    if scene.receiver.gain.kind != "none" or scene.receiver.gain.gain_db != 0:
+        receiver_gain = gain_curve(scene.receiver.gain, n_out, scene.output_rate_hz)
     return Recording(
-        sample_rate_hz=scene.sample_rate_hz,
+        sample_rate_hz=scene.output_rate_hz,
         transmitters_m=scene.array.transmitters_m,
         receivers_m=scene.array.receivers_m,
         frames=frames,
-        waveform=returned,
+        waveform=np.asarray(templates[0]),
         transmitter_axes=scene.array.transmitter_axes,
         receiver_axes=scene.array.receiver_axes,
-        signal_kind="rf",
-        carrier_hz=waveform.carrier_hz,
+        signal_kind=scene.receiver.signal_kind,
+        carrier_hz=scene.pulse.carrier_hz,
         speed_of_sound_m_s=scene.speed_of_sound_m_s,
         temperature_c=scene.temperature_c,
         relative_humidity=scene.relative_humidity,
-        frame_times_s=np.arange(n_frames) / scene.frame_rate_hz,
-        frame_transmitter=np.zeros(n_frames, dtype=np.int64),
-        truth_positions_m=positions,
+        receiver_gain=receiver_gain,
+        transmitter_waveforms=transmitter_waveforms,
+        firing=scene.firing if n_tx > 1 else None,
     )
+
+
+def simulate_batches(scene: Scene, n_frames: int) -> Iterator[FrameBatch]:
+    """Frames of ``scene`` in batches of :data:`BATCH_FRAMES`, reproducible from ``scene.seed``."""
+    if n_frames < 1:
+        raise SceneError(f"the number of frames must be >= 1, got {n_frames}")
+    plan = _plan(scene)
+    rng = np.random.default_rng(scene.seed)
+    for start in range(0, n_frames, BATCH_FRAMES):
+        yield _batch(scene, plan, start, min(BATCH_FRAMES, n_frames - start), rng)
+
+
+def simulate(scene: Scene, n_frames: int = 1, *, progress: Callable[[int], None] | None = None) -> Recording:
+    """Simulate ``n_frames`` frames of ``scene`` in memory; the result carries ``truth_positions_m``.
+
+    ``progress``, if given, is called with the number of frames finished after each batch.
+    """
+    header = recording_header(scene)
+    frames = np.empty((n_frames, *header.frames.shape[1:]), dtype=header.frames.dtype)
+    per_frame: dict[str, list[Any]] = {name: [] for name in _PER_FRAME}
+    done = 0
+    for batch in simulate_batches(scene, n_frames):
+        frames[done : done + batch.n_frames] = batch.frames
+        done += batch.n_frames
+        for name, parts in per_frame.items():
+            parts.append(getattr(batch, name))
+        if progress is not None:
+            progress(batch.n_frames)
+    joined: dict[str, Any] = {
+        name: None if parts[0] is None else np.concatenate(parts, axis=0) for name, parts in per_frame.items()
+    }
+    return dataclasses.replace(header, frames=frames, **joined)
+
+
+_PER_FRAME = ("frame_times_s", "frame_transmitter", "truth_positions_m", "sensor_poses")
+
+
+def simulate_to_file(
+    scene: Scene, n_frames: int, path: str | Path, *, progress: Callable[[int], None] | None = None
+) -> Path:
+    """Simulate straight to a recording file, one batch in memory at a time (flat memory for .h5)."""
+
+    def reported() -> Iterator[FrameBatch]:
+        for batch in simulate_batches(scene, n_frames):
+            yield batch
+            if progress is not None:
+                progress(len(batch.frames))
+
+    return write_recording_stream(recording_header(scene), reported(), path)
