@@ -144,7 +144,11 @@ def _ring_down(scene: Scene, transmitter: int, n_adc: int) -> FloatArray:
 
 
 def _direct_path(scene: Scene, transmitter: int, table: PulseTable, n_adc: int) -> FloatArray:
-    """The wave straight from the transmitter to each receiver (n_rx, n_adc), spreading 1/d."""
+    """The wave straight from the transmitter to each receiver (n_rx, n_adc), spreading 1/d.
+
+    Computed once per recording at the initial speed of sound (the path is short: air
+    drift moves it by a few ns), with absorption over the distance.
+    """
     tx = scene.array.transmitters_m[transmitter]
     receivers = scene.array.receivers_m
     offset = receivers - tx
@@ -157,7 +161,9 @@ def _direct_path(scene: Scene, transmitter: int, table: PulseTable, n_adc: int) 
             gain * _beam(scene, unit @ tx_axes[transmitter]) * _beam(scene, np.sum(-unit * rx_axes, axis=1))
         )
     delay = distance / scene.speed_of_sound_m_s
-    frames = synthesize(table, delay[None, :, None], np.asarray(gain)[None, :, None], n_adc)
+    frames = synthesize(
+        table, delay[None, :, None], np.asarray(gain)[None, :, None], n_adc, path_m=distance[None, :, None]
+    )
     return np.asarray(frames[0], dtype=float)
 
 
