@@ -7,7 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from echoloc.echoes import ESTIMATORS, ChannelEchoes, EchoOptions, MatchedFilter, noise_power
+from echoloc.echoes import ChannelEchoes, EchoOptions, MatchedFilter, noise_power
+from echoloc.estimators import ESTIMATORS
 from echoloc.recording import Recording
 from echoloc.synthesis import synthesize_frames
 from echoloc.waveform import barker_waveform

@@ -5,8 +5,9 @@ locate -> objects``, one module per stage (see DESIGN.md).
 """
 
 from echoloc.air import absorption_db_per_m, speed_of_sound_cramer_m_s, speed_of_sound_m_s
-from echoloc.echoes import ESTIMATORS, ChannelEchoes, EchoOptions, FrameEchoes, MatchedFilter
+from echoloc.echoes import ChannelEchoes, EchoOptions, FrameEchoes, MatchedFilter
 from echoloc.errors import EchoLocError, GeometryError, RecordingError, SceneError, WaveformError
+from echoloc.estimators import ESTIMATORS
 from echoloc.evaluate import Evaluation, evaluate
 from echoloc.locate import (
     FrameObjects,

@@ -33,8 +33,9 @@ from echoloc.air import (
     speed_of_sound_m_s,
 )
 from echoloc.calibrate import fit_calibration, read_calibration, write_calibration
-from echoloc.echoes import ESTIMATORS, EchoOptions, FrameEchoes
+from echoloc.echoes import EchoOptions, FrameEchoes
 from echoloc.errors import EchoLocError
+from echoloc.estimators import ESTIMATORS
 from echoloc.evaluate import Evaluation, evaluate, match
 from echoloc.locate import FrameObjects, LocateOptions
 from echoloc.output import echoes_record, json_line, objects_record

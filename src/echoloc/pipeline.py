@@ -18,13 +18,12 @@ from echoloc.air import speed_of_sound_m_s
 from echoloc.calibrate import Calibration, apply_calibration
 from echoloc.echoes import (
     EchoOptions,
-    Estimator,
     FrameEchoes,
     MatchedFilter,
     frame_time_s,
-    prepare_estimator,
 )
 from echoloc.errors import EchoLocError
+from echoloc.estimators import Estimator, prepare_estimator
 from echoloc.locate import FrameObjects, LocateOptions, locate_frame
 from echoloc.recording import Recording, dead_receivers
 
