@@ -67,7 +67,8 @@ class Recording:
     receiver_gain
         (n_samples,) linear amplitude gain the receive amplifier applied to each
         sample (time-varying gain), all > 0; ``frames / receiver_gain`` is the signal
-        at the transducer.
+        at the transducer, except within a few samples of a stepped gain's steps
+        when filters (decimation, envelope detection) follow the amplifier.
     transmitter_waveforms
         (n_tx, n_w) SENT template of each transmitter when they use different codes,
         zero-padded to a common length; ``waveform`` is transmitter 0's template.

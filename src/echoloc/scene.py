@@ -357,6 +357,12 @@ class Scene:
                 f"receiver.adc_rate_hz ({adc_rate:g}) must be >= acquisition.sample_rate_hz "
                 f"({self.sample_rate_hz:g})"
             )
+        ratio = adc_rate / self.sample_rate_hz
+        if abs(ratio - round(ratio)) > 1e-9 * ratio:
+            raise SceneError(
+                f"receiver.adc_rate_hz ({adc_rate:g}) must be a whole multiple of acquisition.sample_rate_hz "
+                f"({self.sample_rate_hz:g}): the ADC's samples are decimated by an integer factor"
+            )
         if self.output_rate_hz > self.sample_rate_hz:
             raise SceneError(
                 f"receiver.output_rate_hz ({self.output_rate_hz:g}) must be <= acquisition.sample_rate_hz "

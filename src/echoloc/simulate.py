@@ -10,7 +10,8 @@ Per frame, in the order the sound meets them:
 3. **Echo paths** (:mod:`echoloc.reflectors`): points, spheres, finite planes by the
    image-source method, edges, and with ``max_order = 2`` the double reflections.
 4. **Motion during the frame.** Each path's length is taken at the instant of
-   reflection (first order in the time of flight of the first leg), and the echo is
+   reflection, ``t_r = first_leg / (c - d first_leg / dt)`` (exact for constant radial
+   motion, first order in the rates otherwise), and the echo is
    compressed in time by the Doppler factor ``alpha = (c - dr_rx/dt) / (c + dr_tx/dt)``
    of its first and last legs (exact for a reflector moving at constant velocity
    in still air; Kinsler et al., *Fundamentals of Acoustics*, 4th ed., sec. 11.9).
@@ -62,7 +63,7 @@ from echoloc.reflectors import (
 )
 from echoloc.scene import Scene
 from echoloc.synthesis import PulseTable, pulse_table, synthesize
-from echoloc.transducer import PRESETS, directivity
+from echoloc.transducer import PRESETS, directivity, impulse_response
 
 FloatArray = NDArray[np.float64]
 
@@ -176,6 +177,32 @@ def _beam(scene: Scene, cos_angle: FloatArray) -> FloatArray:
     )
 
 
+def _decimated_noise_gain(scene: Scene) -> float:
+    """Variance of the recorded noise per unit variance of the noise generated at the ADC rate.
+
+    The noise (white, or through the receiver's band-pass normalised to unit variance)
+    passes the decimator, an FIR ``h_d`` followed by keeping every q-th sample; for
+    stationary input of autocorrelation ``r`` the output variance is ``sum_k sum_l h_d[k]
+    h_d[l] r[k - l]``, the energy of ``h_d * h_b`` for band noise (``h_b`` of unit
+    energy) and of ``h_d`` for white noise (Oppenheim & Schafer, sec. 2.10). The
+    energy is summed exactly by decimating unit impulses at each of the q phases.
+    """
+    ratio = round(scene.adc_rate_hz / scene.sample_rate_hz)
+    if ratio == 1:
+        return 1.0
+    shaping = np.ones(1)
+    if scene.receiver.noise == "band":
+        assert scene.transducer is not None
+        shaping = impulse_response(PRESETS[scene.transducer], scene.adc_rate_hz, passes=1)
+        shaping = shaping / np.sqrt(np.sum(shaping**2))
+    pad = 64 * ratio
+    impulses = np.zeros((ratio, len(shaping) + 2 * pad))
+    for phase in range(ratio):
+        impulses[phase, pad + phase : pad + phase + len(shaping)] = shaping
+    decimated = resample(impulses, scene.adc_rate_hz, scene.sample_rate_hz)
+    return float(np.sum(decimated**2))
+
+
 def _plan(scene: Scene) -> _Plan:
     rate = scene.adc_rate_hz
     n_adc = int(np.ceil(scene.n_samples * rate / scene.sample_rate_hz - 1e-9))
@@ -200,9 +227,7 @@ def _plan(scene: Scene) -> _Plan:
     if scene.snr_db is not None:
         emitted_peak = float(np.max(np.abs(scene.waveform(0).samples)))
         noise_sigma = 10.0 ** (-scene.snr_db / 20.0) * emitted_peak
-        if scene.receiver.noise == "white":
-            # White noise keeps sigma after decimation only if it starts sqrt(ratio) larger.
-            noise_sigma *= float(np.sqrt(rate / scene.sample_rate_hz))
+        noise_sigma /= float(np.sqrt(_decimated_noise_gain(scene)))
     gain = None
     if scene.receiver.gain.kind != "none" or scene.receiver.gain.gain_db != 0:
         gain = gain_curve(scene.receiver.gain, n_adc, rate)
@@ -299,16 +324,19 @@ def _batch(scene: Scene, plan: _Plan, first_frame: int, n: int, rng: np.random.G
             moved = echo_paths(tx_m, receivers, later, max_order=scene.max_order)
             first_rate = np.nan_to_num((moved.first_leg_m - paths.first_leg_m) / _RATE_STEP_S)
             last_rate = np.nan_to_num((moved.last_leg_m - paths.last_leg_m) / _RATE_STEP_S)
-            # The path as it is when the pulse reaches the (first) reflection point.
-            path = path + (first_rate + last_rate) * paths.first_leg_m / c_col
+            # The path as it is when the pulse reaches the (first) reflection point, at
+            # t_r = first_leg / (c - first_rate): exact for constant radial motion.
+            path = path + (first_rate + last_rate) * paths.first_leg_m / (c_col - first_rate)
             alpha = (c_col - last_rate) / (c_col + first_rate)
         if scene.path_jitter_m > 0:
             path = path + rng.normal(0.0, scene.path_jitter_m, size=path.shape)
         gain = np.where(fired[tx][:, None, None], _echo_gain(scene, paths, tx), np.nan)
         analog += synthesize(plan.tables[tx], path / c_col, gain, plan.n_adc, time_scale=alpha, path_m=path)
         analog[fired[tx]] += plan.frame_start[tx]
-        seen = truth_positions_m(tx_m, states)
-        truth = seen if truth is None else np.where(fired[tx][:, None, None], seen, truth)
+        if truth is None or scene.firing == "sequential":
+            # Truth is seen from the frame's transmitter (transmitter 0 when all fire at once).
+            seen = truth_positions_m(tx_m, states)
+            truth = seen if truth is None else np.where(fired[tx][:, None, None], seen, truth)
     assert truth is not None
 
     frames = _receive(scene, plan, analog, rng)
