@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 from scipy import optimize
 
 from echoloc.recording import Recording
+from echoloc.templates import Template
 
 _LN2 = float(np.log(2.0))
 
@@ -62,6 +63,9 @@ class EchoOptions:
     threshold_fraction
         The threshold estimator's level is at least this fraction of the channel's
         strongest envelope sample, so that clean data is not cut at its noise floor.
+    template
+        The matched filter's template (:mod:`echoloc.templates`: DIRECT, a recorded
+        echo); None: the recording's own waveform (SENT).
     """
 
     threshold_db: float = 14.0
@@ -70,6 +74,7 @@ class EchoOptions:
     dynamic_range_db: float = 40.0
     refine_passes: int = 3
     threshold_fraction: float = 0.1
+    template: Template | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -119,6 +124,7 @@ class MatchedFilter:
     n_samples: int
     sample_rate_hz: float
     oversample: int = 256
+    arrival_s: float = 0.0  # where, within the template, the echo arrives (templates.Template)
 
     @cached_property
     def n_fft(self) -> int:
@@ -539,7 +545,7 @@ def matched_filter_echoes(
     result = []
     for channel in correlation:
         components, power = clean.run(channel)
-        tof = np.array([c.tof_samples for c in components]) / mf.sample_rate_hz
+        tof = np.array([c.tof_samples for c in components]) / mf.sample_rate_hz + mf.arrival_s
         amplitude = np.array([abs(c.amplitude) for c in components])
         snr_db = 10 * np.log10(np.maximum(amplitude**2, 1e-300) / power)
         result.append(finish_channel(tof, amplitude, snr_db, options))

@@ -17,6 +17,7 @@ from echoloc.echoes import ChannelEchoes, EchoOptions, MatchedFilter, matched_fi
 from echoloc.envelopes import ThresholdDetector, threshold_echoes
 from echoloc.errors import EchoLocError
 from echoloc.recording import Recording
+from echoloc.templates import sent_template
 
 Estimator = Callable[[NDArray[np.floating]], list[ChannelEchoes]]
 """A prepared estimator: one frame (n_rx, n_samples) -> echoes per receiver."""
@@ -28,8 +29,15 @@ def _prepare_matched(recording: Recording, options: EchoOptions) -> Estimator:
             f"{recording.source}: the matched estimator needs signal_kind 'rf', "
             f"this recording is {recording.signal_kind!r} (use --estimator threshold)"
         )
-    assert recording.waveform is not None  # validated: rf recordings carry their waveform
-    mf = MatchedFilter(np.asarray(recording.waveform, float), recording.n_samples, recording.sample_rate_hz)
+    template = options.template or sent_template(recording)
+    if not np.isclose(template.sample_rate_hz, recording.sample_rate_hz, rtol=1e-9):
+        raise EchoLocError(
+            f"{recording.source}: the {template.name} template is sampled at {template.sample_rate_hz:g} Hz, "
+            f"the recording at {recording.sample_rate_hz:g} Hz"
+        )
+    mf = MatchedFilter(
+        template.samples, recording.n_samples, recording.sample_rate_hz, arrival_s=template.arrival_s
+    )
     return lambda frame: matched_filter_echoes(frame, mf, options)
 
 

@@ -309,7 +309,10 @@ class Scene:
             raise SceneError(f"path_jitter_m must be >= 0, got {self.path_jitter_m}")
         if self.max_order not in (1, 2):
             raise SceneError(f"max_order must be 1 or 2, got {self.max_order}")
-        if self.random is None and len(positions) == 0 and not self.objects:
+        empty = self.random is None and len(positions) == 0 and not self.objects
+        if empty and not (self.ring_down.direct_path or self.ring_down.level > 0):
+            # An empty scene records only noise; with a ring-down or direct path it is
+            # the background (or the DIRECT template) a user may want.
             raise SceneError("the scene has no reflectors: give [[reflectors]] or [random_reflectors]")
         if self.random is not None:
             low, high = self.random.count
