@@ -8,6 +8,7 @@ model the direct path and the echo share the transducers' response too.
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 from pathlib import Path
 
@@ -17,7 +18,7 @@ import pytest
 from echoloc.echoes import EchoOptions
 from echoloc.errors import EchoLocError, RecordingError
 from echoloc.estimators import ESTIMATORS
-from echoloc.recording import Recording
+from echoloc.recording import Recording, write_recording
 from echoloc.reflectors import PointReflector
 from echoloc.scene import Array, RingDown, Scene
 from echoloc.simulate import simulate
@@ -147,3 +148,41 @@ def test_mismatched_rate_and_bad_windows_are_refused() -> None:
     no_truth = replace(ball, truth_positions_m=None)
     with pytest.raises(EchoLocError, match="truth_positions"):
         cut_template(no_truth, receiver=0, frames=range(1), arrival="truth", speed_of_sound_m_s=c)
+
+
+def run_cli(capsys: pytest.CaptureFixture[str], *args: object) -> tuple[int, str, str]:
+    """``echoloc ARGS`` in-process through main(), which turns errors into exit codes."""
+    from echoloc import cli
+
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as info:
+        cli.main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    assert isinstance(info.value.code, int)
+    return info.value.code, out, err
+
+
+def test_template_command_and_option(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`echoloc template` writes a DIRECT template that `echoes --template` uses; bad input exits 2."""
+    direct = write_recording(direct_recording(None), tmp_path / "direct.h5")
+    ball = write_recording(ball_recording(0.6, None), tmp_path / "ball.h5")
+    code, _, err = run_cli(capsys, "template", direct, "-o", tmp_path / "d.npz", "--arrival", "direct")
+    assert code == 0
+    assert "direct template" in err
+    args = ["echoes", ball, "--json", "--blanking-s", "2e-3"]
+    code, sent, _ = run_cli(capsys, *args)
+    assert code == 0
+    code, with_direct, _ = run_cli(capsys, *args, "--template", tmp_path / "d.npz")
+    assert code == 0
+
+    def first_tof(output: str) -> float:
+        return float(json.loads(output.splitlines()[0])["channels"][0]["echoes"][0]["tof_s"])
+
+    assert first_tof(with_direct) == pytest.approx(first_tof(sent), abs=2e-9)
+    code, _, err = run_cli(capsys, "template", direct, "-o", tmp_path / "x.npz", "--arrival", "soon")
+    assert code == 2
+    assert err.count("\n") == 1
+    assert "--arrival" in err
+    code, _, err = run_cli(capsys, *args, "--template", tmp_path / "none.npz")
+    assert code == 2
+    assert "no such template file" in err

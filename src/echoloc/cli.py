@@ -39,11 +39,19 @@ from echoloc.estimators import ESTIMATORS
 from echoloc.evaluate import Evaluation, evaluate, match
 from echoloc.locate import FrameObjects, LocateOptions
 from echoloc.output import echoes_record, json_line, objects_record
-from echoloc.pipeline import Chain, check_locatable, frame_echoes, frame_objects, prepare
+from echoloc.pipeline import (
+    Chain,
+    check_locatable,
+    frame_echoes,
+    frame_objects,
+    prepare,
+    recording_speed_of_sound_m_s,
+)
 from echoloc.recording import Recording, read_recording, write_recording
 from echoloc.scene import default_scene
 from echoloc.scenefile import load_scene
 from echoloc.simulate import recording_header, simulate, simulate_to_file
+from echoloc.templates import cut_template, read_template, write_template
 from echoloc.transducer import (
     PRESETS,
     ShadingKind,
@@ -102,6 +110,7 @@ class Processing:
     repair_nonfinite: bool
     calibration_path: Path | None = None
     path_sigma_m: float | None = None
+    template_path: Path | None = None
 
     def open(self) -> tuple[Recording, Chain, range]:
         """Read the recording, check the options, prepare the chain and the frames to run."""
@@ -115,10 +124,13 @@ class Processing:
             if self.calibration_path is None
             else read_calibration(self.calibration_path, recording.n_receivers)
         )
+        template = None if self.template_path is None else read_template(self.template_path)
         chain = prepare(
             recording,
             estimator=self.estimator,
-            echo_options=EchoOptions(threshold_db=self.threshold_db, blanking_s=self.blanking_s),
+            echo_options=EchoOptions(
+                threshold_db=self.threshold_db, blanking_s=self.blanking_s, template=template
+            ),
             speed_of_sound_m_s=self.speed_of_sound_m_s,
             calibration=calibration,
         )
@@ -178,6 +190,14 @@ def _processing_options(
                 "--repair-nonfinite",
                 is_flag=True,
                 help="Replace NaN or infinite samples by 0 (with a warning) instead of refusing the file.",
+            ),
+            click.option(
+                "--template",
+                "template_path",
+                type=click.Path(path_type=Path),
+                default=None,
+                help="Matched-filter template from `echoloc template` (DIRECT, a recorded echo); "
+                "default: the recording's waveform (SENT).",
             ),
         ]
         if calibrated:
@@ -371,6 +391,70 @@ def simulate_command(scene_path: Path, output: Path, n_frames: int, seed: int | 
     stderr.print(
         f"wrote {n_frames} frame(s) × {header.n_receivers} receivers × "
         f"{header.n_samples} {header.signal_kind} samples to {written}"
+    )
+
+
+# --- template ----------------------------------------------------------------------
+
+
+@cli.command(name="template")
+@click.argument("recording_path", metavar="RECORDING", type=click.Path(path_type=Path))
+@click.option("-o", "--output", type=click.Path(path_type=Path), required=True, help="Template file (.npz).")
+@click.option(
+    "--arrival",
+    default="truth",
+    show_default=True,
+    help="When the echo arrives: 'direct' (transmitter to receiver), 'truth' (nearest truth_positions "
+    "reflector) or a time in seconds.",
+)
+@click.option("--receiver", type=int, default=0, show_default=True, help="Receiver to cut from.")
+@click.option(
+    "--frames", "frames_text", default=None, help="Frames to average: N or START:STOP [default: all]."
+)
+@click.option("--start-s", type=float, default=None, help="Window start, s [default: arrival - 50 µs].")
+@click.option("--stop-s", type=float, default=None, help="Window end, s [default: arrival + pulse + 100 µs].")
+@click.option("--name", default=None, help="Name stored in the template [default: the arrival kind].")
+def template_command(
+    recording_path: Path,
+    output: Path,
+    arrival: str,
+    receiver: int,
+    frames_text: str | None,
+    start_s: float | None,
+    stop_s: float | None,
+    name: str | None,
+) -> None:
+    """Cut a matched-filter template (DIRECT, or a recorded echo such as BALL) from RECORDING.
+
+    The report's templates (ch. 4.1): record the transmitter straight into a receiver
+    for DIRECT, or a small ball at a known position for BALL; the template is the
+    average of the selected frames around the echo, aligned on each frame's arrival.
+    Use it with `echoes`, `locate` or `evaluate --template FILE`.
+    """
+    recording = read_recording(recording_path)
+    when: str | float = arrival
+    if arrival not in ("direct", "truth"):
+        try:
+            when = float(arrival)
+        except ValueError:
+            raise EchoLocError(f"--arrival must be 'direct', 'truth' or seconds, got {arrival!r}") from None
+    _finite("--start-s", start_s, minimum=0.0)
+    _finite("--stop-s", stop_s, minimum=0.0)
+    frames = _frames_option(frames_text, recording.n_frames)
+    template = cut_template(
+        recording,
+        receiver=receiver,
+        frames=frames,
+        arrival=when,  # type: ignore[arg-type]
+        speed_of_sound_m_s=recording_speed_of_sound_m_s(recording),
+        start_s=start_s,
+        stop_s=stop_s,
+        name=name,
+    )
+    written = write_template(template, output)
+    stderr.print(
+        f"wrote the {template.name} template ({len(template.samples)} samples, echo arriving "
+        f"{template.arrival_s * 1e6:.2f} µs in, {len(frames)} frame(s) averaged) to {written}"
     )
 
 
