@@ -540,16 +540,225 @@ def matched_filter_echoes(
     frames: NDArray[np.floating], mf: MatchedFilter, options: EchoOptions
 ) -> list[ChannelEchoes]:
     """Matched-filter echoes of one frame (n_rx, n_samples)."""
-    correlation = mf.correlate(frames)
+    return matched_filter_batch(np.asarray(frames)[None], mf, options)[0]
+
+
+def matched_filter_batch(
+    frames: NDArray[np.floating], mf: MatchedFilter, options: EchoOptions
+) -> list[list[ChannelEchoes]]:
+    """Matched-filter echoes of many frames (n_frames, n_rx, n_samples) at once.
+
+    Every channel first goes through :func:`_isolated_echoes`, which fits the echoes
+    of all channels together with array operations; a channel whose echoes it cannot
+    vouch for (echoes within two main lobes of each other, or anything left in the
+    correlation that its echoes do not explain) is handed to CLEAN (:class:`_Clean`).
+    Both give the same delays for isolated echoes: the fit is the same.
+    """
+    frames = np.asarray(frames)
+    n_frames, n_rx, _ = frames.shape
+    correlation = mf.correlate(frames).reshape(n_frames * n_rx, -1)
+    fast = _isolated_echoes(correlation, mf, options)
     clean = _Clean(mf, options)
-    result = []
-    for channel in correlation:
-        components, power = clean.run(channel)
-        tof = np.array([c.tof_samples for c in components]) / mf.sample_rate_hz + mf.arrival_s
-        amplitude = np.array([abs(c.amplitude) for c in components])
+    channels = []
+    for index, found in enumerate(fast):
+        if found is None:
+            components, power = clean.run(correlation[index])
+            tof = np.array([c.tof_samples for c in components])
+            amplitude = np.array([abs(c.amplitude) for c in components])
+        else:
+            tof, amplitude, power = found
         snr_db = 10 * np.log10(np.maximum(amplitude**2, 1e-300) / power)
-        result.append(finish_channel(tof, amplitude, snr_db, options))
-    return result
+        channels.append(finish_channel(tof / mf.sample_rate_hz + mf.arrival_s, amplitude, snr_db, options))
+    return [channels[i * n_rx : (i + 1) * n_rx] for i in range(n_frames)]
+
+
+_FastResult = tuple[NDArray[np.float64], NDArray[np.float64], float]
+
+
+def _shape_values(
+    mf: MatchedFilter, tof_samples: NDArray[np.float64], samples: NDArray[np.int64]
+) -> NDArray[np.complex128]:
+    """The template's autocorrelation ``R(s - tof)`` at integer samples ``s`` (..., w) for delays (...,).
+
+    Linear interpolation between the sub-sample table's rows, as :meth:`_Clean._shape`.
+    """
+    u, half, table = mf.oversample, mf.half_width, mf.acf_table
+    grid = np.floor(tof_samples * u).astype(np.int64)
+    weight = (tof_samples * u - grid)[..., None]
+    base0, row0 = np.divmod(grid, u)
+    base1, row1 = np.divmod(grid + 1, u)
+    lag0 = samples - base0[..., None] + half
+    lag1 = samples - base1[..., None] + half
+    width = 2 * half + 1
+    v0 = np.where((lag0 >= 0) & (lag0 < width), table[row0[..., None], np.clip(lag0, 0, width - 1)], 0)
+    v1 = np.where((lag1 >= 0) & (lag1 < width), table[row1[..., None], np.clip(lag1, 0, width - 1)], 0)
+    return np.asarray((1 - weight) * v0 + weight * v1)
+
+
+def _model_at(
+    mf: MatchedFilter,
+    echo_ch: NDArray[np.int64],
+    echo_tof: NDArray[np.float64],
+    echo_amplitude: NDArray[np.complex128],
+    probe_ch: NDArray[np.int64],
+    probe: NDArray[np.int64],
+    exclude: NDArray[np.int64] | None = None,
+) -> NDArray[np.complex128]:
+    """Sum of the echoes' correlation model ``a R(s - tof)`` at probe samples (n_probes, w).
+
+    Each probe row sums the echoes of its own channel within the template's reach,
+    except echo ``exclude[row]`` (its own echo, when fitting it). Echoes are grouped
+    by channel through a sort, so the work is the probes times their channel's echoes.
+    """
+    model = np.zeros(probe.shape, dtype=complex)
+    if len(echo_ch) == 0 or len(probe_ch) == 0:
+        return model
+    order = np.argsort(echo_ch, kind="stable")
+    sorted_ch = echo_ch[order]
+    start = np.searchsorted(sorted_ch, probe_ch, side="left")
+    count = np.searchsorted(sorted_ch, probe_ch, side="right") - start
+    centre = probe[:, probe.shape[1] // 2]
+    reach = mf.half_width + probe.shape[1] // 2 + 1
+    for slot in range(int(count.max(initial=0))):
+        rows = np.flatnonzero(count > slot)
+        echo = order[start[rows] + slot]
+        keep = np.abs(centre[rows] - echo_tof[echo]) <= reach
+        if exclude is not None:
+            keep &= echo != exclude[rows]
+        rows, echo = rows[keep], echo[keep]
+        model[rows] += echo_amplitude[echo, None] * _shape_values(mf, echo_tof[echo], probe[rows])
+    return model
+
+
+def _fit_peaks(
+    mf: MatchedFilter,
+    values: NDArray[np.complex128],
+    neighbours: NDArray[np.int64],
+    window_values: NDArray[np.complex128],
+    window: NDArray[np.int64],
+) -> tuple[NDArray[np.float64], NDArray[np.complex128]]:
+    """Delays and complex amplitudes of isolated echoes, as :meth:`_Clean._fit` fits one.
+
+    ``values`` are the correlation at each peak and its two neighbours (samples
+    ``neighbours``), ``window_values`` over ``window`` (samples around the peak): the
+    envelope parabola gives the coarse delay, the power-weighted carrier phase the fine
+    one (the half-cycle ambiguity resolved by the coarse delay), and least squares over
+    the window the amplitude.
+    """
+    env = np.abs(values)
+    a, b, c = env[:, 0], env[:, 1], env[:, 2]
+    curvature = a - 2 * b + c
+    concave = curvature < 0
+    offset = np.where(concave, np.clip(0.5 * (a - c) / np.where(concave, curvature, -1.0), -0.5, 0.5), 0.0)
+    coarse = neighbours[:, 1] + offset
+    rate = mf.phase_rate_rad_per_sample
+    period = math.pi / rate
+    estimates = neighbours - np.angle(values) / rate
+    estimates += period * np.round((coarse[:, None] - estimates) / period)
+    weights = env**2
+    tof = np.sum(weights * estimates, axis=1) / np.maximum(np.sum(weights, axis=1), 1e-300)
+    tof = np.where(np.abs(tof - coarse) > 1.5, coarse, tof)
+    model = _shape_values(mf, tof, window)
+    amplitude = np.sum(np.conj(model) * window_values, axis=1) / np.maximum(
+        np.sum(np.abs(model) ** 2, axis=1), 1e-300
+    )
+    return tof, amplitude
+
+
+def _isolated_echoes(
+    correlation: NDArray[np.complex128], mf: MatchedFilter, options: EchoOptions
+) -> list[_FastResult | None]:
+    """Echoes of every channel (n_channels, n_samples) that stand apart from each other.
+
+    Candidates are the envelope's local maxima above the detection threshold (noise
+    power from the median, as CLEAN). Strongest first, a candidate is a sidelobe when
+    the echoes already accepted explain it: its magnitude is below 1.5 times the sum
+    of their amplitudes times the template's sidelobe envelope at that lag. Each
+    accepted echo is fitted as CLEAN fits an isolated echo (envelope parabola, then
+    the carrier phase; least-squares amplitude over the main lobe). A channel is
+    returned as None, for CLEAN, when two echoes lie within two main lobes, when the
+    model leaves anything above the threshold around an echo or at a rejected
+    candidate, or when it has more candidates than ``max_echoes`` allows.
+    """
+    n_ch, n = correlation.shape
+    power_map = correlation.real**2 + correlation.imag**2
+    power = np.maximum(np.median(power_map, axis=1) / _LN2, np.finfo(float).tiny)
+    threshold = 10 ** (options.threshold_db / 10) * power
+    first = max(math.ceil(options.blanking_s * mf.sample_rate_hz), 1)
+    ch, k = np.nonzero(power_map[:, first : n - 1] > threshold[:, None])
+    k = k + first
+    peak = (power_map[ch, k] > power_map[ch, k - 1]) & (power_map[ch, k] >= power_map[ch, k + 1])
+    ch, k = ch[peak], k[peak]
+    results: list[_FastResult | None] = [(np.zeros(0), np.zeros(0), float(p)) for p in power]
+    if len(ch) == 0:
+        return results
+    # Candidates per channel, strongest first, padded to K columns.
+    strength = np.sqrt(power_map[ch, k])
+    order = np.lexsort((-strength, ch))
+    ch, k, strength = ch[order], k[order], strength[order]
+    counts = np.bincount(ch, minlength=n_ch)
+    rank = np.arange(len(ch)) - np.repeat(np.cumsum(counts) - counts, counts)
+    width = int(counts.max())
+    too_many = counts > 4 * options.max_echoes
+    cand_k = np.zeros((n_ch, width), dtype=np.int64)
+    cand_a = np.zeros((n_ch, width))
+    cand_k[ch, rank] = k
+    cand_a[ch, rank] = strength
+    # Sidelobe envelope of the template: max |R| within a sample of each lag, 0 beyond the template.
+    envelope = np.abs(mf.autocorrelation)
+    dilated = np.maximum(envelope, np.maximum(np.roll(envelope, 1), np.roll(envelope, -1)))
+    mainlobe = mf.mainlobe_samples
+    lags = np.arange(-mf.half_width, mf.half_width + 1)
+    dilated[np.abs(lags) < mainlobe] = 1.0
+    accepted = np.zeros((n_ch, width), dtype=bool)
+    for j in range(width):
+        gap = np.abs(cand_k[:, :j] - cand_k[:, j : j + 1]) + mf.half_width
+        inside = gap <= 2 * mf.half_width
+        side = np.where(inside & accepted[:, :j], dilated[np.clip(gap, 0, 2 * mf.half_width)], 0.0)
+        bound = np.sum(side * cand_a[:, :j], axis=1)
+        accepted[:, j] = (cand_a[:, j] > 1.5 * bound) & (cand_a[:, j] > 0)
+    # Fit every accepted echo alone, then again with the others' sidelobes taken out
+    # (two passes: the sidelobes are below 1/PSLR, so the fits settle at once).
+    ach, aj = np.nonzero(accepted)
+    peak_k = cand_k[ach, aj]
+    fit_half = max(1, round(mainlobe / 2))
+    neighbours = np.clip(peak_k[:, None] + np.arange(-1, 2), 0, n - 1)
+    window = peak_k[:, None] + np.arange(-fit_half, fit_half + 1)
+    in_frame = (window >= 0) & (window < n)
+    window = np.clip(window, 0, n - 1)
+    values = correlation[ach[:, None], neighbours]
+    window_values = np.where(in_frame, correlation[ach[:, None], window], 0)
+    tof, amplitude = _fit_peaks(mf, values, neighbours, window_values, window)
+    own = np.arange(len(ach))
+    for _ in range(2):
+        others_near = _model_at(mf, ach, tof, amplitude, ach, neighbours, exclude=own)
+        others_window = _model_at(mf, ach, tof, amplitude, ach, window, exclude=own)
+        tof, amplitude = _fit_peaks(
+            mf, values - others_near, neighbours, np.where(in_frame, window_values - others_window, 0), window
+        )
+    # Checks: echoes apart, and the model explains the data around each echo (its main
+    # lobe) and at every rejected candidate (one sample), sidelobes included.
+    bad = too_many.copy()
+    order = np.lexsort((tof, ach))
+    close = (np.diff(ach[order]) == 0) & (np.diff(tof[order]) < 2 * mainlobe)
+    bad[ach[order][1:][close]] = True
+    rejected_ch, rejected_j = np.nonzero(~accepted & (cand_a > 0))
+    for probe_ch, probe in (
+        (ach, window),
+        (rejected_ch, cand_k[rejected_ch, rejected_j][:, None]),
+    ):
+        left = np.abs(
+            correlation[probe_ch[:, None], probe] - _model_at(mf, ach, tof, amplitude, probe_ch, probe)
+        )
+        bad[probe_ch[np.any(left**2 > threshold[probe_ch, None], axis=1)]] = True
+    for channel in range(n_ch):
+        if bad[channel]:
+            results[channel] = None
+    mine = ~bad[ach]
+    for channel in np.unique(ach[mine]):
+        rows = mine & (ach == channel)
+        results[channel] = (tof[rows], np.abs(amplitude[rows]), float(power[channel]))
+    return results
 
 
 def finish_channel(
