@@ -27,6 +27,7 @@ from dataclasses import replace
 import numpy as np
 from scipy import optimize, signal, stats
 
+from echoloc.echoes import MatchedFilter, matched_filter_batch
 from echoloc.evaluate import evaluate
 from echoloc.locate import FrameObjects, LocatedObject, model_paths_m
 from echoloc.pipeline import Chain, frame_echoes, frame_objects, prepare
@@ -93,9 +94,17 @@ def bench(name: str, chain: Chain, n_frames: int, rounds: int, brute_frames: int
     few = range(min(brute_frames, n_frames))
     echoes = [frame_echoes(chain, i) for i in frames]
     base_paths = [baseline_echoes(chain, i) for i in frames]
-    timings: dict[str, list[float]] = {k: [] for k in ("echoes", "echoes_base", "locate", "locate_base")}
+    timings: dict[str, list[float]] = {
+        k: [] for k in ("echoes", "echoes_batch", "echoes_base", "locate", "locate_base")
+    }
+    recording = chain.recording
+    mf = MatchedFilter(np.asarray(recording.waveform, float), recording.n_samples, recording.sample_rate_hz)
+    block = recording.frames[:n_frames]
     for _ in range(rounds):
         timings["echoes"].append(_time(lambda: [frame_echoes(chain, i) for i in frames]) / n_frames)
+        timings["echoes_batch"].append(
+            _time(lambda: matched_filter_batch(block, mf, chain.echo_options)) / n_frames
+        )
         timings["echoes_base"].append(_time(lambda: [baseline_echoes(chain, i) for i in frames]) / n_frames)
         timings["locate"].append(_time(lambda: [frame_objects(chain, e) for e in echoes]) / n_frames)
         timings["locate_base"].append(
@@ -112,10 +121,11 @@ def bench(name: str, chain: Chain, n_frames: int, rounds: int, brute_frames: int
     )
     print("| stage | echoloc ms/frame | baseline ms/frame | speed-up |")
     print("|---|---|---|---|")
-    for stage in ("echoes", "locate"):
+    for stage, base in (("echoes", "echoes"), ("echoes_batch", "echoes"), ("locate", "locate")):
+        label = "echoes, all frames in one batch" if stage == "echoes_batch" else stage
         print(
-            f"| {stage} | {median[stage] * 1e3:.3f} | {median[stage + '_base'] * 1e3:.3f} | "
-            f"{median[stage + '_base'] / median[stage]:.1f}x |"
+            f"| {label} | {median[stage] * 1e3:.3f} | {median[base + '_base'] * 1e3:.3f} | "
+            f"{median[base + '_base'] / median[stage]:.1f}x |"
         )
     total = median["echoes"] + median["locate"]
     print(
