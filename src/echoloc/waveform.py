@@ -503,6 +503,7 @@ WAVEFORM_NAMES = (
     "mls{2..16}",
     "kasami{4,6,..,16}[:k]",
     "tone{cycles}",
+    "flip{cycles}",
     "polaroid",
     "lfm",
     "hfm",
@@ -516,6 +517,7 @@ _CODE_PATTERNS = {
     "kasami": re.compile(r"kasami(\d+)(?::(\d+))?"),
 }
 _TONE_PATTERN = re.compile(r"tone(\d+)")
+_FLIP_PATTERN = re.compile(r"flip(\d+)")
 
 
 def _unknown_name(name: str) -> WaveformError:
@@ -559,7 +561,8 @@ def code_by_name(name: str) -> NDArray[np.int8]:
     parsed = _parse_code(name)
     if parsed is None:
         key = name.strip().lower()
-        if key in ("lfm", "hfm", "polaroid") or _TONE_PATTERN.fullmatch(key):
+        pulses = (_TONE_PATTERN, _FLIP_PATTERN)
+        if key in ("lfm", "hfm", "polaroid") or any(p.fullmatch(key) for p in pulses):
             raise WaveformError(f"waveform {name!r} is not a binary code")
         raise _unknown_name(name)
     return parsed[1]
@@ -585,6 +588,11 @@ def waveform_by_name(
       ``golay16a`` / ``golay16b`` (the two halves of :func:`golay_pair`), ``mls7``,
       ``kasami6:2`` (member 2 of :func:`kasami_set`); see :func:`code_by_name`;
     - ``tone{cycles}``: :func:`tone_burst` of that many cycles at ``carrier_hz``;
+    - ``flip{cycles}``: that many cycles at ``carrier_hz`` followed by as many inverted
+      ones, the two-bit code ``[+1, -1]`` with ``cycles`` cycles per bit: the report's two
+      pulse trains for envelope-zero detection (ch. 3.3), whose envelope passes through
+      zero at the phase reversal, ``cycles / carrier_hz`` after emission; ``chip_s`` is
+      one train. Not a code for :func:`code_by_name` (its cycles are part of the name);
     - ``polaroid``: the Polaroid burst, 16 cycles at 49.4 kHz whatever ``carrier_hz``;
     - ``lfm`` / ``hfm``: :func:`chirp_waveform` over ``chirp_bandwidth_hz`` during
       ``chirp_duration_s`` with ``window``, rising, centred on ``carrier_hz``: LFM from
@@ -612,6 +620,16 @@ def waveform_by_name(
         cycles = int(tone[1])
         return tone_burst(
             cycles, carrier_hz, sample_rate_hz=sample_rate_hz, carrier=carrier, name=f"tone{cycles}"
+        )
+    flip = _FLIP_PATTERN.fullmatch(key)
+    if flip:
+        return modulate(
+            [1, -1],
+            carrier_hz=carrier_hz,
+            cycles_per_bit=int(flip[1]),
+            sample_rate_hz=sample_rate_hz,
+            carrier=carrier,
+            name=f"flip{int(flip[1])}",
         )
     if key == "polaroid":
         return tone_burst(sample_rate_hz=sample_rate_hz, carrier=carrier, name="polaroid")
