@@ -33,6 +33,7 @@ from echoloc.air import (
     speed_of_sound_m_s,
 )
 from echoloc.calibrate import fit_calibration, read_calibration, write_calibration
+from echoloc.conditioning import Conditioning, parse_blind_zone
 from echoloc.echoes import EchoOptions, FrameEchoes
 from echoloc.errors import EchoLocError
 from echoloc.estimators import ESTIMATORS
@@ -111,6 +112,9 @@ class Processing:
     calibration_path: Path | None = None
     path_sigma_m: float | None = None
     template_path: Path | None = None
+    background: bool | None = None
+    tvg: bool | None = None
+    blind_zone_text: str | None = None
 
     def open(self) -> tuple[Recording, Chain, range]:
         """Read the recording, check the options, prepare the chain and the frames to run."""
@@ -125,6 +129,8 @@ class Processing:
             else read_calibration(self.calibration_path, recording.n_receivers)
         )
         template = None if self.template_path is None else read_template(self.template_path)
+        blind_zone = None if self.blind_zone_text is None else parse_blind_zone(self.blind_zone_text)
+        conditioning = Conditioning(background=self.background, tvg=self.tvg, blind_zone_s=blind_zone)
         chain = prepare(
             recording,
             estimator=self.estimator,
@@ -133,6 +139,7 @@ class Processing:
             ),
             speed_of_sound_m_s=self.speed_of_sound_m_s,
             calibration=calibration,
+            conditioning=conditioning,
         )
         if self.path_sigma_m is not None:
             chain = replace(
@@ -176,7 +183,28 @@ def _processing_options(
                 type=float,
                 default=0.0,
                 show_default=True,
-                help="Ignore echoes arriving earlier than this (transmitter ring-down), s.",
+                help="Ignore echoes arriving earlier than this (transmitter ring-down), s; "
+                "with --blind-zone the later of the two applies.",
+            ),
+            click.option(
+                "--background/--no-background",
+                default=None,
+                help="Subtract the recording's background (empty scene) from every frame "
+                "[default: when the recording has one].",
+            ),
+            click.option(
+                "--tvg/--no-tvg",
+                default=None,
+                help="Undo the receiver's time-varying gain (divide by receiver_gain) "
+                "[default: when the recording has one].",
+            ),
+            click.option(
+                "--blind-zone",
+                "blind_zone_text",
+                metavar="SECONDS|auto",
+                default=None,
+                help="Report nothing before this time: seconds, or auto (the end of the transmitter's "
+                "ring-down found in each frame, plus one pulse length).",
             ),
             click.option(
                 "--speed-of-sound",

@@ -9,13 +9,14 @@ observable window, receivers to use). :func:`run` then maps frames to results.
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
 from echoloc.air import speed_of_sound_m_s
 from echoloc.calibrate import Calibration, apply_calibration
+from echoloc.conditioning import Conditioning, blinded, condition_frame, effective_options
 from echoloc.echoes import (
     EchoOptions,
     FrameEchoes,
@@ -48,6 +49,7 @@ class Chain:
     speed_of_sound_m_s: float
     usable_receivers: NDArray[np.bool_]
     calibration: Calibration | None = None
+    conditioning: Conditioning = field(default_factory=Conditioning)
 
 
 def prepare(
@@ -58,13 +60,18 @@ def prepare(
     locate_options: LocateOptions | None = None,
     speed_of_sound_m_s: float | None = None,
     calibration: Calibration | None = None,
+    conditioning: Conditioning | None = None,
 ) -> Chain:
     """Precompute the chain for ``recording``; options not given take recording-based defaults.
 
     With a ``calibration`` its speed of sound is used and its receiver delays are
     taken off every echo (an explicit ``speed_of_sound_m_s`` still wins).
+    ``conditioning`` (:mod:`echoloc.conditioning`; default: subtract the background
+    and undo the receiver gain when the recording has them) is applied to every
+    frame; a blind zone in seconds raises ``blanking_s`` to it.
     """
-    echo_options = echo_options or EchoOptions()
+    conditioning = conditioning or Conditioning()
+    echo_options = effective_options(echo_options or EchoOptions(), conditioning)
     if calibration is not None and len(calibration.receiver_delays_s) != recording.n_receivers:
         raise EchoLocError(
             f"{recording.source}: the calibration has delays for {len(calibration.receiver_delays_s)} "
@@ -73,7 +80,12 @@ def prepare(
     if calibration is not None and speed_of_sound_m_s is None:
         speed_of_sound_m_s = calibration.speed_of_sound_m_s
     c = speed_of_sound_m_s or recording_speed_of_sound_m_s(recording)
-    run_estimator = prepare_estimator(recording, echo_options, estimator)
+    run_estimator = blinded(
+        lambda options: prepare_estimator(recording, options, estimator),
+        recording,
+        conditioning,
+        echo_options,
+    )
     if locate_options is None:
         locate_options = LocateOptions()
         if recording.waveform is not None and recording.signal_kind == "rf":
@@ -97,7 +109,7 @@ def prepare(
     # Dead receivers (the reader warns about them) are left out of localisation.
     usable = np.ones(recording.n_receivers, dtype=bool)
     usable[dead_receivers(recording)] = False
-    return Chain(recording, run_estimator, echo_options, locate_options, c, usable, calibration)
+    return Chain(recording, run_estimator, echo_options, locate_options, c, usable, calibration, conditioning)
 
 
 def check_locatable(chain: Chain) -> None:
@@ -113,10 +125,7 @@ def check_locatable(chain: Chain) -> None:
 def frame_echoes(chain: Chain, index: int) -> FrameEchoes:
     """Echoes of frame ``index``."""
     recording = chain.recording
-    frame = recording.frames[index]
-    if recording.background is not None:
-        background = recording.background
-        frame = frame - (background[index] if background.ndim == 3 else background)
+    frame = condition_frame(recording.frames[index], recording, chain.conditioning, index)
     channels = chain.estimator(frame)
     echoes = FrameEchoes(index, frame_time_s(recording, index), chain.speed_of_sound_m_s, tuple(channels))
     if chain.calibration is not None:
