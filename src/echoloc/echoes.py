@@ -689,6 +689,12 @@ def _isolated_echoes(
     k = k + first
     peak = (power_map[ch, k] > power_map[ch, k - 1]) & (power_map[ch, k] >= power_map[ch, k + 1])
     ch, k = ch[peak], k[peak]
+    # Candidates weaker than the channel's strongest by more than the dynamic range are
+    # dropped, as CLEAN drops them.
+    strongest = np.zeros(n_ch)
+    np.maximum.at(strongest, ch, power_map[ch, k])
+    loud = power_map[ch, k] >= strongest[ch] * 10 ** (-options.dynamic_range_db / 10)
+    ch, k = ch[loud], k[loud]
     results: list[_FastResult | None] = [(np.zeros(0), np.zeros(0), float(p)) for p in power]
     if len(ch) == 0:
         return results
@@ -698,18 +704,22 @@ def _isolated_echoes(
     ch, k, strength = ch[order], k[order], strength[order]
     counts = np.bincount(ch, minlength=n_ch)
     rank = np.arange(len(ch)) - np.repeat(np.cumsum(counts) - counts, counts)
-    width = int(counts.max())
+    # A channel with more candidates than 4 x max_echoes goes to CLEAN; the rest fit in
+    # a table of that many columns.
     too_many = counts > 4 * options.max_echoes
+    width = int(min(counts.max(), 4 * options.max_echoes))
+    kept = rank < width
     cand_k = np.zeros((n_ch, width), dtype=np.int64)
     cand_a = np.zeros((n_ch, width))
-    cand_k[ch, rank] = k
-    cand_a[ch, rank] = strength
+    cand_k[ch[kept], rank[kept]] = k[kept]
+    cand_a[ch[kept], rank[kept]] = strength[kept]
     # Sidelobe envelope of the template: max |R| within a sample of each lag, 0 beyond the template.
     envelope = np.abs(mf.autocorrelation)
     dilated = np.maximum(envelope, np.maximum(np.roll(envelope, 1), np.roll(envelope, -1)))
     mainlobe = mf.mainlobe_samples
     lags = np.arange(-mf.half_width, mf.half_width + 1)
     dilated[np.abs(lags) < mainlobe] = 1.0
+    # Strongest first, a candidate is an echo unless the echoes already accepted explain it.
     accepted = np.zeros((n_ch, width), dtype=bool)
     for j in range(width):
         gap = np.abs(cand_k[:, :j] - cand_k[:, j : j + 1]) + mf.half_width
