@@ -537,7 +537,9 @@ class _Clean:
         imperfections) and lowers the residual by more than a penalty per echo, half
         the energy an echo at the detection threshold puts into its main lobe.
         """
-        if not group:
+        if len(group) != 1:
+            # Echoes CLEAN already fitted together stay as they are (a split test on every
+            # crowded stretch costs ten times the rest of the matched filter).
             return group
         tofs = [c.tof_samples for c in group]
         span = math.ceil(self.mf.mainlobe_samples)
@@ -547,7 +549,10 @@ class _Clean:
         base_cost = self._window_cost(residual, lo, hi)
         # Noise alone leaves about `power` per sample: a model that explains its stretch
         # needs no second look.
-        if base_cost < 3.0 * power * (hi - lo):
+        echo_energy = abs(group[0].amplitude) ** 2 * float(np.sum(np.abs(self.mf.autocorrelation) ** 2))
+        if base_cost < 3.0 * power * (hi - lo) or base_cost < 0.003 * echo_energy:
+            # Nothing but noise left, or less than 0.3 % of the echo's energy: a strong echo's
+            # tiny misfit, not a second echo merged into it.
             return group
         penalty = 0.5 * threshold * power * float(np.sum(np.abs(self.mf.autocorrelation) ** 2))
         candidates: list[list[_Component]] = []
