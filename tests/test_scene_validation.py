@@ -48,7 +48,17 @@ ONE = [{"position_m": [0.0, 0.0, 0.6]}]
         ({"reflectors": [{"kind": "sphere", "centre_m": [0, 0, 1], "radius": 0.1}]}, "'radius'"),
         ({"max_order": 3, "reflectors": ONE}, "max_order"),
         ({"air": {"turbulence": 0.5}, "reflectors": ONE}, "air.turbulence"),
-        ({"motion": {"velocity_m_s": [1, 0]}, "reflectors": ONE}, "motion.velocity_m_s"),
+        ({"motion": {"velocity_m_s": [1, 0]}, "reflectors": ONE}, "motion.velocity_m_s must be [x, y, z]"),
+        ({"motion": {"velocity_m_s": [400.0, 0, 0]}, "reflectors": ONE}, "half the speed of sound"),
+        (
+            {"reflectors": [{"position_m": [0.0, 0.0, 0.6], "velocity_m_s": [0.0, 0.0, -400.0]}]},
+            "reflector 0 moves at 400 m/s",
+        ),
+        (
+            {"receiver": {"signal_kind": "envelope", "output_rate_hz": 13.0}, "reflectors": ONE},
+            "output_rate_hz",
+        ),
+        ({"receiver": {"output_rate_hz": 77777.0}, "reflectors": ONE}, "receiver.output_rate_hz"),
     ],
 )
 def test_unsimulatable_values_are_named(data: dict, named: str) -> None:  # type: ignore[type-arg]

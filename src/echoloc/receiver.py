@@ -148,6 +148,11 @@ class GainSpec:
     step_s: float = 1e-3
     max_gain_db: float = 60.0
 
+    @property
+    def active(self) -> bool:
+        """Whether the amplifier's gain differs from 1 anywhere (else nothing to apply or record)."""
+        return self.kind != "none" or self.gain_db != 0
+
     def __post_init__(self) -> None:
         if self.kind not in get_args(GainKind):
             raise SceneError(f"GainSpec.kind must be 'none', 'continuous' or 'stepped', got {self.kind!r}")
@@ -382,7 +387,8 @@ def resample(samples: ArrayLike, from_hz: float, to_hz: float, *, axis: int = -1
 # -------------------------------------------------------------------- signal kinds
 
 
-def _check_kind(kind: str, carrier_hz: float, sample_rate_hz: float, output_rate_hz: float) -> None:
+def check_signal_kind(kind: str, carrier_hz: float, sample_rate_hz: float, output_rate_hz: float) -> None:
+    """Raise SceneError unless ``kind`` can be made from rf at ``sample_rate_hz`` into ``output_rate_hz``."""
     if kind not in SIGNAL_KINDS:
         raise SceneError(f"signal kind must be 'rf', 'envelope' or 'iq', got {kind!r}")
     fc = _positive(carrier_hz, "carrier_hz")
@@ -439,7 +445,7 @@ def to_signal_kind(
     Output sample m is at ``m / output_rate_hz`` s after emission; there are
     :func:`output_samples` of them.
     """
-    _check_kind(kind, carrier_hz, sample_rate_hz, output_rate_hz)
+    check_signal_kind(kind, carrier_hz, sample_rate_hz, output_rate_hz)
     x = _real_frames(rf, "rf")
     if kind == "rf":
         return resample(x, sample_rate_hz, output_rate_hz)
@@ -470,7 +476,7 @@ def template_for_kind(
     where the response has fallen, not where the frame ends. An echo arriving at
     τ then records as this template shifted by τ (times ``exp(-2j π f_c τ)`` for iq).
     """
-    _check_kind(kind, carrier_hz, sample_rate_hz, output_rate_hz)
+    check_signal_kind(kind, carrier_hz, sample_rate_hz, output_rate_hz)
     pulse = _real_frames(returned_pulse, "returned_pulse")
     if pulse.ndim != 1:
         raise SceneError(f"returned_pulse must be one pulse (1-D), got shape {pulse.shape}")

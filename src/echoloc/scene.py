@@ -27,7 +27,7 @@ from scipy.spatial.transform import Rotation
 
 from echoloc.air import speed_of_sound_m_s
 from echoloc.errors import SceneError, WaveformError
-from echoloc.receiver import AdcSpec, GainSpec, SignalKind
+from echoloc.receiver import AdcSpec, GainSpec, SignalKind, check_signal_kind, output_samples
 from echoloc.reflectors import Reflector
 from echoloc.transducer import PRESETS, apply_response, impulse_response
 from echoloc.waveform import Carrier, Waveform, waveform_by_name
@@ -371,9 +371,32 @@ class Scene:
                 f"receiver.output_rate_hz ({self.output_rate_hz:g}) must be <= acquisition.sample_rate_hz "
                 f"({self.sample_rate_hz:g})"
             )
+        try:
+            # The receiver chain's own checks, run now so that the message names the key.
+            output_samples(self.n_samples, self.sample_rate_hz, self.output_rate_hz)
+            check_signal_kind(
+                self.receiver.signal_kind, self.pulse.carrier_hz, self.sample_rate_hz, self.output_rate_hz
+            )
+        except SceneError as error:
+            raise SceneError(f"receiver.output_rate_hz: {error}") from None
+        self._check_speeds()
         # Raises early for an impossible pulse.
         for transmitter in range(n_tx):
             self.waveform(transmitter)
+
+    def _check_speeds(self) -> None:
+        """Every reflector and the head must move slower than sound (Doppler needs c - v > 0)."""
+        c = self.speed_of_sound_m_s * (1 - 5 * self.drift.turbulence)
+        head = float(np.linalg.norm(self.motion.velocity_m_s))
+        for i, obj in enumerate(self.objects):
+            speed = float(np.linalg.norm(obj.velocity_m_s)) + head
+            if speed >= 0.5 * c:
+                raise SceneError(
+                    f"reflector {i} moves at {speed:g} m/s relative to the head; the simulator needs "
+                    f"less than half the speed of sound ({0.5 * c:.0f} m/s)"
+                )
+        if head >= 0.5 * c:
+            raise SceneError(f"motion.velocity_m_s ({head:g} m/s) must be below half the speed of sound")
 
     # --- derived values --------------------------------------------------------
 

@@ -132,7 +132,10 @@ class _Table:
         return value
 
     def point(self, name: str, default: Any = _MISSING) -> NDArray[np.float64]:
-        return np.asarray(_points(self.key(name), [self.raw(name, default)])[0], dtype=float)
+        value = self.raw(name, default)
+        if not isinstance(value, list) or len(value) != 3:
+            raise SceneError(f"{self.key(name)} must be [x, y, z], got {value!r}")
+        return np.array([_number(self.key(name), c) for c in value], dtype=float)
 
     def points(self, name: str) -> NDArray[np.float64]:
         return _points(self.key(name), self.raw(name))
@@ -316,10 +319,7 @@ def _scene_from_dict(data: Mapping[str, Any], source: str) -> Scene:
 
     air = sections["air"]
     kwargs["temperature_c"] = air.number("temperature_c", 20.0)
-    humidity = air.number("relative_humidity", 0.0)
-    if not 0 <= humidity <= 1:
-        raise SceneError(f"air.relative_humidity must be a fraction in 0..1, got {humidity}")
-    kwargs["relative_humidity"] = humidity
+    kwargs["relative_humidity"] = air.number("relative_humidity", 0.0)
     kwargs["drift"] = AirDrift(
         temperature_c_per_s=air.number("temperature_drift_c_per_s", 0.0),
         relative_humidity_per_s=air.number("humidity_drift_per_s", 0.0),

@@ -44,6 +44,7 @@ from echoloc.errors import SceneError
 from echoloc.receiver import (
     band_limited_noise,
     gain_curve,
+    output_samples,
     quantise,
     resample,
     template_for_kind,
@@ -205,7 +206,7 @@ def _decimated_noise_gain(scene: Scene) -> float:
 
 def _plan(scene: Scene) -> _Plan:
     rate = scene.adc_rate_hz
-    n_adc = int(np.ceil(scene.n_samples * rate / scene.sample_rate_hz - 1e-9))
+    n_adc = output_samples(scene.n_samples, scene.sample_rate_hz, rate)
     absorption: Callable[[FloatArray], FloatArray] | None = None
     if scene.absorption:
         absorption = partial(absorption_db_per_m, temperature_c=scene.temperature_c,
@@ -229,7 +230,7 @@ def _plan(scene: Scene) -> _Plan:
         noise_sigma = 10.0 ** (-scene.snr_db / 20.0) * emitted_peak
         noise_sigma /= float(np.sqrt(_decimated_noise_gain(scene)))
     gain = None
-    if scene.receiver.gain.kind != "none" or scene.receiver.gain.gain_db != 0:
+    if scene.receiver.gain.active:
         gain = gain_curve(scene.receiver.gain, n_adc, rate)
     objects = _objects(scene)
     return _Plan(
@@ -400,9 +401,7 @@ def _templates(scene: Scene) -> list[NDArray[np.generic]]:
 def recording_header(scene: Scene) -> Recording:
     """Every per-recording field of what ``scene`` records; ``frames`` has 0 frames."""
     templates = _templates(scene)
-    n_out = scene.n_samples
-    if scene.output_rate_hz != scene.sample_rate_hz:
-        n_out = int(np.ceil(scene.n_samples * scene.output_rate_hz / scene.sample_rate_hz - 1e-9))
+    n_out = output_samples(scene.n_samples, scene.sample_rate_hz, scene.output_rate_hz)
     shape = (0, len(scene.array.receivers_m), n_out)
     frames: Samples = (
         np.zeros(shape, dtype=np.complex128) if scene.receiver.signal_kind == "iq" else np.zeros(shape)
@@ -415,7 +414,7 @@ def recording_header(scene: Scene) -> Recording:
         for i, template in enumerate(templates):
             transmitter_waveforms[i, : len(template)] = template
     receiver_gain = None
-    if scene.receiver.gain.kind != "none" or scene.receiver.gain.gain_db != 0:
+    if scene.receiver.gain.active:
         receiver_gain = gain_curve(scene.receiver.gain, n_out, scene.output_rate_hz)
     return Recording(
         sample_rate_hz=scene.output_rate_hz,
