@@ -26,7 +26,7 @@ from echoloc.crlb import (
     envelope_tof_bound,
     peak_amplitude,
 )
-from echoloc.echoes import ChannelEchoes, EchoOptions
+from echoloc.echoes import ChannelEchoes, EchoOptions, noise_power
 from echoloc.envelope_fit import (
     BandLimitedShape,
     EnvelopeFitter,
@@ -34,7 +34,6 @@ from echoloc.envelope_fit import (
     envelope_fit_echoes,
     envelope_fitter,
     fft_upsample,
-    noise_power,
 )
 from echoloc.errors import EchoLocError
 from echoloc.estimators import ESTIMATORS

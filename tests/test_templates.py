@@ -186,3 +186,17 @@ def test_template_command_and_option(tmp_path: Path, capsys: pytest.CaptureFixtu
     code, _, err = run_cli(capsys, *args, "--template", tmp_path / "none.npz")
     assert code == 2
     assert "no such template file" in err
+
+
+def test_a_template_for_another_estimator_is_refused_not_ignored(tmp_path: Path) -> None:
+    """Only the matched filter uses a template; any other estimator must say so, not ignore it."""
+    from echoloc.estimators import prepare_estimator
+
+    ball = ball_recording(0.6, None)
+    template = sent_template(ball)
+    with pytest.raises(EchoLocError, match="only to the matched estimator, not to 'envelope-zero'"):
+        prepare_estimator(ball, EchoOptions(template=template), "envelope-zero")
+    (tmp_path / "object.npz").write_bytes(b"\x80\x04K\x01.")  # a pickle, not an .npz
+    with pytest.raises(RecordingError, match="not a template file") as info:
+        read_template(tmp_path / "object.npz")
+    assert "allow_pickle" not in str(info.value)

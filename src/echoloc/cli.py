@@ -224,8 +224,8 @@ def _processing_options(
                 "template_path",
                 type=click.Path(path_type=Path),
                 default=None,
-                help="Matched-filter template from `echoloc template` (DIRECT, a recorded echo); "
-                "default: the recording's waveform (SENT).",
+                help="Matched-filter template from `echoloc template` (DIRECT, a recorded echo), "
+                "for --estimator matched only; default: the recording's waveform (SENT).",
             ),
         ]
         if calibrated:

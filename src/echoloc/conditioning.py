@@ -56,12 +56,10 @@ import numpy as np
 import scipy.fft
 from numpy.typing import NDArray
 
-from echoloc.echoes import EchoOptions, analytic_weights
+from echoloc.echoes import EchoOptions, analytic_weights, noise_power
 from echoloc.errors import EchoLocError
 from echoloc.estimators import Estimator, prepare_estimator
 from echoloc.recording import Recording
-
-_LN2 = float(np.log(2.0))
 
 Samples = NDArray[Any]
 """Frame samples: real (rf, envelope) or complex (iq)."""
@@ -248,7 +246,7 @@ def _run_from_start(channel: NDArray[np.float64], spec: Conditioning, gap: int) 
     stays below the level for ``gap`` samples (shorter dips do not end it); the
     length of the channel if never.
     """
-    noise = float(np.median(channel**2)) / _LN2
+    noise = noise_power(channel)
     level = max(
         math.sqrt(noise * 10 ** (spec.blind_zone_db / 10)),
         float(channel.max(initial=0.0)) * 10 ** (-spec.blind_zone_dynamic_range_db / 20),

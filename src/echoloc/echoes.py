@@ -30,6 +30,7 @@ import cmath
 import math
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Any
 
 import numpy as np
 import scipy.fft
@@ -204,9 +205,9 @@ class MatchedFilter:
         return np.asarray(full[..., : self.n_samples])
 
 
-def noise_power(values: NDArray[np.complex128]) -> float:
+def noise_power(values: NDArray[Any]) -> float:
     """Mean power of circular Gaussian noise from its median: ``median(|x|^2) / ln 2``."""
-    power = float(np.median(np.abs(values) ** 2)) / _LN2
+    power = float(np.median(np.abs(values) ** 2)) / _LN2 if np.size(values) else 0.0
     return power if power > 0 else float(np.finfo(float).tiny)
 
 

@@ -142,7 +142,7 @@ from numpy.typing import NDArray
 from scipy import optimize
 from scipy.interpolate import CubicSpline
 
-from echoloc.echoes import ChannelEchoes, EchoOptions, finish_channel
+from echoloc.echoes import ChannelEchoes, EchoOptions, finish_channel, noise_power
 from echoloc.errors import EchoLocError
 from echoloc.receiver import analytic_signal
 from echoloc.recording import Recording
@@ -1202,17 +1202,6 @@ def _coherent_refinement(channel: _Channel, echoes: list[_Echo]) -> tuple[_Model
             group = fitted
         result.extend(group)
     return coherent, result
-
-
-def noise_power(values: NDArray[Any]) -> float:
-    """Mean ``|n|²`` of circular Gaussian noise from its magnitudes: ``median(|x|²) / ln 2``.
-
-    ``|n|²`` is exponential, whose median is ``ln 2`` times its mean (Rayleigh
-    magnitudes, as :func:`echoloc.echoes.noise_power`); the same holds for the
-    samples of a recorded envelope, the magnitude of noisy IQ.
-    """
-    power = float(np.median(np.abs(values) ** 2)) / _LN2 if len(values) else 0.0
-    return power if power > 0 else float(np.finfo(float).tiny)
 
 
 def _channel(fitter: EnvelopeFitter, x: NDArray[Any], noise: float, options: EchoOptions) -> _Channel:

@@ -221,4 +221,8 @@ def prepare_estimator(recording: Recording, options: EchoOptions, name: str = "m
     """Look up estimator ``name`` and precompute what it reuses for ``recording``."""
     if name not in ESTIMATORS:
         raise EchoLocError(f"unknown estimator {name!r}; choose from {', '.join(ESTIMATORS)}")
+    if options.template is not None and name != "matched":
+        # The other estimators take their reference from the recording's waveform; a
+        # template given to them would be ignored without a word.
+        raise EchoLocError(f"a template applies only to the matched estimator, not to {name!r}")
     return ESTIMATORS[name].prepare(recording, options)

@@ -176,8 +176,9 @@ def read_template(path: str | os.PathLike[str]) -> Template:
             fields = {key: data[key] for key in data.files}
     except FileNotFoundError:
         raise RecordingError(f"{source}: no such template file") from None
-    except (OSError, ValueError, zipfile.BadZipFile) as error:
-        raise RecordingError(f"{source}: not a template file ({error})") from None
+    except (OSError, ValueError, zipfile.BadZipFile):
+        # numpy's own message may suggest allow_pickle=True: never for a file of unknown origin.
+        raise RecordingError(f"{source}: not a template file (an .npz written by echoloc template)") from None
     if str(fields.get("format", "")) != FORMAT_NAME or int(fields.get("version", 0)) != FORMAT_VERSION:
         raise RecordingError(f"{source}: not an {FORMAT_NAME} version {FORMAT_VERSION} file")
     missing = [key for key in ("samples", "sample_rate_hz", "arrival_s") if key not in fields]
