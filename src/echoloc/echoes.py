@@ -136,10 +136,19 @@ class MatchedFilter:
         return float(np.sum(self.template**2))
 
     @cached_property
+    def _template_spectrum(self) -> NDArray[np.complex128]:
+        """W(f): the template's rfft at the correlation length, computed once."""
+        return np.asarray(scipy.fft.rfft(self.template, self.n_fft))
+
+    @cached_property
+    def _template_power(self) -> NDArray[np.float64]:
+        """|W(f)|², the spectrum of the template's autocorrelation."""
+        return np.asarray(np.abs(self._template_spectrum) ** 2)
+
+    @cached_property
     def _spectrum(self) -> NDArray[np.complex128]:
         """conj(W(f)) times the analytic weights, divided by the template's energy."""
-        w = scipy.fft.rfft(self.template, self.n_fft)
-        return np.asarray(np.conj(w) * analytic_weights(self.n_fft) / self.energy)
+        return np.asarray(np.conj(self._template_spectrum) * analytic_weights(self.n_fft) / self.energy)
 
     @cached_property
     def half_width(self) -> int:
@@ -153,7 +162,7 @@ class MatchedFilter:
         Row j holds R(m - j/U) for m = -H..H, with R(0) = 1 for j = 0.
         """
         n_fft = self.n_fft
-        power = np.abs(scipy.fft.rfft(self.template, n_fft)) ** 2
+        power = self._template_power
         freqs = np.arange(n_fft // 2 + 1) / n_fft  # cycles per sample
         shifts = np.arange(self.oversample) / self.oversample
         spectra = power * analytic_weights(n_fft) / self.energy
@@ -164,14 +173,14 @@ class MatchedFilter:
     @cached_property
     def phase_rate_rad_per_sample(self) -> float:
         """d(arg R)/d(lag) at lag 0: 2 pi times the power-weighted mean frequency, rad/sample."""
-        power = np.abs(scipy.fft.rfft(self.template, self.n_fft)) ** 2
+        power = self._template_power
         freqs = np.arange(len(power)) / self.n_fft
         return float(2 * np.pi * np.sum(freqs * power) / np.sum(power))
 
     @cached_property
     def autocorrelation(self) -> NDArray[np.complex128]:
         """Analytic autocorrelation R(m) for lags -half_width..half_width (row 0 of the table)."""
-        power = np.abs(scipy.fft.rfft(self.template, self.n_fft)) ** 2
+        power = self._template_power
         full = scipy.fft.ifft(power * analytic_weights(self.n_fft) / self.energy, self.n_fft)
         lags = np.arange(-self.half_width, self.half_width + 1)
         return np.asarray(full[lags % self.n_fft])

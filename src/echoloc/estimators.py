@@ -49,26 +49,6 @@ def _prepare_matched(recording: Recording, options: EchoOptions) -> Estimator:
     return lambda frame: matched_filter_echoes(frame, mf, options)
 
 
-def _prepare_threshold(recording: Recording, options: EchoOptions) -> Estimator:
-    if recording.signal_kind not in ("rf", "envelope"):
-        raise EchoLocError(
-            f"{recording.source}: the threshold estimator needs signal_kind 'rf' or 'envelope', "
-            f"not {recording.signal_kind!r}"
-        )
-    if recording.waveform is None:
-        raise EchoLocError(
-            f"{recording.source}: the threshold estimator needs the recording's waveform "
-            "to correct for the envelope's rise time"
-        )
-    detector = ThresholdDetector(
-        np.asarray(recording.waveform, float),
-        recording.n_samples,
-        recording.sample_rate_hz,
-        recording.signal_kind,
-    )
-    return lambda frame: threshold_echoes(frame, detector, options)
-
-
 def _envelope_detector(
     recording: Recording, name: str, kinds: tuple[str, ...], envelope: EnvelopeOptions
 ) -> ThresholdDetector:
@@ -90,6 +70,11 @@ def _envelope_detector(
         envelope=envelope,
         carrier_hz=recording.carrier_hz,
     )
+
+
+def _prepare_threshold(recording: Recording, options: EchoOptions) -> Estimator:
+    detector = _envelope_detector(recording, "threshold", ("rf", "envelope"), EnvelopeOptions())
+    return lambda frame: threshold_echoes(frame, detector, options)
 
 
 def _prepare_threshold_fir(recording: Recording, options: EchoOptions) -> Estimator:
