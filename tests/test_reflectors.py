@@ -502,6 +502,27 @@ def test_states_at_moves_every_kind_by_velocity_times_time() -> None:
     assert moved.n_truth == 4
 
 
+def test_take_keeps_the_chosen_frames_paths_exactly() -> None:
+    """states.take(rows) gives, frame for frame, the paths of those rows of the whole batch."""
+    v = np.array([0.2, -0.1, 0.4])
+    moved = states(
+        PointReflector([0.1, 0, 1.0], velocity_m_s=v),
+        Sphere([0, 0.1, 2.0], 0.1, velocity_m_s=v),
+        Plane([0, 0, 3.0], [0.1, 0, -1], 2.0, 2.0, velocity_m_s=v, angular_velocity_deg_s=5.0),
+        Edge([0, 0, 1.0], [0, 1.0, 1.0], velocity_m_s=v),
+        times_s=np.array([0.0, 0.5, 1.0, 2.0]),
+    )
+    receivers = np.array([[0.25, 0, 0], [-0.25, 0, 0]])
+    rows = np.array([3, 1])
+    whole = echo_paths(ORIGIN, receivers, moved, max_order=2)
+    part = echo_paths(ORIGIN, receivers, moved.take(rows), max_order=2)
+    np.testing.assert_array_equal(part.path_m, whole.path_m[rows])
+    np.testing.assert_array_equal(part.gain, whole.gain[rows])
+    np.testing.assert_array_equal(
+        truth_positions_m(ORIGIN, moved.take(rows)), truth_positions_m(ORIGIN, moved)[rows]
+    )
+
+
 @pytest.mark.parametrize("spin_axis", [None, [0.3, 0.0, 1.0]])
 def test_states_at_spins_plane_normal_by_omega_t(spin_axis: list[float] | None) -> None:
     plane = Plane([0.5, 0, 2.0], [0, 0, -1], 1.0, 1.0, width_axis=[1, 0, 0], angular_velocity_deg_s=90.0,

@@ -70,7 +70,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -573,6 +573,14 @@ class ReflectorStates:
             edge_starts_m=move(self.edge_starts_m),
             edge_ends_m=move(self.edge_ends_m),
         )
+
+    def take(self, frames: NDArray[np.int64]) -> ReflectorStates:
+        """The states of the frames ``frames`` only (per-object constants unchanged)."""
+        per_frame = (
+            "points_m", "point_strengths_m", "sphere_centres_m", "plane_centres_m", "plane_normals",
+            "plane_width_axes", "edge_starts_m", "edge_ends_m",
+        )  # fmt: skip
+        return replace(self, **{name: getattr(self, name)[frames] for name in per_frame})
 
     def with_points(self, points_m: ArrayLike, strengths_m: ArrayLike) -> ReflectorStates:
         """These states with extra point reflectors (n_f, k, 3) and strengths (n_f, k) appended.

@@ -313,16 +313,20 @@ def _batch(scene: Scene, plan: _Plan, first_frame: int, n: int, rng: np.random.G
 
     analog = np.zeros((n, len(receivers), plan.n_adc))
     truth: FloatArray | None = None
-    c_col = c[:, None, None]
     for tx in range(n_tx):
-        if not np.any(fired[tx]):
+        # Only the frames this transmitter fires are computed for it.
+        rows = np.flatnonzero(fired[tx])
+        if len(rows) == 0:
             continue
+        mine = states if len(rows) == n else states.take(rows)
+        mine_later = None if later is None else later if len(rows) == n else later.take(rows)
+        c_col = c[rows, None, None]
         tx_m = scene.array.transmitters_m[tx]
-        paths = echo_paths(tx_m, receivers, states, max_order=scene.max_order)
+        paths = echo_paths(tx_m, receivers, mine, max_order=scene.max_order)
         path = paths.path_m
         alpha = None
-        if later is not None:
-            moved = echo_paths(tx_m, receivers, later, max_order=scene.max_order)
+        if mine_later is not None:
+            moved = echo_paths(tx_m, receivers, mine_later, max_order=scene.max_order)
             first_rate = np.nan_to_num((moved.first_leg_m - paths.first_leg_m) / _RATE_STEP_S)
             last_rate = np.nan_to_num((moved.last_leg_m - paths.last_leg_m) / _RATE_STEP_S)
             # The path as it is when the pulse reaches the (first) reflection point, at
@@ -331,13 +335,16 @@ def _batch(scene: Scene, plan: _Plan, first_frame: int, n: int, rng: np.random.G
             alpha = (c_col - last_rate) / (c_col + first_rate)
         if scene.path_jitter_m > 0:
             path = path + rng.normal(0.0, scene.path_jitter_m, size=path.shape)
-        gain = np.where(fired[tx][:, None, None], _echo_gain(scene, paths, tx), np.nan)
-        analog += synthesize(plan.tables[tx], path / c_col, gain, plan.n_adc, time_scale=alpha, path_m=path)
-        analog[fired[tx]] += plan.frame_start[tx]
+        gain = _echo_gain(scene, paths, tx)
+        analog[rows] += synthesize(
+            plan.tables[tx], path / c_col, gain, plan.n_adc, time_scale=alpha, path_m=path
+        )
+        analog[rows] += plan.frame_start[tx]
         if truth is None or scene.firing == "sequential":
             # Truth is seen from the frame's transmitter (transmitter 0 when all fire at once).
-            seen = truth_positions_m(tx_m, states)
-            truth = seen if truth is None else np.where(fired[tx][:, None, None], seen, truth)
+            if truth is None:
+                truth = np.full((n, states.n_truth, 3), np.nan)
+            truth[rows] = truth_positions_m(tx_m, mine)
     assert truth is not None
 
     frames = _receive(scene, plan, analog, rng)
