@@ -7,12 +7,16 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
+from echoloc.echoes import ChannelEchoes, FrameEchoes
 from echoloc.locate import (
     LocateOptions,
     associate,
+    combine_frames,
+    exact_solutions,
     linear_start,
     model_paths_m,
     paired_closed_form,
+    paired_closed_form_2d,
     solve_positions,
 )
 
@@ -136,7 +140,7 @@ def test_three_objects_no_ghosts() -> None:
 
 
 def test_object_seen_by_three_of_four_receivers() -> None:
-    """When two echoes merge on one receiver, the object with the lost echo is still found."""
+    """When two echoes merge on one receiver, both objects are found and share that echo."""
     first = np.array([0.05, 0.02, 0.6])
     # A second point whose path to receiver 3 equals the first's (echoes merge there).
     second = np.array([-0.12, 0.15, 0.0])
@@ -152,8 +156,10 @@ def test_object_seen_by_three_of_four_receivers() -> None:
     paths[3] = paths[3][:1]  # one merged detection
     objects = associate(TX, CROSS, paths, _sigmas(paths), OPTIONS)
     assert len(objects) == 2
-    supports = sorted(len(o.receivers) for o in objects)
-    assert supports == [3, 4]
+    assert [len(o.receivers) for o in objects] == [4, 4]
+    assert [o.shared for o in objects] == [1, 1]
+    # The shared echo weighs as a merged peak: each object's fit leans on its own three.
+    assert all(o.echo_indices[3] == 0 for o in objects)
     for point in (first, second):
         assert min(np.linalg.norm(o.position_m - point) for o in objects) < 1e-6
 
@@ -241,3 +247,129 @@ def test_dead_receiver_is_left_out() -> None:
     assert len(objects) == 1
     assert objects[0].receivers == (0, 2, 3)
     assert objects[0].position_m == pytest.approx(point, abs=1e-7)
+
+
+# --- 2-D, ghosts, mirrors, several transmitters, beams ---------------------------------
+
+points_2d = st.tuples(st.floats(-0.5, 0.5), st.floats(0.2, 1.2)).map(lambda p: np.array(p, dtype=float))
+PAIR_2D = np.array([[D, 0.0], [-D, 0.0]])
+
+
+@settings(max_examples=50, deadline=None)
+@given(point=points_2d)
+def test_2d_closed_form_agrees_with_the_general_solver(point: np.ndarray) -> None:
+    """The report's formulas (3.5)/(3.6) and the solver in 2-D give the point back."""
+    paths = model_paths_m(np.zeros(2), PAIR_2D, point[None])
+    assert paired_closed_form_2d(paths, D)[0] == pytest.approx(point, abs=1e-9)
+    assert solve_positions(np.zeros(2), PAIR_2D, paths, 0.5e-3).position_m[0] == pytest.approx(
+        point, abs=1e-9
+    )
+
+
+def test_two_receivers_make_two_ghosts_and_a_third_removes_them() -> None:
+    """Two objects, one transmitter, two receivers (2-D, report fig. 4.12's set-up): the
+    four pairings of echoes cross at the two objects and at two ghosts, which are the
+    crossings of each object's echo on one receiver with the other's on the other. A
+    third receiver rejects the ghosts.
+    """
+    objects = np.array([[0.1, 0.6], [-0.15, 0.8]])
+    paths = model_paths_m(np.zeros(2), PAIR_2D, objects)  # (object, receiver)
+    crossings = []
+    for i in range(2):
+        for j in range(2):
+            points, valid = exact_solutions(np.zeros(2), PAIR_2D, np.array([[paths[i, 0], paths[j, 1]]]))
+            crossings.extend(points[0][valid[0] & (points[0][:, 1] > 0)])
+    assert len(crossings) == 4
+    ghosts = [p for p in crossings if np.min(np.linalg.norm(objects - p, axis=1)) > 1e-6]
+    expected = paired_closed_form_2d(np.array([[paths[0, 0], paths[1, 1]], [paths[1, 0], paths[0, 1]]]), D)
+    assert sorted(map(tuple, np.round(ghosts, 9))) == sorted(map(tuple, np.round(expected, 9)))
+    options = LocateOptions(min_receivers=2, boresight=(0.0, 1.0))
+    two = associate(
+        np.zeros(2), PAIR_2D, [paths[:, 0], paths[:, 1]], _sigmas([paths[:, 0], paths[:, 1]]), options
+    )
+    assert len(two) == 2  # two disjoint pairs: the truth or the ghosts, nothing tells them apart
+    third = np.vstack([PAIR_2D, [[0.1, 0.0]]])
+    per_receiver = [np.sort(model_paths_m(np.zeros(2), third, objects)[:, i]) for i in range(3)]
+    found = associate(np.zeros(2), third, per_receiver, _sigmas(per_receiver), options)
+    assert len(found) == 2
+    for point in objects:
+        assert min(np.linalg.norm(o.position_m - point) for o in found) < 1e-7
+    for ghost in expected:
+        assert min(np.linalg.norm(o.position_m - ghost) for o in found) > 0.01
+
+
+@settings(max_examples=30, deadline=None)
+@given(points=st.lists(points_in_front, min_size=1, max_size=3))
+def test_mirrored_array_mirrors_the_objects(points: list[np.ndarray]) -> None:
+    """Mirroring the array in x (receivers' x negated, paths kept) mirrors every object in x."""
+    array = np.array(points)
+    paths = model_paths_m(TX, CROSS, array)
+    for i in range(4):
+        gaps = np.diff(np.sort(paths[:, i]))
+        assume(len(gaps) == 0 or gaps.min() > 1e-3)
+    ranges = np.sort(np.linalg.norm(array, axis=1))
+    assume(len(ranges) < 2 or np.diff(ranges).min() > 1e-3)
+    per_receiver = [np.sort(paths[:, i]) for i in range(4)]
+    mirror = np.array([-1.0, 1.0, 1.0])
+    direct = associate(TX, CROSS, per_receiver, _sigmas(per_receiver), OPTIONS)
+    mirrored = associate(TX, CROSS * mirror, per_receiver, _sigmas(per_receiver), OPTIONS)
+    assert len(direct) == len(mirrored) == len(points)
+    for obj in direct:
+        assert min(np.linalg.norm(m.position_m - obj.position_m * mirror) for m in mirrored) < 1e-7
+
+
+def _frame(index: int, paths: np.ndarray) -> FrameEchoes:
+    """Echoes of one frame with the given paths (objects, receivers), c = 1 so tof = path."""
+    channels = tuple(
+        ChannelEchoes(
+            tof_s=np.sort(paths[:, i]),
+            amplitude=np.ones(len(paths)),
+            snr_db=np.full(len(paths), 30.0),
+        )
+        for i in range(paths.shape[1])
+    )
+    return FrameEchoes(index, 0.0, 1.0, channels)
+
+
+def test_frames_of_two_transmitters_are_located_together() -> None:
+    """Two transmitters fired in turn: eight ellipsoids per object, a tighter position."""
+    transmitters = np.array([[0.0, 0.0, 0.0], [0.1, 0.1, 0.0]])
+    points = np.array([[0.1, -0.2, 0.7], [-0.2, 0.15, 0.9]])
+    frames = [(t, _frame(t, model_paths_m(transmitters[t], CROSS, points))) for t in range(2)]
+    both = combine_frames(frames, transmitters, CROSS, OPTIONS)
+    one = combine_frames(frames[:1], transmitters, CROSS, OPTIONS)
+    assert both.frame == 1
+    assert len(both.objects) == len(one.objects) == 2
+    for obj in both.objects:
+        assert min(np.linalg.norm(obj.position_m - p) for p in points) < 1e-7
+        assert sorted(set(obj.transmitters)) == [0, 1]
+        assert len(obj.receivers) == 8
+    shrink = [
+        np.trace(b.covariance_m2) / np.trace(o.covariance_m2)
+        for b, o in zip(both.objects, one.objects, strict=True)
+    ]
+    assert max(shrink) < 0.8
+
+
+def test_transducers_that_send_and_receive() -> None:
+    """Four transducers each sending and receiving in turn (monostatic channels: T = R)
+    plus the cross pairs between them locate the point exactly."""
+    transducers = np.array([[0.2, 0.0, 0.0], [-0.2, 0.0, 0.0], [0.0, 0.2, 0.0], [0.0, -0.2, 0.0]])
+    point = np.array([0.05, 0.1, 0.6])
+    frames = [(t, _frame(t, model_paths_m(transducers[t], transducers, point[None]))) for t in range(4)]
+    located = combine_frames(frames, transducers, transducers, OPTIONS)
+    assert len(located.objects) == 1
+    assert located.objects[0].position_m == pytest.approx(point, abs=1e-7)
+    # A lone monostatic channel constrains the range only: 2 r = l.
+    own = model_paths_m(transducers[0], transducers[:1], point[None])[0, 0]
+    assert own == pytest.approx(2 * np.linalg.norm(point - transducers[0]))
+
+
+@pytest.mark.parametrize(("fov_deg", "found"), [(90.0, 1), (30.0, 0)])
+def test_points_outside_the_beams_are_rejected(fov_deg: float, found: int) -> None:
+    """A point 40 degrees off the boresight is outside a 30-degree beam: nothing can echo from there."""
+    angle = np.radians(40)
+    point = 0.8 * np.array([np.sin(angle), 0.0, np.cos(angle)])
+    paths = _paths_per_receiver(point[None])
+    options = LocateOptions(resolution_m=0.0275, field_of_view_deg=fov_deg)
+    assert len(associate(TX, CROSS, paths, _sigmas(paths), options)) == found

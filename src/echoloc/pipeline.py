@@ -25,7 +25,7 @@ from echoloc.echoes import (
 )
 from echoloc.errors import EchoLocError
 from echoloc.estimators import Estimator, prepare_estimator
-from echoloc.locate import FrameObjects, LocateOptions, locate_frame
+from echoloc.locate import FrameObjects, LocateOptions, combine_frames, locate_frame
 from echoloc.recording import Recording, dead_receivers
 
 
@@ -104,7 +104,9 @@ def prepare(
             resolution_m=resolution_m,
             carrier_hz=recording.carrier_hz if estimator == "matched" else None,
             window_m=(echo_options.blanking_s * c, recording.n_samples / recording.sample_rate_hz * c),
-            boresight=boresight,  # type: ignore[arg-type]
+            boresight=boresight,
+            transmitter_axes=recording.transmitter_axes,
+            receiver_axes=recording.receiver_axes,
         )
     # Dead receivers (the reader warns about them) are left out of localisation.
     usable = np.ones(recording.n_receivers, dtype=bool)
@@ -147,12 +149,42 @@ def frame_objects(chain: Chain, echoes: FrameEchoes) -> FrameObjects:
     )
 
 
+def combines_transmitters(chain: Chain) -> bool:
+    """Whether frames of different transmitters are located together (sequential firing of several)."""
+    recording = chain.recording
+    return (
+        len(recording.transmitters_m) > 1
+        and recording.firing != "simultaneous"
+        and recording.frame_transmitter is not None
+    )
+
+
 def run(chain: Chain, frames: Iterable[int] | None = None) -> Iterator[tuple[FrameEchoes, FrameObjects]]:
-    """Echoes and objects of every frame (or of ``frames``), one frame at a time."""
+    """Echoes and objects of every frame (or of ``frames``), one frame at a time.
+
+    With several transmitters fired in turn, each frame is located together with
+    the latest frame of every other transmitter (:func:`echoloc.locate.combine_frames`):
+    n_tx times the ellipsoids per object once every transmitter has fired.
+    """
     indices = range(chain.recording.n_frames) if frames is None else frames
+    combine = combines_transmitters(chain)
+    latest: dict[int, FrameEchoes] = {}
     for index in indices:
         echoes = frame_echoes(chain, index)
-        yield echoes, frame_objects(chain, echoes)
+        if not combine:
+            yield echoes, frame_objects(chain, echoes)
+            continue
+        recording = chain.recording
+        assert recording.frame_transmitter is not None
+        latest[int(recording.frame_transmitter[index])] = echoes
+        objects = combine_frames(
+            sorted(latest.items()),
+            recording.transmitters_m,
+            recording.receivers_m,
+            chain.locate_options,
+            chain.usable_receivers,
+        )
+        yield echoes, objects
 
 
 def find_echoes(
