@@ -330,24 +330,18 @@ def _gauss_newton(
     start: NDArray[np.float64],
     iterations: int = _GN_ITERATIONS,
 ) -> Solution:
-    """Gauss-Newton on channels (T_i, R_i); zero weights leave channels out."""
-    p = start
-    step = np.full(len(p), np.inf)
-    for _ in range(iterations):
-        jac, residual = _jacobian_residual(transmitters, receivers, paths, p)
-        normal = np.einsum("nmi,nm,nmj->nij", jac, weights, jac)
-        rhs = np.einsum("nmi,nm,nm->ni", jac, weights, residual)
-        delta = _solve_small(normal, rhs)
-        p = p + delta
-        step = np.linalg.norm(delta, axis=1)
-        if not np.any(step >= 1e-9):
-            break
-    jac, residual = _jacobian_residual(transmitters, receivers, paths, p)
-    normal = np.einsum("nmi,nm,nmj->nij", jac, weights, jac)
-    covariance = _invert_small(normal)
-    chi2 = np.sum(residual**2 * weights, axis=1)
-    converged = np.isfinite(chi2) & (step < 1e-6) & np.all(np.isfinite(covariance), axis=(1, 2))
-    return Solution(p, covariance, chi2, converged)
+    """Gauss-Newton on channels (T_i, R_i); zero weights leave channels out (compiled loop)."""
+    from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
+
+    position, covariance, chi2, converged = kernels.gauss_newton(
+        np.ascontiguousarray(transmitters, dtype=float),
+        np.ascontiguousarray(receivers, dtype=float),
+        np.ascontiguousarray(paths, dtype=float),
+        np.ascontiguousarray(weights, dtype=float),
+        np.ascontiguousarray(start, dtype=float),
+        iterations,
+    )
+    return Solution(position, covariance, chi2, converged)
 
 
 def _jacobian_residual(
@@ -364,37 +358,6 @@ def _jacobian_residual(
         jac = to_tx / r_tx[..., None] + to_rx / r_rx[..., None]
     residual = paths - (r_tx + r_rx)
     return jac, residual
-
-
-def _invertible(a: NDArray[np.float64]) -> NDArray[np.bool_]:
-    """Which of the (n, D, D) symmetric matrices are finite and not near-singular.
-
-    The determinant against the product of the diagonal (Hadamard's bound for a
-    positive definite matrix) is a cheap stand-in for the condition number: it
-    falls to 0 exactly when a column becomes dependent on the others.
-    """
-    with np.errstate(invalid="ignore", over="ignore"):
-        diag = np.einsum("nii->ni", a)
-        det = np.linalg.det(np.where(np.isfinite(a), a, 0.0))
-        bound = np.prod(diag, axis=1)
-        ok = (det > 1e-12 * bound) & (bound > 0) & np.isfinite(bound)
-    return np.asarray(ok, dtype=bool)
-
-
-def _solve_small(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    out = np.full(b.shape, np.nan)
-    ok = _invertible(a)
-    if np.any(ok):
-        out[ok] = np.linalg.solve(a[ok], b[ok][..., None])[..., 0]
-    return out
-
-
-def _invert_small(a: NDArray[np.float64]) -> NDArray[np.float64]:
-    out = np.full(a.shape, np.nan)
-    ok = _invertible(a)
-    if np.any(ok):
-        out[ok] = np.linalg.inv(a[ok])
-    return out
 
 
 # --- association -------------------------------------------------------------------
@@ -422,12 +385,18 @@ AMPLITUDE_LOG_SIGMA = 0.1
 
 _OWN, _SHARED, _NONE = 0, 1, 2
 _SHARING_ROUNDS = 3
-_MAX_SEED_ROWS = 20_000
+_MAX_SEED_ROWS = 262_144
 
 
 @lru_cache(maxsize=64)
 def _chi2_gate(probability: float, dof: int) -> float:
     return float(stats.chi2.ppf(probability, dof)) if dof > 0 else np.inf
+
+
+@lru_cache(maxsize=64)
+def _gates(probability: float, dim: int, n_channels: int) -> NDArray[np.float64]:
+    """Chi-square gate for an object fitted on k = 0..n_channels channels (k - dim degrees of freedom)."""
+    return np.array([_chi2_gate(probability, k - dim) for k in range(n_channels + 1)])
 
 
 @dataclass(frozen=True, eq=False)
@@ -518,14 +487,16 @@ def associate(
     geometry = _geometry(
         tx[active], receivers[active], tx_index[active], rx_index[active], must[active], options, dim
     )
-    act_paths = [np.asarray(paths[c], dtype=float) for c in active]
-    act_sigmas = [np.asarray(sigmas[c], dtype=float) for c in active]
-    act_amplitudes = None if amplitudes is None else [np.asarray(amplitudes[c], dtype=float) for c in active]
-    candidates = _seed_candidates(geometry, act_paths, act_sigmas, options)
+    echoes = _flatten(
+        [paths[c] for c in active],
+        [sigmas[c] for c in active],
+        None if amplitudes is None else [amplitudes[c] for c in active],
+    )
+    candidates = _seed_candidates(geometry, echoes, options)
     if len(candidates.echo) == 0:
         return []
-    candidates = _refine(geometry, candidates, act_paths, act_sigmas, act_amplitudes, options)
-    chosen = _choose(geometry, candidates, act_paths, act_sigmas, act_amplitudes, options)
+    candidates = _refine(geometry, candidates, echoes, options)
+    chosen = _choose(geometry, candidates, echoes, options)
     objects = [
         LocatedObject(
             position_m=obj.position_m,
@@ -615,94 +586,55 @@ def _seed_spread(
     return float(np.linalg.svd(jac[0], compute_uv=False)[-1])
 
 
-def _seed_candidates(
-    geometry: _Geometry,
-    paths: list[NDArray[np.float64]],
-    sigmas: list[NDArray[np.float64]],
-    options: LocateOptions,
-) -> _Candidates:
+def _seed_candidates(geometry: _Geometry, echoes: _Echoes, options: LocateOptions) -> _Candidates:
     """Steps 1-2 of :func:`associate`: seeds solved exactly, the other channels attached.
 
-    All seeds are solved in one batch: each row carries its own D seed channels.
+    The loops run compiled (:func:`echoloc._locate_kernels.seed_candidates`).
     """
     dim, n_ch = geometry.dim, geometry.n
-    min_own = max(options.min_receivers, dim)
-    k_gate = float(np.sqrt(_chi2_gate(options.gate_probability, 1)))
-    direct = np.linalg.norm(geometry.receivers_m - geometry.transmitters_m, axis=1)
+    seeds = np.array(_seed_sets(geometry), dtype=np.int64).reshape(-1, dim)
+    # Sorted within each channel: by channel first, then by path.
+    channel = np.repeat(np.arange(n_ch), np.diff(echoes.offset))
+    order = np.lexsort((echoes.paths, channel))
+    sorted_paths = echoes.paths[order]
+    sorted_index = order - echoes.offset[channel[order]]
     low, high = options.window_m
-    cos_fov = float(np.cos(np.radians(options.field_of_view_deg)))
-    seed_rows, choice_rows = [], []
-    for seed in _seed_sets(geometry):
-        choice = _seed_choices(geometry, seed, paths, sigmas, direct)
-        if len(choice):
-            seed_rows.append(np.broadcast_to(np.array(seed), choice.shape))
-            choice_rows.append(choice)
-    if not choice_rows:
-        return _no_candidates(n_ch, dim)
-    seed_channels = np.concatenate(seed_rows)  # (n, D)
-    choice = np.concatenate(choice_rows)  # (n, D)
-    # Echoes of all channels in one flat array: channel c's echo e is at offset[c] + e.
-    offset = np.concatenate([[0], np.cumsum([len(p) for p in paths])])
-    flat_paths = np.concatenate(paths)
-    flat_sigmas = np.concatenate(sigmas)
-    seed_paths = flat_paths[offset[seed_channels] + choice]
-    seed_sigmas = flat_sigmas[offset[seed_channels] + choice]
-    points, valid = exact_solutions(
-        geometry.transmitters_m[seed_channels[:, 0]], geometry.receivers_m[seed_channels], seed_paths
-    )
-    rows, root = np.nonzero(valid)
-    points = points[rows, root]
-    seed_channels, choice, seed_sigmas = seed_channels[rows], choice[rows], seed_sigmas[rows]
-    inside = _in_beams(geometry, points, cos_fov)
-    ok = _ahead(geometry, points) & np.all(np.take_along_axis(inside, seed_channels, axis=1), axis=1)
-    # Predicted path of every channel and its variance propagated from the seed:
-    # dl_c = g_c . dp, dp = J_s^-1 dl_s  ->  var_c = sum_k (g_c J_s^-1)_k^2 sigma_k^2.
-    jac, residual = _jacobian_residual(
-        geometry.transmitters_m, geometry.receivers_m, np.zeros((len(points), n_ch)), points
-    )
-    seed_jac = np.take_along_axis(jac, seed_channels[..., None], axis=1)
-    ok &= _invertible(np.einsum("nki,nkj->nij", seed_jac, seed_jac))
-    points, jac, seed_jac, inside = points[ok], jac[ok], seed_jac[ok], inside[ok]
-    seed_channels, choice, seed_sigmas = seed_channels[ok], choice[ok], seed_sigmas[ok]
-    predicted = -residual[ok]
-    n = len(points)
-    if n == 0:
-        return _no_candidates(n_ch, dim)
-    gain = np.linalg.solve(np.transpose(seed_jac, (0, 2, 1)), np.transpose(jac, (0, 2, 1)))
-    predicted_var = np.einsum("nkc,nk->nc", gain**2, seed_sigmas**2)
-    echo = np.full((n, n_ch), -1, dtype=np.int64)
-    gap = np.full((n, n_ch), np.inf)
-    echo_var = np.zeros((n, n_ch))
-    for c in range(n_ch):
-        if len(paths[c]) == 0:
-            continue
-        order = np.argsort(paths[c])
-        ordered = paths[c][order]
-        pos = np.searchsorted(ordered, predicted[:, c])
-        lo = np.maximum(pos - 1, 0)
-        hi = np.minimum(pos, len(ordered) - 1)
-        nearest = np.where(
-            np.abs(ordered[hi] - predicted[:, c]) < np.abs(ordered[lo] - predicted[:, c]), hi, lo
+    capacity = 4096
+    from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
+
+    while True:
+        echo, use, points, count, overflow = kernels.seed_candidates(
+            geometry.transmitters_m,
+            geometry.receivers_m,
+            geometry.transmitter_axes,
+            geometry.receiver_axes,
+            geometry.boresight,
+            geometry.required,
+            echoes.paths,
+            echoes.sigmas,
+            echoes.offset,
+            sorted_paths,
+            sorted_index,
+            seeds,
+            float(low),
+            float(high),
+            float(np.cos(np.radians(options.field_of_view_deg))),
+            float(np.sqrt(_chi2_gate(options.gate_probability, 1))),
+            _merge_reach(options),
+            max(options.min_receivers, dim),
+            capacity,
         )
-        gap[:, c] = np.abs(ordered[nearest] - predicted[:, c])
-        echo[:, c] = order[nearest]
-        echo_var[:, c] = sigmas[c][order[nearest]] ** 2
-    reach = k_gate * np.sqrt(predicted_var + echo_var)
-    own = gap <= reach
-    shared = ~own & (gap <= _merge_reach(options) + reach)
-    use = np.where(own, _OWN, np.where(shared, _SHARED, _NONE)).astype(np.int8)
-    np.put_along_axis(echo, seed_channels, choice, axis=1)
-    np.put_along_axis(use, seed_channels, np.int8(_OWN), axis=1)
-    echo = np.where(use != _NONE, echo, -1)
-    # A channel without an echo must be one that could not have seen it.
-    outside = (predicted < low) | (predicted > high) | ~inside
-    keep = np.all((use != _NONE) | outside | ~geometry.required, axis=1)
-    keep &= np.sum(use == _OWN, axis=1) >= min_own
-    echo, use, points = echo[keep], use[keep], points[keep]
+        if not overflow:
+            break
+        if capacity >= _MAX_SEED_ROWS:
+            raise GeometryError(
+                f"too many echo combinations (> {_MAX_SEED_ROWS}) to associate; raise the detection threshold"
+            )
+        capacity *= 4
     # The same object comes from several seeds: keep one of each echo set.
     seen: set[tuple[int, ...]] = set()
     first = []
-    for k, row in enumerate(np.concatenate([echo, use.astype(np.int64)], axis=1).tolist()):
+    for k, row in enumerate(np.concatenate([echo[:count], use[:count].astype(np.int64)], axis=1).tolist()):
         if tuple(row) not in seen:
             seen.add(tuple(row))
             first.append(k)
@@ -738,37 +670,6 @@ def _empty_solution(n: int, dim: int, start: NDArray[np.float64] | None = None) 
     return Solution(position, np.full((n, dim, dim), np.nan), np.full(n, np.nan), np.zeros(n, dtype=bool))
 
 
-def _seed_choices(
-    geometry: _Geometry,
-    seed: tuple[int, ...],
-    paths: list[NDArray[np.float64]],
-    sigmas: list[NDArray[np.float64]],
-    direct: NDArray[np.float64],
-) -> NDArray[np.int64]:
-    """Every choice of one echo per seed channel that can meet in one point, (n, D)."""
-    choice = np.zeros((1, 0), dtype=np.int64)
-    for k, c in enumerate(seed):
-        feasible = np.flatnonzero(paths[c] >= direct[c] - 4 * sigmas[c])
-        if len(feasible) == 0:
-            return np.zeros((0, len(seed)), dtype=np.int64)
-        new = np.repeat(choice, len(feasible), axis=0)
-        mine = np.tile(feasible, len(choice))
-        keep = np.ones(len(new), dtype=bool)
-        for j in range(k):
-            other = seed[j]
-            span = np.linalg.norm(geometry.receivers_m[c] - geometry.receivers_m[other]) + np.linalg.norm(
-                geometry.transmitters_m[c] - geometry.transmitters_m[other]
-            )
-            tolerance = 4 * np.hypot(sigmas[c][mine], sigmas[other][new[:, j]])
-            keep &= np.abs(paths[c][mine] - paths[other][new[:, j]]) <= span + tolerance
-        choice = np.column_stack([new[keep], mine[keep]])
-        if len(choice) > _MAX_SEED_ROWS:
-            raise GeometryError(
-                f"too many echo combinations ({len(choice)}) to associate; raise the detection threshold"
-            )
-    return choice
-
-
 def _in_beams(geometry: _Geometry, points: NDArray[np.float64], cos_fov: float) -> NDArray[np.bool_]:
     """(n, C): is each point inside both the transmitter's and the receiver's beam of each channel?"""
     inside = np.ones((len(points), geometry.n), dtype=bool)
@@ -788,21 +689,16 @@ def _ahead(geometry: _Geometry, points: NDArray[np.float64]) -> NDArray[np.bool_
 
 
 def _refine(
-    geometry: _Geometry,
-    candidates: _Candidates,
-    paths: list[NDArray[np.float64]],
-    sigmas: list[NDArray[np.float64]],
-    amplitudes: list[NDArray[np.float64]] | None,
-    options: LocateOptions,
+    geometry: _Geometry, candidates: _Candidates, echoes: _Echoes, options: LocateOptions
 ) -> _Candidates:
     """Step 3: Gauss-Newton on every candidate's echoes; keep those that pass the gate."""
     echo, use = candidates.echo, candidates.use
-    measured, weights = _measurements(paths, sigmas, echo, use, options)
+    measured, weights = _measurements(echoes, echo, use, options)
     solution = _gauss_newton(
         geometry.transmitters_m, geometry.receivers_m, measured, weights, candidates.solution.position_m, 6
     )
     n_used = np.sum(use != _NONE, axis=1)
-    gate = np.array([_chi2_gate(options.gate_probability, int(k) - geometry.dim) for k in n_used])
+    gate = _gates(options.gate_probability, geometry.dim, geometry.n)[n_used]
     cos_fov = np.cos(np.radians(options.field_of_view_deg))
     ok = solution.converged & (solution.chi2 <= gate)
     if np.any(ok):
@@ -811,35 +707,46 @@ def _refine(
         ok[ok] &= _ahead(geometry, points) & np.all(_in_beams(geometry, points, cos_fov) | ~supported, axis=1)
     keep = np.flatnonzero(ok)
     solution = _rows(solution, list(keep))
-    amplitude_chi2 = _amplitude_chi2(geometry, solution.position_m, echo[keep], use[keep], amplitudes)
+    amplitude_chi2 = _amplitude_chi2(geometry, solution.position_m, echo[keep], use[keep], echoes)
     return _Candidates(echo[keep], use[keep], solution, amplitude_chi2)
 
 
 def _measurements(
-    paths: list[NDArray[np.float64]],
-    sigmas: list[NDArray[np.float64]],
-    echo: NDArray[np.int64],
-    use: NDArray[np.int8],
-    options: LocateOptions,
+    echoes: _Echoes, echo: NDArray[np.int64], use: NDArray[np.int8], options: LocateOptions
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Paths and weights (n, C) of candidates; shared echoes weigh as merged peaks."""
     has = use != _NONE
-    measured = _gather(paths, echo, has)
-    sigma = _gather(sigmas, echo, has, fill=np.inf)
+    index = np.where(has, echoes.offset[:-1] + echo, 0)
+    measured = np.where(has, echoes.paths[index], 0.0)
+    sigma = echoes.sigmas[index]
     if options.resolution_m is not None:
         sigma = np.where(use == _SHARED, np.hypot(sigma, _merge_sigma(options.resolution_m)), sigma)
     weights = np.where(has, 1.0 / sigma**2, 0.0)
     return measured, weights
 
 
-def _gather(
-    values: list[NDArray[np.float64]], echo: NDArray[np.int64], has: NDArray[np.bool_], fill: float = 0.0
-) -> NDArray[np.float64]:
-    """values[c][echo[k, c]] for every row k and channel c where ``has``; ``fill`` elsewhere."""
-    offset = np.concatenate([[0], np.cumsum([len(v) for v in values])])[:-1]
-    flat = np.concatenate([*values, [fill]])
-    index = np.where(has, offset + echo, len(flat) - 1)
-    return np.asarray(flat[index])
+@dataclass(frozen=True, eq=False)
+class _Echoes:
+    """Every channel's echoes in flat arrays: channel c's at ``offset[c]:offset[c + 1]``."""
+
+    offset: NDArray[np.int64]  # (C + 1,)
+    paths: NDArray[np.float64]
+    sigmas: NDArray[np.float64]
+    amplitudes: NDArray[np.float64] | None
+
+
+def _flatten(
+    paths: list[NDArray[np.float64]],
+    sigmas: list[NDArray[np.float64]],
+    amplitudes: list[NDArray[np.float64]] | None,
+) -> _Echoes:
+    offset = np.zeros(len(paths) + 1, dtype=np.int64)
+    offset[1:] = np.cumsum([len(p) for p in paths])
+
+    def flat(values: list[NDArray[np.float64]]) -> NDArray[np.float64]:
+        return np.concatenate([np.zeros(0), *values]).astype(float)
+
+    return _Echoes(offset, flat(paths), flat(sigmas), None if amplitudes is None else flat(amplitudes))
 
 
 def _amplitude_chi2(
@@ -847,13 +754,13 @@ def _amplitude_chi2(
     points: NDArray[np.float64],
     echo: NDArray[np.int64],
     use: NDArray[np.int8],
-    amplitudes: list[NDArray[np.float64]] | None,
+    echoes: _Echoes,
 ) -> NDArray[np.float64]:
     """How far the own echoes' amplitudes times the spreading ``r_T r_R`` are from equal."""
-    if amplitudes is None or len(points) == 0:
+    if echoes.amplitudes is None or len(points) == 0:
         return np.zeros(len(points))
     own = use == _OWN
-    amplitude = np.abs(_gather(amplitudes, echo, own, fill=1.0))
+    amplitude = np.where(own, np.abs(echoes.amplitudes[np.where(own, echoes.offset[:-1] + echo, 0)]), 1.0)
     spread = np.linalg.norm(points[:, None, :] - geometry.transmitters_m, axis=2) * np.linalg.norm(
         points[:, None, :] - geometry.receivers_m, axis=2
     )
@@ -886,7 +793,7 @@ class _Candidate:
 def _weights(candidates: _Candidates, options: LocateOptions, dim: int) -> NDArray[np.float64]:
     """Packing weight: one per object, less a tie-break (< 0.1) for residual, merges, amplitudes."""
     n_used = np.sum(candidates.use != _NONE, axis=1)
-    gate = np.array([_chi2_gate(options.gate_probability, int(k) - dim) for k in n_used])
+    gate = _gates(options.gate_probability, dim, candidates.use.shape[1])[n_used]
     gate = np.where(np.isfinite(gate), np.maximum(gate, 1.0), 1.0)
     n_shared = np.sum(candidates.use == _SHARED, axis=1)
     tie = candidates.solution.chi2 / gate + candidates.amplitude_chi2 / np.maximum(n_used, 1) + 0.5 * n_shared
@@ -894,12 +801,7 @@ def _weights(candidates: _Candidates, options: LocateOptions, dim: int) -> NDArr
 
 
 def _choose(
-    geometry: _Geometry,
-    candidates: _Candidates,
-    paths: list[NDArray[np.float64]],
-    sigmas: list[NDArray[np.float64]],
-    amplitudes: list[NDArray[np.float64]] | None,
-    options: LocateOptions,
+    geometry: _Geometry, candidates: _Candidates, echoes: _Echoes, options: LocateOptions
 ) -> list[_Chosen]:
     """Step 4: the heaviest disjoint set, then rounds that share merged echoes, a final re-solve."""
     weights = _weights(candidates, options, geometry.dim).tolist()
@@ -944,9 +846,7 @@ def _choose(
             _Candidates(
                 candidates.echo[retry], new_use, _rows(candidates.solution, retry), np.zeros(len(retry))
             ),
-            paths,
-            sigmas,
-            amplitudes,
+            echoes,
             options,
         )
         taken: set[tuple[int, int]] = set()
@@ -964,20 +864,30 @@ def _choose(
             added = True
         if not added:
             break
+    # An object must keep echoes no other object explains: one whose echoes all (but
+    # one) serve other objects too is a crossing of theirs, a ghost. Worst first.
+    users = _users(chosen_echo, chosen_use)
+    while chosen_echo:
+        exclusive = [
+            sum(users[e] == 1 for e in _attached(er, ur))
+            for er, ur in zip(chosen_echo, chosen_use, strict=True)
+        ]
+        worst = int(np.argmin(exclusive))
+        if exclusive[worst] >= min_own_sharing:
+            break
+        for pair in _attached(chosen_echo[worst], chosen_use[worst]):
+            users[pair] -= 1
+        del chosen_echo[worst], chosen_use[worst], starts[worst]
     if not chosen_echo:
         return []
     # Every echo that serves two objects is a merged peak for all of them: re-solve.
-    users: dict[tuple[int, int], int] = {}
-    for er, ur in zip(chosen_echo, chosen_use, strict=True):
-        for pair in _attached(er, ur):
-            users[pair] = users.get(pair, 0) + 1
     for er, ur in zip(chosen_echo, chosen_use, strict=True):
         for c, e in _attached(er, ur):
             if users[(c, e)] > 1:
                 ur[c] = _SHARED
     echo = np.array(chosen_echo, dtype=np.int64)
     use = np.array(chosen_use, dtype=np.int8)
-    measured, weight = _measurements(paths, sigmas, echo, use, options)
+    measured, weight = _measurements(echoes, echo, use, options)
     final = _gauss_newton(
         geometry.transmitters_m, geometry.receivers_m, measured, weight, np.array(starts), 4
     )
@@ -1000,6 +910,15 @@ def _choose(
             )
         )
     return result
+
+
+def _users(echo: list[list[int]], use: list[list[int]]) -> dict[tuple[int, int], int]:
+    """How many objects use each (channel, echo index)."""
+    users: dict[tuple[int, int], int] = {}
+    for er, ur in zip(echo, use, strict=True):
+        for pair in _attached(er, ur):
+            users[pair] = users.get(pair, 0) + 1
+    return users
 
 
 def _attached(echo: list[int], use: list[int]) -> list[tuple[int, int]]:
