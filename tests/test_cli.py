@@ -44,6 +44,8 @@ CHANNEL_KEYS = {"receiver", "echoes"}
 ECHO_KEYS = {"tof_s", "path_m", "amplitude", "snr_db"}
 LOCATE_FRAME_KEYS = {"frame", "time_s", "objects"}
 OBJECT_KEYS = {"position_m", "std_m", "receivers", "score"}
+# Optional fields echoloc adds (FORMATS.md allows optional additions; README documents them).
+OPTIONAL_OBJECT_KEYS = {"channels", "shared_echoes"}
 EVALUATE_KEYS = {
     "estimator",
     "frames",
@@ -356,7 +358,9 @@ def test_locate_json_follows_the_contract(capsys: pytest.CaptureFixture[str], go
         assert is_number(record["time_s"])
         assert record["objects"], record
         for obj in record["objects"]:
-            assert set(obj) == OBJECT_KEYS, obj.keys()
+            assert OBJECT_KEYS <= set(obj) <= OBJECT_KEYS | OPTIONAL_OBJECT_KEYS, obj.keys()
+            assert obj["channels"] >= obj["receivers"]
+            assert 0 <= obj["shared_echoes"] <= obj["channels"]
             assert len(obj["position_m"]) == 3
             assert all(map(is_number, obj["position_m"]))
             assert len(obj["std_m"]) == 3

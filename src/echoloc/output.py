@@ -34,7 +34,14 @@ def echoes_record(echoes: FrameEchoes) -> dict[str, Any]:
 
 
 def objects_record(objects: FrameObjects) -> dict[str, Any]:
-    """One frame of ``echoloc locate --json`` (FORMATS.md)."""
+    """One frame of ``echoloc locate --json`` (FORMATS.md).
+
+    ``receivers`` counts distinct receivers. Optional fields beyond the contract:
+    ``channels``, the transmitter-receiver pairs whose echoes support the object
+    (more than ``receivers`` when frames of several transmitters are combined), and
+    ``shared_echoes``, how many of those echoes it shares with another object
+    (echoes of two reflectors that merged).
+    """
     return {
         "frame": objects.frame,
         "time_s": float(objects.time_s),
@@ -42,8 +49,10 @@ def objects_record(objects: FrameObjects) -> dict[str, Any]:
             {
                 "position_m": [float(v) for v in o.position_m],
                 "std_m": [float(v) for v in o.std_m],
-                "receivers": len(o.receivers),
+                "receivers": len(set(o.receivers)),
                 "score": float(o.score),
+                "channels": len(o.receivers),
+                "shared_echoes": o.shared,
             }
             for o in objects.objects
         ],
