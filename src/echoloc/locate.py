@@ -603,13 +603,14 @@ def _seed_candidates(geometry: _Geometry, echoes: _Echoes, options: LocateOption
     from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
 
     while True:
+        contiguous = np.ascontiguousarray
         echo, use, points, count, overflow = kernels.seed_candidates(
-            geometry.transmitters_m,
-            geometry.receivers_m,
-            geometry.transmitter_axes,
-            geometry.receiver_axes,
-            geometry.boresight,
-            geometry.required,
+            contiguous(geometry.transmitters_m),
+            contiguous(geometry.receivers_m),
+            contiguous(geometry.transmitter_axes),
+            contiguous(geometry.receiver_axes),
+            contiguous(geometry.boresight),
+            contiguous(geometry.required),
             echoes.paths,
             echoes.sigmas,
             echoes.offset,
@@ -703,8 +704,15 @@ def _refine(
     ok = solution.converged & (solution.chi2 <= gate)
     if np.any(ok):
         points = solution.position_m[ok]
-        supported = use[ok] != _NONE
-        ok[ok] &= _ahead(geometry, points) & np.all(_in_beams(geometry, points, cos_fov) | ~supported, axis=1)
+        inside = _ahead(geometry, points)
+        if (
+            options.field_of_view_deg < 90
+            or options.transmitter_axes is not None
+            or options.receiver_axes is not None
+        ):
+            supported = use[ok] != _NONE
+            inside &= np.all(_in_beams(geometry, points, cos_fov) | ~supported, axis=1)
+        ok[ok] &= inside
     keep = np.flatnonzero(ok)
     solution = _rows(solution, list(keep))
     amplitude_chi2 = _amplitude_chi2(geometry, solution.position_m, echo[keep], use[keep], echoes)
