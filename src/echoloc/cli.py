@@ -1017,6 +1017,267 @@ def beam_command(
         stderr.print(f"plot written to {written}")
 
 
+# --- design: uncertainty and receiver spacing --------------------------------------
+
+
+@cli.command(name="design")
+@click.option(
+    "--path-m",
+    type=float,
+    default=None,
+    help="Hold the path l = l1 = l2, m, as the report's figure 4.13 does [default: 1.0].",
+)
+@click.option("--range-m", type=float, default=None, help="Hold the reflector's range instead, m.")
+@click.option(
+    "--path-error-m", type=float, default=0.005, show_default=True, help="Path error Δl (and path std), m."
+)
+@click.option(
+    "--spacing-m",
+    type=float,
+    default=None,
+    help="Spacing d for the figure 4.12 area and the GDOP map, m [default: the recommended one].",
+)
+@click.option(
+    "--max-cross-range-error-m",
+    type=float,
+    default=None,
+    help="Across-beam error allowed, m [default: the path error].",
+)
+@click.option(
+    "--max-range-error-m", type=float, default=None, help="Range error allowed, m: an upper spacing limit."
+)
+@click.option(
+    "--scene",
+    "scene_path",
+    metavar="SCENE.toml",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="Array for the GDOP map [default: the report's cross with spacing d].",
+)
+@click.option("--plane", type=click.Choice(["xz", "yz", "xy"]), default="xz", show_default=True)
+@click.option(
+    "--offset-m", type=float, default=0.0, show_default=True, help="Third coordinate of the plane, m."
+)
+@click.option(
+    "-o", "--output", type=click.Path(path_type=Path), default=None, help="Directory for the three PNGs."
+)
+@click.option("--json", "as_json", is_flag=True, help="One JSON object with the figures.")
+def design_command(
+    path_m: float | None,
+    range_m: float | None,
+    path_error_m: float,
+    spacing_m: float | None,
+    max_cross_range_error_m: float | None,
+    max_range_error_m: float | None,
+    scene_path: Path | None,
+    plane: str,
+    offset_m: float,
+    output: Path | None,
+    as_json: bool,
+) -> None:
+    """Receiver spacing against range and angle error (report figs 4.12, 4.13) and GDOP maps.
+
+    The default reproduces the report's study: path l = 1 m, path error 5 mm.
+    """
+    from echoloc import uncertainty as unc
+
+    for name, value in (
+        ("--path-m", path_m),
+        ("--range-m", range_m),
+        ("--path-error-m", path_error_m),
+        ("--spacing-m", spacing_m),
+        ("--max-cross-range-error-m", max_cross_range_error_m),
+        ("--max-range-error-m", max_range_error_m),
+    ):
+        _finite(name, value, positive=True)
+    _finite("--offset-m", offset_m)
+    if path_m is not None and range_m is not None:
+        raise EchoLocError("give --path-m or --range-m, not both")
+    if path_m is None and range_m is None:
+        path_m = 1.0
+    if path_m is not None and spacing_m is not None and spacing_m >= path_m:
+        raise EchoLocError(f"--spacing-m {spacing_m:g} must be below the path --path-m {path_m:g}")
+    held = f"path l = {path_m:g} m" if path_m is not None else f"range r = {range_m:g} m"
+    rec = unc.recommended_spacing(
+        path_error_m,
+        path_m=path_m,
+        range_m=range_m,
+        max_cross_range_error_m=max_cross_range_error_m,
+        max_range_error_m=max_range_error_m,
+    )
+    spacing = spacing_m if spacing_m is not None else rec.spacing_m
+    # The study: the report's spacings 0.01-0.5 m (beyond the recommendation when it is larger).
+    top = max(0.5, 1.5 * rec.spacing_m)
+    if path_m is not None:
+        top = min(top, 0.98 * path_m)
+    errors = path_error_m * np.array([-1.0, -0.5, 0.5, 1.0])
+    study = unc.spacing_study(np.linspace(0.01, top, 300), errors, path_m=path_m, range_m=range_m)
+    table_d = np.array([0.01, 0.02, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5])
+    table_d = np.unique(np.append(table_d[table_d <= top], [rec.spacing_m, spacing]))
+    rows = unc.spacing_study(table_d, [path_error_m, -path_error_m], path_m=path_m, range_m=range_m)
+    # Figure 4.12: the broadside point of the study at spacing d, both paths in error.
+    area_study = unc.spacing_study([spacing], [0.0], path_m=path_m, range_m=range_m)
+    area_path = float(area_study.path_m[0])
+    area = unc.uncertainty_area(area_path, area_path, path_error_m, path_error_m, spacing)
+    if scene_path is not None:
+        array = load_scene(scene_path).array
+        transmitters, receivers = array.transmitters_m, array.receivers_m
+        array_name = str(scene_path)
+    else:
+        transmitters, receivers = unc.cross_array(spacing)
+        array_name = f"report cross, d = {spacing:.3f} m"
+    reach = max(0.6, 1.6 * area.range_m)
+    grid_u = np.linspace(-reach, reach, 161)
+    grid_v = np.linspace(-reach, reach, 161) if plane == "xy" else np.linspace(0.02, 1.5 * reach, 161)
+    emap = unc.error_map(
+        transmitters,
+        receivers,
+        grid_u,
+        grid_v,
+        plane=plane,  # type: ignore[arg-type]
+        offset_m=offset_m,
+        sigma_m=path_error_m,
+    )
+    probe = np.zeros(transmitters.shape[1])
+    probe[-1] = area.range_m
+    tx_ch, rx_ch = unc.array_channels(transmitters, receivers)
+    at_point = unc.position_errors(probe, tx_ch, rx_ch, path_error_m)
+
+    record: dict[str, Any] = {
+        "held": {"path_m": path_m} if path_m is not None else {"range_m": range_m},
+        "path_error_m": path_error_m,
+        "recommendation": asdict(rec),
+        "spacing_m": spacing,
+        "study": [
+            {
+                "spacing_m": float(d),
+                "range_m": float(rows.range_m[j]),
+                "path_m": float(rows.path_m[j]),
+                "range_error_m": [float(v) for v in rows.range_error_m[:, j]],
+                "angle_error_rad": [float(v) for v in rows.angle_error_rad[:, j]],
+                "linear_range_error_m": [float(v) for v in rows.linear_range_error_m[:, j]],
+                "linear_angle_error_rad": [float(v) for v in rows.linear_angle_error_rad[:, j]],
+                "cross_range_error_m": float(np.max(rows.cross_range_error_m[:, j])),
+            }
+            for j, d in enumerate(rows.spacings_m)
+        ],
+        "study_path_errors_m": [path_error_m, -path_error_m],
+        "uncertainty_area": {
+            "spacing_m": spacing,
+            "path_m": area_path,
+            "range_m": area.range_m,
+            "corners": {
+                name: {
+                    "position_m": [float(v) for v in area.corners_m[k]],
+                    "range_m": float(area.corner_range_m[k]),
+                    "angle_rad": float(area.corner_angle_rad[k]),
+                }
+                for k, name in enumerate("abcd")
+            },
+        },
+        "array": {
+            "name": array_name,
+            "transmitters_m": transmitters.tolist(),
+            "receivers_m": receivers.tolist(),
+            "on_boresight": {
+                "position_m": probe.tolist(),
+                "gdop": float(at_point.gdop),
+                "std_m": [float(v) for v in at_point.std_m],
+                "range_std_m": float(at_point.range_std_m),
+                "angle_std_rad": float(at_point.angle_std_rad),
+            },
+        },
+    }
+    if output is not None:
+        from echoloc.design_plots import plot_error_map, plot_spacing_study, plot_uncertainty_area
+
+        try:
+            output.mkdir(parents=True, exist_ok=True)
+        except OSError as error:
+            raise EchoLocError(f"{output}: cannot create the output directory ({error.strerror})") from None
+        written = [
+            plot_uncertainty_area(area, output / "uncertainty_area.png"),
+            plot_spacing_study(study, rec, output / "spacing_study.png"),
+            plot_error_map(emap, output / "gdop_map.png", title=array_name),
+        ]
+        record["plots"] = [str(p) for p in written]
+    if as_json:
+        click.echo(json.dumps(_json_safe(record), allow_nan=False))
+    else:
+        table = Table(
+            title=f"Spacing study (report fig. 4.13): {held}, Δl1 = ±{path_error_m * 1e3:g} mm, Δl2 = 0"
+        )
+        for column in (
+            "d m",
+            "range m",
+            "Δr mm (+Δl1, −Δl1)",
+            "Δr first-order mm",
+            "Δθ ° (+Δl1, −Δl1)",
+            "Δθ first-order °",
+            "r·|Δθ| mm",
+        ):
+            table.add_column(column, justify="right")
+        table.add_column("")
+        for j, d in enumerate(rows.spacings_m):
+            mark = math.isclose(d, rec.spacing_m, rel_tol=1e-9)
+            chosen = math.isclose(d, spacing, rel_tol=1e-9) and not mark
+            table.add_row(
+                f"{d:.3f}",
+                f"{rows.range_m[j]:.3f}",
+                f"{rows.range_error_m[0, j] * 1e3:+.2f}, {rows.range_error_m[1, j] * 1e3:+.2f}",
+                f"{rows.linear_range_error_m[0, j] * 1e3:+.2f}",
+                f"{math.degrees(rows.angle_error_rad[0, j]):+.2f}, "
+                f"{math.degrees(rows.angle_error_rad[1, j]):+.2f}",
+                f"{math.degrees(rows.linear_angle_error_rad[0, j]):+.2f}",
+                f"{np.max(rows.cross_range_error_m[:, j]) * 1e3:.1f}",
+                "◀ recommended" if mark else "◀ chosen" if chosen else "",
+                style="bold" if mark else None,
+            )
+        stdout.print(table)
+        limit = (
+            f"; at most {rec.largest_spacing_m:.3f} m keeps the range error within "
+            f"{rec.max_range_error_m * 1e3:g} mm"
+            if rec.largest_spacing_m is not None and rec.max_range_error_m is not None
+            else ""
+        )
+        stdout.print(
+            f"Recommended spacing d = {rec.spacing_m:.3f} m ({rec.criterion}){limit}. There: "
+            f"range {rec.range_m:.3f} m, |Δr| <= {rec.range_error_m * 1e3:.2f} mm, "
+            f"|Δθ| <= {math.degrees(rec.angle_error_rad):.2f}°, "
+            f"r·|Δθ| = {rec.cross_range_error_m * 1e3:.2f} mm.",
+            highlight=False,
+        )
+        corners = Table(
+            title=f"Uncertainty area (fig. 4.12): d = {spacing:.3f} m, l1 = l2 = {area_path:.3f} m, "
+            f"Δl1 = Δl2 = {path_error_m * 1e3:g} mm"
+        )
+        for column in ("corner", "paths", "x mm", "z m", "Δr mm", "Δθ °"):
+            corners.add_column(column, justify="right")
+        for k, (name, paths) in enumerate(
+            zip("abcd", ("l1+Δl1, l2−Δl2", "l1−Δl1, l2−Δl2", "l1−Δl1, l2+Δl2", "l1+Δl1, l2+Δl2"), strict=True)
+        ):
+            corners.add_row(
+                name,
+                paths,
+                f"{area.corners_m[k, 0] * 1e3:+.2f}",
+                f"{area.corners_m[k, 1]:.4f}",
+                f"{(area.corner_range_m[k] - area.range_m) * 1e3:+.2f}",
+                f"{math.degrees(area.corner_angle_rad[k] - area.angle_rad):+.3f}",
+            )
+        stdout.print(corners)
+        stdout.print(
+            f"{array_name}: on the boresight at {area.range_m:.3f} m, GDOP {float(at_point.gdop):.2f}; "
+            f"with σ_path = {path_error_m * 1e3:g} mm, std per axis "
+            + ", ".join(f"{v * 1e3:.2f}" for v in at_point.std_m)
+            + f" mm, range std {float(at_point.range_std_m) * 1e3:.2f} mm, angle std "
+            f"{math.degrees(float(at_point.angle_std_rad)):.3f}°.",
+            highlight=False,
+        )
+    if output is not None:
+        for written_path in record["plots"]:
+            stderr.print(f"plot written to {written_path}")
+
+
 # --- entry point -------------------------------------------------------------------
 
 
