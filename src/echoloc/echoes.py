@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import cmath
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
@@ -547,15 +548,12 @@ class _Clean:
         imperfections) and lowers the residual by more than a penalty per echo, half
         the energy an echo at the detection threshold puts into its main lobe.
         """
-        if len(group) != 1:
-            # Echoes CLEAN already fitted together stay as they are (a split test on every
-            # crowded stretch costs ten times the rest of the matched filter).
-            return group
+        if len(group) > 1:
+            return self._choose_overlapping(residual, group, power)
         tofs = [c.tof_samples for c in group]
         span = math.ceil(self.mf.mainlobe_samples)
         lo = max(math.floor(min(tofs)) - span, 0)
         hi = min(math.ceil(max(tofs)) + span + 1, len(residual))
-        threshold = 10 ** (self.options.threshold_db / 10)
         base_cost = self._window_cost(residual, lo, hi)
         # Noise alone leaves about `power` per sample: a model that explains its stretch
         # needs no second look.
@@ -564,7 +562,6 @@ class _Clean:
             # Nothing but noise left, or less than 0.3 % of the echo's energy: a strong echo's
             # tiny misfit, not a second echo merged into it.
             return group
-        penalty = 0.5 * threshold * power * float(np.sum(np.abs(self.mf.autocorrelation) ** 2))
         candidates: list[list[_Component]] = []
         quarter = self.mf.mainlobe_samples / 4
         for i, member in enumerate(group):
@@ -575,35 +572,132 @@ class _Clean:
                     _Component(member.tof_samples + offset, half.amplitude),
                 ]
                 candidates.append([*group[:i], *split, *group[i + 1 :]])
-        best, best_score = group, base_cost + penalty * len(group)
-        for candidate in candidates:
-            trial = residual.copy()
-            for member in group:  # put the current model back ...
-                shape, start = self._shape(member.tof_samples)
-                _subtract(trial, shape, start, -member.amplitude)
-            for member in candidate:  # ... and take the candidate's starting model out
-                shape, start = self._shape(member.tof_samples)
-                _subtract(trial, shape, start, member.amplitude)
-            fitted = self._joint_fit(
-                trial, [_Component(c.tof_samples, c.amplitude) for c in candidate], power
-            )
-            if not fitted:
-                continue
+
+        def keep(fitted: list[_Component]) -> bool:
+            # A split that fell back together leaves CLEAN's model (a re-fit of echoes too
+            # close to part would only move them to their centroid); one that leaves a faint
+            # partner (below a quarter of the other) is fitting the main echo's
+            # imperfections (a half-cycle sidelobe of the fit), not a second echo.
             magnitudes = [abs(c.amplitude) for c in fitted]
-            if len(fitted) <= len(group):
-                # The split fell back together: CLEAN's model stays (a re-fit of echoes
-                # too close to part would only move them to their centroid).
+            return len(fitted) > len(group) and min(magnitudes) >= 0.25 * max(magnitudes)
+
+        return self._try_models(residual, group, candidates, power, keep)
+
+    def _try_models(
+        self,
+        residual: NDArray[np.complex128],
+        group: list[_Component],
+        candidates: list[list[_Component]],
+        power: float,
+        keep: Callable[[list[_Component]], bool],
+    ) -> list[_Component]:
+        """The candidate model (jointly fitted from its starting echoes) of lowest penalised cost.
+
+        Every candidate is fitted over the group's stretch (a main lobe beyond its first
+        and last echo) with the group put back, all at once (:func:`_joint_fit_batch`:
+        complex amplitudes, then real ones). A fit with an echo below the detection
+        threshold, two echoes within a quarter main lobe, an echo outside the stretch, or
+        that ``keep`` refuses, is dropped. Cost: the residual's energy over the stretch
+        plus a penalty per echo, half the energy an echo at the detection threshold puts
+        into its main lobe; ``group`` (already fitted) competes too. The winner replaces
+        the group in ``residual``.
+        """
+        tofs = [c.tof_samples for c in group]
+        span = math.ceil(self.mf.mainlobe_samples)
+        lo = max(math.floor(min(tofs)) - span, 0)
+        hi = min(math.ceil(max(tofs)) + span + 1, len(residual))
+        if not candidates or hi - lo < 2:
+            return group
+        threshold = 10 ** (self.options.threshold_db / 10) * power
+        penalty = 0.5 * threshold * float(np.sum(np.abs(self.mf.autocorrelation) ** 2))
+        restored = residual.copy()
+        for member in group:  # the data: the residual with the group put back
+            shape, start = self._shape(member.tof_samples)
+            _subtract(restored, shape, start, -member.amplitude)
+        k = max(len(c) for c in candidates)
+        n_rows = len(candidates)
+        start_tof = np.full((n_rows, k), tofs[0])
+        start_amplitude = np.zeros((n_rows, k), dtype=complex)
+        active = np.zeros((n_rows, k), dtype=bool)
+        for row, candidate in enumerate(candidates):
+            for slot, member in enumerate(candidate):
+                start_tof[row, slot] = member.tof_samples
+                start_amplitude[row, slot] = member.amplitude
+                active[row, slot] = True
+        samples = np.broadcast_to(np.arange(lo, hi), (n_rows, hi - lo))
+        data = np.broadcast_to(restored[lo:hi], (n_rows, hi - lo))
+        valid = np.ones((n_rows, hi - lo), dtype=bool)
+        fit_tof, fit_amplitude, _ = _joint_fit_batch(
+            self.mf, data, samples, valid, start_tof, start_amplitude, active, real=False, iterations=15
+        )
+        real_start = np.where(fit_amplitude.real >= 0, np.abs(fit_amplitude), -np.abs(fit_amplitude))
+        fit_tof, fit_amplitude, cost = _joint_fit_batch(
+            self.mf, data, samples, valid, fit_tof, real_start + 0j, active, real=True, iterations=10
+        )
+        best, best_score = group, self._window_cost(residual, lo, hi) + penalty * len(group)
+        for row in range(n_rows):
+            fitted = sorted(
+                (
+                    _Component(float(fit_tof[row, slot]), complex(fit_amplitude[row, slot].real))
+                    for slot in np.flatnonzero(active[row])
+                ),
+                key=lambda c: c.tof_samples,
+            )
+            delays = [c.tof_samples for c in fitted]
+            if (
+                not np.isfinite(cost[row])
+                or any(abs(c.amplitude) ** 2 < threshold for c in fitted)
+                or any(not lo <= t < hi for t in delays)
+                or (len(delays) > 1 and min(np.diff(delays)) < self.merge_samples)
+                or not keep(fitted)
+            ):
                 continue
-            if min(magnitudes) < 0.25 * max(magnitudes):
-                # A split that leaves a faint partner is fitting the main echo's
-                # imperfections (a half-cycle sidelobe of the fit), not a second echo.
-                continue
-            score = self._window_cost(trial, lo, hi) + penalty * len(fitted)
+            score = float(cost[row]) + penalty * len(fitted)
             if score < best_score - 1e-12:
-                best, best_score, best_residual = fitted, score, trial
+                best, best_score = fitted, score
         if best is not group:
-            residual[:] = best_residual
+            residual[:] = restored
+            for member in best:
+                shape, start = self._shape(member.tof_samples)
+                _subtract(residual, shape, start, member.amplitude)
         return best
+
+    def _choose_overlapping(
+        self, residual: NDArray[np.complex128], group: list[_Component], power: float
+    ) -> list[_Component]:
+        """Other readings of echoes fitted together whose main lobes overlap by more than half.
+
+        The joint fit with real amplitudes has a local minimum every half carrier cycle
+        (an echo half a cycle off with its sign flipped matches the carrier), and where
+        two echoes merge into one envelope peak a third echo can make up for a pair
+        fitted on the wrong half-cycle. So each echo is also started half a cycle
+        earlier and later with its sign flipped, and each is left out in turn; the
+        model of lowest penalised cost (:meth:`_try_models`) wins, and the search is
+        repeated from it while it improves (at most ``len(group)`` rounds).
+        """
+        delays = sorted(c.tof_samples for c in group)
+        if len(group) < 2 or min(np.diff(delays)) >= self.mf.mainlobe_samples:
+            return group
+        period = math.pi / self.mf.phase_rate_rad_per_sample  # half a carrier cycle, samples
+        for _ in range(len(group)):
+            candidates: list[list[_Component]] = []
+            for i, member in enumerate(group):
+                for step in (-period, period):
+                    moved = _Component(member.tof_samples + step, -member.amplitude)
+                    candidates.append([*group[:i], moved, *group[i + 1 :]])
+                rest = [*group[:i], *group[i + 1 :]]
+                candidates.append(rest)
+                if len(rest) > 1:
+                    # Left out, with another moved by half a cycle: a stray and a slip together.
+                    for j, other in enumerate(rest):
+                        for step in (-period, period):
+                            moved = _Component(other.tof_samples + step, -other.amplitude)
+                            candidates.append([*rest[:j], moved, *rest[j + 1 :]])
+            best = self._try_models(residual, group, candidates, power, keep=lambda fitted: True)
+            if best is group:
+                break
+            group = best
+        return group
 
 
 def _real_amplitude(amplitude: complex) -> float:
@@ -668,17 +762,31 @@ def _shape_values(
 
     Linear interpolation between the sub-sample table's rows, as :meth:`_Clean._shape`.
     """
+    return _shape_and_slope_values(mf, tof_samples, samples, slope=False)[0]
+
+
+def _shape_and_slope_values(
+    mf: MatchedFilter, tof_samples: NDArray[np.float64], samples: NDArray[np.int64], slope: bool = True
+) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:
+    """``R(s - tof)`` and its derivative in ``tof`` (per sample), as :meth:`_Clean._shape_and_slope`.
+
+    Without ``slope`` the second array is empty.
+    """
     u, half, table = mf.oversample, mf.half_width, mf.acf_table
-    grid = np.floor(tof_samples * u).astype(np.int64)
-    weight = (tof_samples * u - grid)[..., None]
+    position = tof_samples * u
+    grid = np.floor(position).astype(np.int64)
+    weight = (position - grid)[..., None]
     base0, row0 = np.divmod(grid, u)
     base1, row1 = np.divmod(grid + 1, u)
+    width = 2 * half + 1
     lag0 = samples - base0[..., None] + half
     lag1 = samples - base1[..., None] + half
-    width = 2 * half + 1
-    v0 = np.where((lag0 >= 0) & (lag0 < width), table[row0[..., None], np.clip(lag0, 0, width - 1)], 0)
-    v1 = np.where((lag1 >= 0) & (lag1 < width), table[row1[..., None], np.clip(lag1, 0, width - 1)], 0)
-    return np.asarray((1 - weight) * v0 + weight * v1)
+    v0 = table[row0[..., None], np.clip(lag0, 0, width - 1)]
+    v1 = table[row1[..., None], np.clip(lag1, 0, width - 1)]
+    v0[(lag0 < 0) | (lag0 >= width)] = 0
+    v1[(lag1 < 0) | (lag1 >= width)] = 0
+    values = v0 + weight * (v1 - v0)
+    return values, ((v1 - v0) * u if slope else np.zeros(0, dtype=complex))
 
 
 def _model_at(
@@ -689,11 +797,13 @@ def _model_at(
     probe_ch: NDArray[np.int64],
     probe: NDArray[np.int64],
     exclude: NDArray[np.int64] | None = None,
+    echo_group: NDArray[np.int64] | None = None,
 ) -> NDArray[np.complex128]:
     """Sum of the echoes' correlation model ``a R(s - tof)`` at probe samples (n_probes, w).
 
     Each probe row sums the echoes of its own channel within the template's reach,
-    except echo ``exclude[row]`` (its own echo, when fitting it). Echoes are grouped
+    except echo ``exclude[row]`` (its own echo, when fitting it; with ``echo_group``, every
+    echo of group ``exclude[row]``: its own cluster). Echoes are grouped
     by channel through a sort, so the work is the probes times their channel's echoes.
     """
     model = np.zeros(probe.shape, dtype=complex)
@@ -710,10 +820,67 @@ def _model_at(
         echo = order[start[rows] + slot]
         keep = np.abs(centre[rows] - echo_tof[echo]) <= reach
         if exclude is not None:
-            keep &= echo != exclude[rows]
+            keep &= (echo if echo_group is None else echo_group[echo]) != exclude[rows]
         rows, echo = rows[keep], echo[keep]
         model[rows] += echo_amplitude[echo, None] * _shape_values(mf, echo_tof[echo], probe[rows])
     return model
+
+
+def _joint_fit_batch(
+    mf: MatchedFilter,
+    data: NDArray[np.complex128],
+    samples: NDArray[np.int64],
+    valid: NDArray[np.bool_],
+    tof: NDArray[np.float64],
+    amplitude: NDArray[np.complex128],
+    active: NDArray[np.bool_],
+    real: bool,
+    iterations: int,
+) -> tuple[NDArray[np.float64], NDArray[np.complex128], NDArray[np.float64]]:
+    """Least squares of ``sum_k a_k R(s - tau_k)`` to ``data`` (B, w) for B clusters at once.
+
+    Levenberg-Marquardt on every row together (each row keeps its own damping, a step is
+    taken only where it lowers that row's cost), as :meth:`_Clean._joint_fit` fits one
+    cluster: complex amplitudes (smooth in the delays) or real ones (the carrier pins the
+    delays). ``tof``/``amplitude``/``active`` are (B, K); samples outside ``valid`` and
+    inactive members do not count. Returns the delays, amplitudes and each row's cost.
+    """
+    n_rows, k = tof.shape
+    weight = valid[:, None, :] & active[:, :, None]
+
+    def evaluate(
+        tof: NDArray[np.float64], amplitude: NDArray[np.complex128]
+    ) -> tuple[NDArray[np.complex128], NDArray[np.complex128], NDArray[np.complex128], NDArray[np.float64]]:
+        shapes, slopes = _shape_and_slope_values(mf, tof, samples[:, None, :])
+        shapes = np.where(weight, shapes, 0)
+        slopes = np.where(weight, slopes, 0)
+        residual = np.where(valid, data - np.einsum("bk,bkw->bw", amplitude, shapes), 0)
+        return shapes, slopes, residual, np.sum(residual.real**2 + residual.imag**2, axis=1)
+
+    shapes, slopes, residual, cost = evaluate(tof, amplitude)
+    damping = np.full(n_rows, 1e-3)
+    eye = np.eye(k * (2 if real else 3))
+    for _ in range(iterations):
+        columns = [amplitude[..., None] * slopes, shapes] + ([] if real else [1j * shapes])
+        jac = np.concatenate(columns, axis=1)  # (B, P, w): d model / d parameter
+        normal = np.real(np.conj(jac) @ np.swapaxes(jac, 1, 2))
+        gradient = np.real(np.conj(jac) @ residual[..., None])[..., 0]
+        diagonal = np.diagonal(normal, axis1=1, axis2=2)
+        # An inactive member's parameters have zero columns: hold them with a unit diagonal.
+        normal = normal + eye * (damping[:, None] * diagonal + (diagonal == 0))[:, None, :]
+        step = np.linalg.solve(normal, gradient[..., None])[..., 0]
+        new_tof = tof + np.clip(step[:, :k], -2.0, 2.0)
+        new_amplitude = amplitude + step[:, k : 2 * k] + (0 if real else 1j * step[:, 2 * k :])
+        trial = evaluate(new_tof, new_amplitude)
+        better = trial[3] < cost
+        tof = np.where(better[:, None], new_tof, tof)
+        amplitude = np.where(better[:, None], new_amplitude, amplitude)
+        shapes = np.where(better[:, None, None], trial[0], shapes)
+        slopes = np.where(better[:, None, None], trial[1], slopes)
+        residual = np.where(better[:, None], trial[2], residual)
+        cost = np.where(better, trial[3], cost)
+        damping = np.where(better, damping / 4, damping * 8)
+    return tof, amplitude, cost
 
 
 def _fit_peaks(
@@ -804,7 +971,7 @@ def _isolated_echoes(
     dilated = np.maximum(envelope, np.maximum(np.roll(envelope, 1), np.roll(envelope, -1)))
     mainlobe = mf.mainlobe_samples
     lags = np.arange(-mf.half_width, mf.half_width + 1)
-    dilated[np.abs(lags) < mainlobe] = 1.0
+    dilated[np.abs(lags) < 2] = 1.0
     # Strongest first, a candidate is an echo unless the echoes already accepted explain it.
     accepted = np.zeros((n_ch, width), dtype=bool)
     for j in range(width):
@@ -832,12 +999,27 @@ def _isolated_echoes(
         tof, amplitude = _fit_peaks(
             mf, values - others_near, neighbours, np.where(in_frame, window_values - others_window, 0), window
         )
-    # Checks: echoes apart, and the model explains the data around each echo (its main
-    # lobe) and at every rejected candidate (one sample), sidelobes included.
-    bad = too_many.copy()
+    # Echoes within two main lobes of each other (CLEAN's clusters) are fitted jointly.
     order = np.lexsort((tof, ach))
-    close = (np.diff(ach[order]) == 0) & (np.diff(tof[order]) < 2 * mainlobe)
-    bad[ach[order][1:][close]] = True
+    ach, tof, amplitude, peak_k = ach[order], tof[order], amplitude[order], peak_k[order]
+    window, in_frame = window[order], in_frame[order]
+    new_group = np.ones(len(ach), dtype=bool)
+    new_group[1:] = (np.diff(ach) != 0) | (np.diff(tof) >= 2 * mainlobe)
+    group = np.cumsum(new_group) - 1
+    bad = too_many.copy()
+    sizes = np.bincount(group)
+    # Echoes that CLEAN would merge, and clusters too big for one joint fit, go to CLEAN.
+    close = (np.diff(ach) == 0) & (np.diff(tof) < mainlobe / 4)
+    bad[ach[1:][close]] = True
+    bad[ach[sizes[group] > _MAX_JOINT]] = True
+    joint = (sizes[group] > 1) & ~bad[ach]
+    if np.any(joint):
+        tof[joint], amplitude[joint] = _fit_clusters(
+            mf, correlation, ach, tof, amplitude, group, joint, fit_half
+        )
+    # Checks: the model explains the data around each echo (its main lobe) and at every
+    # rejected candidate (one sample), sidelobes included; and over two main lobes around
+    # each echo it leaves no more than CLEAN's split test lets pass (:meth:`_Clean._choose_order`).
     rejected_ch, rejected_j = np.nonzero(~accepted & (cand_a > 0))
     for probe_ch, probe in (
         (ach, window),
@@ -847,6 +1029,18 @@ def _isolated_echoes(
             correlation[probe_ch[:, None], probe] - _model_at(mf, ach, tof, amplitude, probe_ch, probe)
         )
         bad[probe_ch[np.any(left**2 > threshold[probe_ch, None], axis=1)]] = True
+    span = math.ceil(mainlobe)
+    around = np.round(tof).astype(np.int64)[:, None] + np.arange(-span, span + 1)
+    inside = (around >= 0) & (around < n)
+    around = np.clip(around, 0, n - 1)
+    model = _model_at(mf, ach, tof, amplitude, ach, around)
+    left = np.where(inside, correlation[ach[:, None], around] - model, 0)
+    cost = np.sum(left.real**2 + left.imag**2, axis=1)
+    acf_energy = float(np.sum(np.abs(mf.autocorrelation) ** 2))
+    unexplained = (cost >= 3.0 * power[ach] * np.sum(inside, axis=1)) & (
+        cost >= 0.003 * np.abs(amplitude) ** 2 * acf_energy
+    )
+    bad[ach[unexplained]] = True
     for channel in range(n_ch):
         if bad[channel]:
             results[channel] = None
@@ -855,6 +1049,56 @@ def _isolated_echoes(
         rows = mine & (ach == channel)
         results[channel] = (tof[rows], np.abs(amplitude[rows]), float(power[channel]))
     return results
+
+
+_MAX_JOINT = 4
+"""The largest cluster the batched joint fit takes (larger ones go to CLEAN)."""
+
+
+def _fit_clusters(
+    mf: MatchedFilter,
+    correlation: NDArray[np.complex128],
+    ach: NDArray[np.int64],
+    tof: NDArray[np.float64],
+    amplitude: NDArray[np.complex128],
+    group: NDArray[np.int64],
+    joint: NDArray[np.bool_],
+    fit_half: int,
+) -> tuple[NDArray[np.float64], NDArray[np.complex128]]:
+    """Joint fits of every cluster of echoes (``joint`` rows, sorted by channel and delay).
+
+    As :meth:`_Clean._joint_fit`: the data are the correlation over the cluster's span
+    (a half main lobe beyond its first and last echo) less the other echoes' sidelobes;
+    first complex amplitudes, then real ones from there. Returns the fitted delays and
+    amplitudes of the ``joint`` rows.
+    """
+    n = correlation.shape[1]
+    rows = np.flatnonzero(joint)
+    ids, first, counts = np.unique(group[rows], return_index=True, return_counts=True)
+    k = int(counts.max())
+    slot = np.arange(len(rows)) - np.repeat(first, counts)
+    cluster = np.repeat(np.arange(len(ids)), counts)
+    tofs = np.zeros((len(ids), k))
+    amps = np.zeros((len(ids), k), dtype=complex)
+    active = np.zeros((len(ids), k), dtype=bool)
+    tofs[cluster, slot] = tof[rows]
+    amps[cluster, slot] = amplitude[rows]
+    active[cluster, slot] = True
+    channel = ach[rows[first]]
+    lo = np.floor(tof[rows[first]]).astype(np.int64) - fit_half
+    hi = np.ceil(tof[rows[first + counts - 1]]).astype(np.int64) + fit_half + 1
+    width = int(np.max(hi - lo))
+    samples = lo[:, None] + np.arange(width)
+    valid = (samples < hi[:, None]) & (samples >= 0) & (samples < n)
+    samples = np.clip(samples, 0, n - 1)
+    # Inactive slots sit on the first echo (zero weight) so the table lookup stays in range.
+    tofs = np.where(active, tofs, tofs[:, :1])
+    others = _model_at(mf, ach, tof, amplitude, channel, samples, exclude=ids, echo_group=group)
+    data = np.where(valid, correlation[channel[:, None], samples] - others, 0)
+    tofs, amps, _ = _joint_fit_batch(mf, data, samples, valid, tofs, amps, active, real=False, iterations=8)
+    amps = np.where(amps.real >= 0, np.abs(amps), -np.abs(amps)).astype(complex)
+    tofs, amps, _ = _joint_fit_batch(mf, data, samples, valid, tofs, amps, active, real=True, iterations=6)
+    return tofs[cluster, slot], amps[cluster, slot]
 
 
 def finish_channel(
