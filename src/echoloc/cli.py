@@ -1056,7 +1056,10 @@ def beam_command(
 )
 @click.option("--plane", type=click.Choice(["xz", "yz", "xy"]), default="xz", show_default=True)
 @click.option(
-    "--offset-m", type=float, default=0.0, show_default=True, help="Third coordinate of the plane, m."
+    "--offset-m",
+    type=float,
+    default=None,
+    help="Third coordinate of the plane, m [default: 0, or the study's range for the xy plane].",
 )
 @click.option(
     "-o", "--output", type=click.Path(path_type=Path), default=None, help="Directory for the three PNGs."
@@ -1071,7 +1074,7 @@ def design_command(
     max_range_error_m: float | None,
     scene_path: Path | None,
     plane: str,
-    offset_m: float,
+    offset_m: float | None,
     output: Path | None,
     as_json: bool,
 ) -> None:
@@ -1126,6 +1129,8 @@ def design_command(
     else:
         transmitters, receivers = unc.cross_array(spacing)
         array_name = f"report cross, d = {spacing:.3f} m"
+    if offset_m is None:
+        offset_m = area.range_m if plane == "xy" else 0.0
     reach = max(0.6, 1.6 * area.range_m)
     grid_u = np.linspace(-reach, reach, 161)
     grid_v = np.linspace(-reach, reach, 161) if plane == "xy" else np.linspace(0.02, 1.5 * reach, 161)

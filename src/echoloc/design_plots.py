@@ -251,7 +251,7 @@ def plot_error_map(errors: ErrorMap, path: str | Path, *, title: str = "") -> Pa
         axis.set_aspect("equal")
     axes[0].set_ylabel(f"{names[1]} (m)")
     axes[0].legend(loc="upper left", fontsize="small")
-    where = f", {'xyz'[3 - iu - iv]} = {errors.offset_m:g} m" if errors.receivers_m.shape[1] == 3 else ""
+    where = f", {'xyz'[3 - iu - iv]} = {errors.offset_m:.3f} m" if errors.receivers_m.shape[1] == 3 else ""
     figure.suptitle(
         (title + ": " if title else "")
         + f"first-order position errors in the {names} plane{where}, every transmitter-receiver pair"

@@ -524,7 +524,8 @@ def recommended_spacing(
         return _worst(spacing_study([d], errors, path_m=path_m, range_m=range_m))
 
     grid = np.geomspace(lo, hi, 400)
-    cross = np.array([worst(float(d))[0] for d in grid])
+    on_grid = spacing_study(grid, errors, path_m=path_m, range_m=range_m)
+    cross = np.max(on_grid.cross_range_error_m, axis=0)
     ok = np.flatnonzero(np.isfinite(cross) & (cross <= tolerance))
     held = f"path {path_m:g} m" if path_m is not None else f"range {range_m:g} m"
     if ok.size == 0:
@@ -541,7 +542,7 @@ def recommended_spacing(
     cross_m, angle_rad, range_err = worst(spacing)
     largest: float | None = None
     if max_range_error_m is not None:
-        range_errors = np.array([worst(float(d))[2] for d in grid])
+        range_errors = np.max(np.abs(on_grid.range_error_m), axis=0)
         allowed = np.flatnonzero(range_errors <= max_range_error_m)
         if allowed.size == 0 or range_err > max_range_error_m:
             raise EchoLocError(
