@@ -5,11 +5,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from echoloc import pipeline
 from echoloc.evaluate import evaluate
 from echoloc.scenefile import load_scene
 from echoloc.simulate import simulate
+from echoloc.transducer import PRESETS
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
@@ -34,3 +36,21 @@ def test_two_transmitters_fired_in_turn_are_located_together() -> None:
     single = np.mean([np.trace(o.covariance_m2) for o in first.objects])
     combined = np.mean([np.trace(o.covariance_m2) for f in later for o in f.objects])
     assert combined < 0.8 * single
+
+
+def test_the_transducers_beam_bounds_what_locate_accepts() -> None:
+    """With the 50 kHz preset the recording carries the piston's first-null half-angle,
+    sin(theta) = 3.8317 / (k a) (Kinsler, section 7.4), and locate uses it: the third
+    ball, outside two receivers' beams, is not invented from other balls' echoes."""
+    scene = load_scene(EXAMPLES / "report-three-balls-transducers.toml")
+    recording = simulate(scene, 4)
+    model = PRESETS[scene.transducer or ""]
+    ka = 2 * np.pi * scene.pulse.carrier_hz / scene.speed_of_sound_m_s * model.radius_m
+    assert recording.field_of_view_deg == pytest.approx(np.degrees(np.arcsin(3.8317 / ka)), rel=1e-4)
+    chain = pipeline.prepare(recording)
+    assert chain.locate_options.field_of_view_deg == recording.field_of_view_deg
+    results = [objects for _, objects in pipeline.run(chain)]
+    assert recording.truth_positions_m is not None
+    report = evaluate(results, recording.truth_positions_m, match_radius_m=0.005)
+    assert report.n_false == 0
+    assert report.n_matched >= 2 * len(results)

@@ -67,6 +67,7 @@ def make_recording(*, full: bool = False, seed: int = 0, **changes: Any) -> Reco
             receiver_gain=np.geomspace(1.0, 100.0, N_SAMPLES),
             transmitter_waveforms=np.pad(rec.waveform, (0, 4))[None, :],  # type: ignore[arg-type]
             firing="sequential",
+            field_of_view_deg=18.0,
         )
     return dataclasses.replace(rec, **changes)
 
@@ -79,7 +80,14 @@ def file_items(rec: Recording) -> tuple[Attrs, Data]:
         "sample_rate_hz": rec.sample_rate_hz,
         "signal_kind": rec.signal_kind,
     }
-    for name in ("firing", "carrier_hz", "speed_of_sound_m_s", "temperature_c", "relative_humidity"):
+    for name in (
+        "firing",
+        "carrier_hz",
+        "speed_of_sound_m_s",
+        "temperature_c",
+        "relative_humidity",
+        "field_of_view_deg",
+    ):
         if getattr(rec, name) is not None:
             attrs[name] = getattr(rec, name)
     fields = {
@@ -306,6 +314,8 @@ BROKEN: list[tuple[str, Breaker, str]] = [
     ("negative speed of sound", _set("attr", "speed_of_sound_m_s", -343.0), "speed_of_sound"),
     ("nan temperature", _set("attr", "temperature_c", np.nan), "temperature_c"),
     ("humidity above 1", _set("attr", "relative_humidity", 1.5), "relative_humidity"),
+    ("field of view above 180", _set("attr", "field_of_view_deg", 200.0), "field_of_view_deg"),
+    ("zero field of view", _set("attr", "field_of_view_deg", 0.0), "field_of_view_deg"),
     ("missing transmitters", _drop("data", "transmitters"), "transmitters"),
     ("transmitters wrong shape", _set("data", "transmitters", np.zeros(3)), "transmitters"),
     ("no transmitters", _set("data", "transmitters", np.zeros((0, 3))), "transmitters"),

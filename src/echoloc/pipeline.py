@@ -107,6 +107,7 @@ def prepare(
             boresight=boresight,
             transmitter_axes=recording.transmitter_axes,
             receiver_axes=recording.receiver_axes,
+            field_of_view_deg=90.0 if recording.field_of_view_deg is None else recording.field_of_view_deg,
         )
     # Dead receivers (the reader warns about them) are left out of localisation.
     usable = np.ones(recording.n_receivers, dtype=bool)

@@ -72,6 +72,10 @@ class Recording:
     transmitter_waveforms
         (n_tx, n_w) SENT template of each transmitter when they use different codes,
         zero-padded to a common length; ``waveform`` is transmitter 0's template.
+    field_of_view_deg
+        Half-angle of the cone around each transducer's axis outside which it can
+        neither send nor receive an echo (the first null of its beam), degrees;
+        localisation rejects points outside it. None: the half-space in front.
     firing
         ``"sequential"`` (each frame fires the transmitter in ``frame_transmitter``;
         also the meaning of ``None``) or ``"simultaneous"`` (every transmitter fires
@@ -100,6 +104,7 @@ class Recording:
     receiver_gain: NDArray[np.float64] | None = None
     transmitter_waveforms: NDArray[np.float64] | NDArray[np.complex128] | None = None
     firing: str | None = None
+    field_of_view_deg: float | None = None
     source: str = "<memory>"
 
     @property
@@ -122,7 +127,13 @@ class RecordingWarning(UserWarning):
 # Contract (file) names of the root attributes and datasets, mapped to Recording fields.
 _REQUIRED_ATTRS = ("format", "version", "sample_rate_hz")
 _STR_ATTRS = ("signal_kind", "firing")
-_OPTIONAL_FLOAT_ATTRS = ("carrier_hz", "speed_of_sound_m_s", "temperature_c", "relative_humidity")
+_OPTIONAL_FLOAT_ATTRS = (
+    "carrier_hz",
+    "speed_of_sound_m_s",
+    "temperature_c",
+    "relative_humidity",
+    "field_of_view_deg",
+)
 _DATASET_FIELDS: dict[str, str] = {
     "transmitters": "transmitters_m",
     "receivers": "receivers_m",
@@ -420,6 +431,7 @@ def _validate(rec: Recording, *, allow_nonfinite: bool, header_only: bool = Fals
         raise _error(src, f"firing is {rec.firing!r}, expected one of {modes}")
     _check_optional_float(src, "carrier_hz", rec.carrier_hz, 0.0, False)
     _check_optional_float(src, "speed_of_sound_m_s", rec.speed_of_sound_m_s, 0.0, False)
+    _check_optional_float(src, "field_of_view_deg", rec.field_of_view_deg, 0.0, False, 180.0)
     _check_optional_float(src, "temperature_c", rec.temperature_c, _ABSOLUTE_ZERO_C, False)
     _check_optional_float(src, "relative_humidity", rec.relative_humidity, 0.0, True, 1.0)
 
@@ -724,6 +736,7 @@ def _build(source: str, attrs: dict[str, object], data: dict[str, _AnyArray]) ->
         speed_of_sound_m_s=optional["speed_of_sound_m_s"],
         temperature_c=optional["temperature_c"],
         relative_humidity=optional["relative_humidity"],
+        field_of_view_deg=optional["field_of_view_deg"],
         firing=firing,
         source=source,
         **fields,

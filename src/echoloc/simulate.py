@@ -64,7 +64,7 @@ from echoloc.reflectors import (
 )
 from echoloc.scene import Scene
 from echoloc.synthesis import PulseTable, pulse_table, synthesize
-from echoloc.transducer import PRESETS, directivity, impulse_response
+from echoloc.transducer import PRESETS, directivity, impulse_response, piston_beam_angles
 
 FloatArray = NDArray[np.float64]
 
@@ -439,7 +439,23 @@ def recording_header(scene: Scene) -> Recording:
         receiver_gain=receiver_gain,
         transmitter_waveforms=transmitter_waveforms,
         firing=scene.firing if n_tx > 1 else None,
+        field_of_view_deg=_field_of_view_deg(scene),
     )
+
+
+def _field_of_view_deg(scene: Scene) -> float | None:
+    """The first-null half-angle of the transducers' piston beam at the carrier, degrees.
+
+    Beyond it only sidelobes remain (-17.6 dB one way for a piston, so below -35 dB
+    for transmitter and receiver together). None without a transducer model, or when
+    the piston is too small to have a null (ka < 3.83).
+    """
+    if scene.transducer is None:
+        return None
+    model = PRESETS[scene.transducer]
+    beam = piston_beam_angles(model.radius_m, scene.pulse.carrier_hz, scene.speed_of_sound_m_s)
+    half = float(np.degrees(beam.half_angle_null_rad))
+    return half if np.isfinite(half) else None
 
 
 def simulate_batches(scene: Scene, n_frames: int) -> Iterator[FrameBatch]:
