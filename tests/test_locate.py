@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 from hypothesis import assume, given, settings
@@ -180,7 +182,8 @@ def test_random_scenes_round_trip(points: list[np.ndarray]) -> None:
     """1-4 reflectors with exact paths: every one is found exactly, and nothing else.
 
     Reflectors must be separable: paths at least 1 mm apart on every receiver and
-    ranges at least 1 mm apart (equal ranges make a cross array ambiguous).
+    ranges at least 1 mm apart (equal ranges make a cross array ambiguous), and the
+    paths must not admit another exact scene (see _unambiguous).
     """
     array = np.array(points)
     paths = model_paths_m(TX, CROSS, array)
@@ -190,10 +193,25 @@ def test_random_scenes_round_trip(points: list[np.ndarray]) -> None:
     ranges = np.sort(np.linalg.norm(array, axis=1))
     assume(len(ranges) < 2 or np.diff(ranges).min() > 1e-3)
     per_receiver = [np.sort(paths[:, i]) for i in range(4)]
+    assume(_unambiguous(per_receiver, len(points)))
     objects = associate(TX, CROSS, per_receiver, _sigmas(per_receiver), OPTIONS)
     assert len(objects) == len(points)
     for point in points:
         assert min(np.linalg.norm(o.position_m - point) for o in objects) < 1e-6
+
+
+def _unambiguous(per_receiver: list[np.ndarray], n_points: int) -> bool:
+    """Only the true combinations of one echo per receiver meet exactly in a point.
+
+    Not so, for example, for two reflectors both on the plane x = y of the cross array:
+    their x-pair and y-pair paths are equal, and swapping echoes between them gives
+    two other points with exactly the same paths (no time-of-flight method can tell).
+    """
+    combos = np.array(list(itertools.product(*[range(len(p)) for p in per_receiver])))
+    paths = np.stack([per_receiver[i][combos[:, i]] for i in range(4)], axis=1)
+    solution = solve_positions(TX, CROSS, paths, 0.5e-3)
+    exact = solution.converged & (solution.chi2 < 1e-10) & (solution.position_m[:, 2] > 0)
+    return int(np.sum(exact)) == n_points
 
 
 def test_equal_ranges_make_the_cross_array_ambiguous() -> None:
@@ -310,6 +328,7 @@ def test_mirrored_array_mirrors_the_objects(points: list[np.ndarray]) -> None:
     ranges = np.sort(np.linalg.norm(array, axis=1))
     assume(len(ranges) < 2 or np.diff(ranges).min() > 1e-3)
     per_receiver = [np.sort(paths[:, i]) for i in range(4)]
+    assume(_unambiguous(per_receiver, len(points)))
     mirror = np.array([-1.0, 1.0, 1.0])
     direct = associate(TX, CROSS, per_receiver, _sigmas(per_receiver), OPTIONS)
     mirrored = associate(TX, CROSS * mirror, per_receiver, _sigmas(per_receiver), OPTIONS)
@@ -373,3 +392,18 @@ def test_points_outside_the_beams_are_rejected(fov_deg: float, found: int) -> No
     paths = _paths_per_receiver(point[None])
     options = LocateOptions(resolution_m=0.0275, field_of_view_deg=fov_deg)
     assert len(associate(TX, CROSS, paths, _sigmas(paths), options)) == found
+
+
+def test_two_points_on_the_diagonal_plane_have_a_twin_scene() -> None:
+    """On the plane x = y of the cross array l1 = l3 and l2 = l4, so two reflectors there
+    and the two points from swapped echoes have exactly the same eight paths (found by
+    hypothesis: the reason `_unambiguous` guards the round-trip tests)."""
+    truth = np.array([[0.0, 0.0, 0.625], [0.25, 0.25, 0.5]])
+    paths = model_paths_m(TX, CROSS, truth)
+    twin = solve_positions(TX, CROSS, np.array([[paths[0, 0], paths[1, 1], paths[0, 2], paths[1, 3]]]), 5e-4)
+    other = solve_positions(TX, CROSS, np.array([[paths[1, 0], paths[0, 1], paths[1, 2], paths[0, 3]]]), 5e-4)
+    twins = np.vstack([twin.position_m, other.position_m])
+    assert np.min(np.linalg.norm(twins[:, None] - truth[None], axis=2)) > 0.05
+    assert np.sort(model_paths_m(TX, CROSS, twins), axis=0) == pytest.approx(
+        np.sort(paths, axis=0), abs=1e-12
+    )

@@ -497,15 +497,17 @@ def associate(
         return []
     candidates = _refine(geometry, candidates, echoes, options)
     chosen = _choose(geometry, candidates, echoes, options)
+    receiver_of = rx_index[active].tolist()
+    transmitter_of = tx_index[active].tolist()
     objects = [
         LocatedObject(
             position_m=obj.position_m,
             covariance_m2=obj.covariance_m2,
-            receivers=tuple(int(rx_index[active[c]]) for c in obj.receivers),
+            receivers=tuple(receiver_of[c] for c in obj.receivers),
             echo_indices=obj.echo_indices,
             chi2=obj.chi2,
             score=obj.score * len(obj.receivers) / n_ch,
-            transmitters=tuple(int(tx_index[active[c]]) for c in obj.receivers),
+            transmitters=tuple(transmitter_of[c] for c in obj.receivers),
             shared=obj.shared,
         )
         for obj in chosen
