@@ -1110,7 +1110,7 @@ def design_command(
     )
     spacing = spacing_m if spacing_m is not None else rec.spacing_m
     # The study: the report's spacings 0.01-0.5 m (beyond the recommendation when it is larger).
-    top = max(0.5, 1.5 * rec.spacing_m)
+    top = max(0.5, 1.5 * rec.spacing_m, 1.2 * (rec.largest_spacing_m or 0.0))
     if path_m is not None:
         top = min(top, 0.98 * path_m)
     errors = path_error_m * np.array([-1.0, -0.5, 0.5, 1.0])

@@ -169,6 +169,15 @@ def plot_spacing_study(
             if rec.largest_spacing_m is not None:
                 axis.axvline(rec.largest_spacing_m, color="k", lw=1.0, ls="-.")
                 axis.axvspan(rec.largest_spacing_m, float(d.max()), color="0.5", alpha=0.12, lw=0)
+        if rec.max_range_error_m is not None:
+            for sign in (1, -1):
+                range_axis.axhline(
+                    sign * rec.max_range_error_m * 1e3,
+                    color="0.45",
+                    lw=2.5,
+                    alpha=0.6,
+                    label=f"bound: |Δr| = {rec.max_range_error_m * 1e3:g} mm" if sign > 0 else None,
+                )
         angle_axis.plot([rec.spacing_m], [np.degrees(rec.angle_error_rad)], "ko", ms=6)
         range_axis.plot([rec.spacing_m], [rec.range_error_m * 1e3], "ko", ms=6)
         angle_axis.annotate(
