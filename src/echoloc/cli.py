@@ -1215,23 +1215,26 @@ def design_command(
         for column in (
             "d m",
             "range m",
-            "Δr mm (+Δl1, −Δl1)",
-            "Δr first-order mm",
-            "Δθ ° (+Δl1, −Δl1)",
-            "Δθ first-order °",
+            "Δr mm",
+            "Δr lin mm",
+            "Δθ °",
+            "Δθ lin °",
             "r·|Δθ| mm",
         ):
-            table.add_column(column, justify="right")
-        table.add_column("")
+            table.add_column(column, justify="right", no_wrap=True)
+        table.add_column("", no_wrap=True)
+        table.caption = (
+            "Δr, Δθ: exact for +Δl1/−Δl1; lin: first order for +Δl1; r·|Δθ|: across-beam error, worst sign"
+        )
         for j, d in enumerate(rows.spacings_m):
             mark = math.isclose(d, rec.spacing_m, rel_tol=1e-9)
             chosen = math.isclose(d, spacing, rel_tol=1e-9) and not mark
             table.add_row(
                 f"{d:.3f}",
                 f"{rows.range_m[j]:.3f}",
-                f"{rows.range_error_m[0, j] * 1e3:+.2f}, {rows.range_error_m[1, j] * 1e3:+.2f}",
+                f"{rows.range_error_m[0, j] * 1e3:+.2f}/{rows.range_error_m[1, j] * 1e3:+.2f}",
                 f"{rows.linear_range_error_m[0, j] * 1e3:+.2f}",
-                f"{math.degrees(rows.angle_error_rad[0, j]):+.2f}, "
+                f"{math.degrees(rows.angle_error_rad[0, j]):+.2f}/"
                 f"{math.degrees(rows.angle_error_rad[1, j]):+.2f}",
                 f"{math.degrees(rows.linear_angle_error_rad[0, j]):+.2f}",
                 f"{np.max(rows.cross_range_error_m[:, j]) * 1e3:.1f}",
