@@ -13,12 +13,12 @@ from numpy.typing import NDArray
 from echoloc.backprojection import (
     QUANTUM,
     BackprojectionOptions,
-    _bounds,
     Components,
     EchoModel,
     Envelopes,
     Grid,
     PathTable,
+    _bounds,
     backproject_frame,
     brute_force_image,
     channel_paths_m,
