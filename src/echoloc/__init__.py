@@ -5,6 +5,15 @@ locate -> objects``, one module per stage (see DESIGN.md).
 """
 
 from echoloc.air import absorption_db_per_m, speed_of_sound_cramer_m_s, speed_of_sound_m_s
+from echoloc.backprojection import (
+    BackprojectionOptions,
+    Backprojector,
+    Grid,
+    backproject_frame,
+    frame_image,
+    prepare_backprojection,
+    run_backprojection,
+)
 from echoloc.echoes import ChannelEchoes, EchoOptions, FrameEchoes, MatchedFilter
 from echoloc.errors import EchoLocError, GeometryError, RecordingError, SceneError, WaveformError
 from echoloc.estimators import ESTIMATORS
@@ -57,6 +66,8 @@ __all__ = [
     "ESTIMATORS",
     "PRESETS",
     "Array",
+    "BackprojectionOptions",
+    "Backprojector",
     "Chain",
     "ChannelEchoes",
     "EchoLocError",
@@ -66,6 +77,7 @@ __all__ = [
     "FrameEchoes",
     "FrameObjects",
     "GeometryError",
+    "Grid",
     "LocateOptions",
     "LocatedObject",
     "MatchedFilter",
@@ -86,6 +98,7 @@ __all__ = [
     "absorption_db_per_m",
     "array_factor",
     "associate",
+    "backproject_frame",
     "barker",
     "barker_waveform",
     "chirp_waveform",
@@ -95,6 +108,7 @@ __all__ = [
     "evaluate",
     "find_echoes",
     "frame_echoes",
+    "frame_image",
     "frame_objects",
     "golay_pair",
     "kasami_set",
@@ -106,9 +120,11 @@ __all__ = [
     "piston_directivity",
     "position_errors",
     "prepare",
+    "prepare_backprojection",
     "read_recording",
     "recommended_spacing",
     "run",
+    "run_backprojection",
     "simulate",
     "solve_positions",
     "spacing_study",
