@@ -645,11 +645,11 @@ class _Clean:
         data = np.broadcast_to(restored[lo:hi], (n_rows, hi - lo))
         valid = np.ones((n_rows, hi - lo), dtype=bool)
         fit_tof, fit_amplitude, _ = _joint_fit_batch(
-            self.mf, data, samples, valid, start_tof, start_amplitude, active, real=False, iterations=15
+            self.mf, data, samples, valid, start_tof, start_amplitude, active, real=False, iterations=25
         )
         real_start = np.where(fit_amplitude.real >= 0, np.abs(fit_amplitude), -np.abs(fit_amplitude))
         fit_tof, fit_amplitude, cost = _joint_fit_batch(
-            self.mf, data, samples, valid, fit_tof, real_start + 0j, active, real=True, iterations=10
+            self.mf, data, samples, valid, fit_tof, real_start + 0j, active, real=True, iterations=15
         )
         best, best_score = group, self._window_cost(residual, lo, hi) + penalty * len(group)
         for row in range(n_rows):
