@@ -13,7 +13,11 @@ envelope there ("points to peaks"):
 - :func:`channel_signals`: per channel the analytic matched-filter output (``rf``;
   :class:`echoloc.echoes.MatchedFilter`) or the magnitudes (``envelope``, ``iq``),
   divided by the noise's standard deviation (:func:`echoloc.echoes.noise_power`), so
-  every channel weighs the same and the envelope reads as an amplitude SNR.
+  every channel weighs the same and the envelope reads as an amplitude SNR. For rf
+  the output is CLEAN-restored by default (:meth:`EchoModel.restore`): the echoes
+  :mod:`echoloc.echoes` finds keep their main lobes and lose their code sidelobes
+  (1/13 of the echo for Barker-13, far above the threshold for strong echoes), the
+  residual is kept, so a missed echo still shows.
 - The image is the k-th largest of the channels' envelopes at each voxel (k =
   ``min_support``): a voxel is bright only when k channels all show an echo at its
   paths. A plain sum would light up wherever two or three ellipsoids cross (ghosts).
@@ -23,14 +27,14 @@ envelope there ("points to peaks"):
   the k-th largest of each channel's envelope maximised over the samples the cell's
   voxels read (a range-maximum query on a sparse table); every order statistic is
   monotone in its arguments, so this bounds every fine voxel inside the cell, and
-  cells whose bound is below the floor are never refined.
-- :func:`locate_channels`: objects by CLEAN in image space. The brightest voxel is
-  found; on every channel the echo near the voxel's path is fitted (delay and complex
-  amplitude, by the template's autocorrelation); the supporting channels' paths go to
-  the Gauss-Newton of :func:`echoloc.locate.solve_positions` (position, covariance,
-  chi-square); an accepted object's echoes are subtracted from its channels (with
-  their code sidelobes), and the search starts again. A peak that fails the
-  chi-square gate or the support count is masked and the search goes on.
+  cells whose bound is below the threshold are never refined. The voxels it returns
+  are exactly those of the full grid at or above the threshold.
+- :func:`locate_channels`: every local maximum of the image above the threshold is
+  a candidate; its path on each channel is read off the echo nearest the voxel's
+  path (sub-sample delay); the candidates' paths go, all at once, to the
+  Gauss-Newton of :func:`echoloc.locate.solve_positions` (position, covariance,
+  chi-square gate); candidates are accepted brightest first, each needing echoes of
+  its own on D channels (an echo merged with an accepted object's may be shared).
 - :func:`prepare_backprojection`, :func:`backproject_frame`, :func:`run_backprojection`:
   the per-frame calls, returning :class:`echoloc.locate.FrameObjects`; several
   transmitters (fired in turn or together) are combined as extra channels.
@@ -44,6 +48,7 @@ from functools import cached_property
 from itertools import product
 
 import numpy as np
+import scipy.fft
 from numpy.typing import NDArray
 from scipy import special, stats
 
@@ -400,9 +405,9 @@ class EchoModel:
 
     ``matched`` (rf): the template's analytic autocorrelation (sub-sample table of
     :class:`echoloc.echoes.MatchedFilter`), complex amplitudes. Otherwise ``shape``:
-    the envelope of an echo arriving at sample 0, at integer lags from ``-offset``;
-    None when the recording gives no waveform (then echoes are only read, never
-    subtracted).
+    the magnitude of the waveform's autocorrelation (envelope and iq data are
+    correlated with their waveform too), its peak at index ``offset``; None when the
+    recording gives no waveform (then echoes are only read, never subtracted).
     """
 
     matched: MatchedFilter | None = None
@@ -445,7 +450,7 @@ class EchoModel:
             denom = y0 - 2 * y1 + y2
             if denom < 0:
                 delta = float(np.clip(0.5 * (y0 - y2) / denom, -0.5, 0.5))
-        return peak + delta - self.offset, complex(magnitude[peak])
+        return peak + delta, complex(magnitude[peak])
 
     def _rows(self, taus: _FloatArray) -> tuple[_IntArray, _IntArray]:
         assert self.matched is not None
@@ -824,6 +829,7 @@ class Backprojector:
     options: BackprojectionOptions
     speed_of_sound_m_s: float
     filters: tuple[MatchedFilter | None, ...]  # per transmitter (rf)
+    templates: tuple[NDArray[np.complex128] | None, ...]  # per transmitter (envelope, iq)
     models: tuple[EchoModel, ...]  # per transmitter
     usable_receivers: NDArray[np.bool_]
     conditioning: Conditioning = field(default_factory=Conditioning)
@@ -864,6 +870,7 @@ def prepare_backprojection(
     rx = np.tile(recording.receivers_m, (n_tx, 1))
     table = path_table(grid, tx, rx, recording.sample_rate_hz, c, top_cell_m=options.top_cell_m)
     filters: list[MatchedFilter | None] = []
+    templates: list[NDArray[np.complex128] | None] = []
     models: list[EchoModel] = []
     for t in range(n_tx):
         waveform = recording.waveform
@@ -876,14 +883,18 @@ def prepare_backprojection(
                 )
             mf = MatchedFilter(np.asarray(waveform, float), recording.n_samples, recording.sample_rate_hz)
             filters.append(mf)
+            templates.append(None)
             models.append(EchoModel(matched=mf))
         else:
             filters.append(None)
             if waveform is None:
+                templates.append(None)
                 models.append(EchoModel())
             else:
-                shape = np.abs(np.asarray(waveform))
-                models.append(EchoModel(shape=shape, offset=int(np.argmax(shape))))
+                template = np.asarray(waveform, dtype=np.complex128)
+                templates.append(template)
+                acf = np.abs(np.correlate(template, template, "full"))
+                models.append(EchoModel(shape=acf / acf.max(), offset=len(template) - 1))
     usable = np.ones(n_rx, dtype=bool)
     usable[dead_receivers(recording)] = False
     conditioning = conditioning or Conditioning()
@@ -891,7 +902,16 @@ def prepare_backprojection(
     if options.restore and recording.signal_kind == "rf" and recording.firing != "simultaneous":
         chain = prepare(recording, speed_of_sound_m_s=c, conditioning=conditioning)
     return Backprojector(
-        recording, table, options, c, tuple(filters), tuple(models), usable, conditioning, chain
+        recording,
+        table,
+        options,
+        c,
+        tuple(filters),
+        tuple(templates),
+        tuple(models),
+        usable,
+        conditioning,
+        chain,
     )
 
 
@@ -921,7 +941,9 @@ def channel_signals(
         if mf is not None:
             signal = mf.correlate(np.asarray(frame[receivers], float))
         else:
-            signal = np.abs(np.asarray(frame[receivers])).astype(np.complex128)
+            signal = _baseband_correlation(
+                np.asarray(frame[receivers]), bp.templates[t], recording.signal_kind
+            )
         for j, r in enumerate(receivers):
             row = signal[j] / np.sqrt(noise_power(signal[j]))
             if echoes is not None and components is not None:
@@ -931,6 +953,27 @@ def channel_signals(
             rows.append(row)
             channels.append(t * bp.n_receivers + r)
     return np.array(channels, dtype=np.int64), np.asarray(np.stack(rows), dtype=np.complex128), components
+
+
+def _baseband_correlation(
+    frame: NDArray[np.generic], template: NDArray[np.complex128] | None, signal_kind: str
+) -> NDArray[np.complex128]:
+    """Matched filter of ``iq`` samples, or of ``envelope`` magnitudes less their median, with the waveform.
+
+    ``sum_n x[n + k] conj(w[n]) / sum |w|^2``: an echo ``a w[n - k0]`` gives ``a`` at
+    ``k0``, its arrival. Without a waveform the magnitudes themselves (an echo then
+    peaks where its envelope does: a calibration constant, FORMATS.md).
+    """
+    x = np.asarray(frame, dtype=np.complex128)
+    if signal_kind == "envelope":
+        x = np.abs(x) - np.median(np.abs(x), axis=-1, keepdims=True)
+    if template is None:
+        return np.asarray(np.abs(x), dtype=np.complex128)
+    n = x.shape[-1]
+    n_fft = int(scipy.fft.next_fast_len(n + len(template)))
+    spectrum = scipy.fft.fft(x, n_fft, axis=-1) * np.conj(scipy.fft.fft(template, n_fft))
+    out = scipy.fft.ifft(spectrum, n_fft, axis=-1)[..., :n] / np.sum(np.abs(template) ** 2)
+    return np.asarray(out, dtype=np.complex128)
 
 
 def _locate(
