@@ -28,6 +28,7 @@ from echoloc.backprojection import (
     locate_channels,
     path_table,
     prepare_backprojection,
+    run_backprojection,
     search,
 )
 from echoloc.echoes import MatchedFilter, noise_power
@@ -325,3 +326,31 @@ def test_bad_grid_and_support_are_refused() -> None:
     signals = np.zeros((4, N_SAMPLES), dtype=complex)
     with pytest.raises(EchoLocError, match="min_support=5"):
         locate_channels(table, signals, np.arange(4), [EchoModel()] * 4, BackprojectionOptions(min_support=5))
+
+
+def test_two_transmitters_fired_in_turn_are_located_together() -> None:
+    data = {
+        "seed": 3,
+        "array": {"transmitters_m": [[0.0, 0.0, 0.0], [0.0, 0.1, 0.0]], "receivers_m": ARRAY_3D.tolist()},
+        "pulse": {"code": "barker13", "carrier_hz": 50e3, "cycles_per_bit": 4},
+        "acquisition": {"sample_rate_hz": FS, "n_samples": N_SAMPLES},
+        "noise": {"snr_db": 20.0, "path_jitter_m": 0.0005},
+        "reflectors": [
+            {"kind": "point", "position_m": [0.1, -0.05, 0.5]},
+            {"kind": "point", "position_m": [-0.15, 0.12, 0.65]},
+        ],
+    }
+    recording = simulate(scene_from_dict(data, "test"), 4)
+    assert recording.frame_transmitter is not None
+    assert list(recording.frame_transmitter) == [0, 1, 0, 1]
+    grid = Grid(np.array([-0.3, -0.3, 0.3]), np.array([0.3, 0.3, 0.9]), 0.005)
+    results = list(run_backprojection(prepare_backprojection(recording, grid)))
+    assert recording.truth_positions_m is not None
+    report = evaluate(results, recording.truth_positions_m, match_radius_m=0.01)
+    assert report.recall == 1.0
+    assert report.n_false == 0
+    assert set(results[0].objects[0].transmitters) == {0}  # only transmitter 0 has fired yet
+    for frame in results[1:]:
+        for obj in frame.objects:
+            assert set(obj.transmitters) == {0, 1}  # both transmitters' channels support it
+            assert len(obj.receivers) >= 6
