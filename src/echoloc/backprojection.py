@@ -587,6 +587,12 @@ class BackprojectionOptions:
         A candidate that solves this close to an accepted object is the same object.
     max_candidates
         At most this many local maxima of the image are tried, brightest first.
+    amplitude_log_sigma
+        Spread of a reflector's echo amplitudes about the spreading model (natural-log
+        units, as :data:`echoloc.locate.AMPLITUDE_LOG_SIGMA`): a candidate whose own
+        echoes' ``|a| r_T r_R`` differ beyond the chi-square gate is rejected as a
+        crossing of different reflectors. None: no amplitude check (e.g. transducers
+        whose beams make the amplitudes differ).
     top_cell_m
         Edge of the coarsest cells of the pyramid, m.
     brute_force
@@ -606,6 +612,7 @@ class BackprojectionOptions:
     max_objects: int = 16
     mask_radius_m: float = 0.01
     max_candidates: int = 2000
+    amplitude_log_sigma: float | None = None
     top_cell_m: float = 0.08
     brute_force: bool = False
     restore: bool = True
@@ -746,6 +753,15 @@ def locate_channels(
                 continue
             if any(np.linalg.norm(o.position_m - solved[0]) <= options.mask_radius_m for o in objects):
                 continue
+            own = np.setdiff1d(support, shared)
+            if options.amplitude_log_sigma is not None and not _amplitudes_agree(
+                solved[0],
+                table.transmitters_m[channels[own]],
+                table.receivers_m[channels[own]],
+                amplitude[candidate, own],
+                options,
+            ):
+                continue
             taken[row] = True
             for channel in support.tolist():
                 used[channel].append(float(tau[candidate, channel]))
@@ -763,6 +779,31 @@ def locate_channels(
                 )
             )
     return objects
+
+
+def _amplitudes_agree(
+    position_m: _FloatArray,
+    tx_m: _FloatArray,
+    rx_m: _FloatArray,
+    snr: _FloatArray,
+    options: BackprojectionOptions,
+) -> bool:
+    """Whether one reflector explains the echoes' amplitudes: ``|a_i| r_Ti r_Ri`` equal within the gate.
+
+    A point reflector's echo falls off as ``1 / (r_T r_R)`` (spherical spreading both
+    ways), so the product is its strength on every channel; echoes of different
+    reflectors (a ghost crossing) differ. Log units, sigma ``amplitude_log_sigma``
+    in quadrature with the amplitude noise ``1 / SNR``.
+    """
+    assert options.amplitude_log_sigma is not None
+    if len(snr) < 2:
+        return True
+    spread = np.linalg.norm(position_m - tx_m, axis=1) * np.linalg.norm(position_m - rx_m, axis=1)
+    value = np.log(np.maximum(snr, 1e-12) * spread)
+    weight = 1.0 / (options.amplitude_log_sigma**2 + 1.0 / np.maximum(snr, 1e-12) ** 2)
+    mean = np.sum(weight * value) / np.sum(weight)
+    chi2 = float(np.sum(weight * (value - mean) ** 2))
+    return chi2 <= float(stats.chi2.ppf(options.gate_probability, len(snr) - 1))
 
 
 def _inside(grid: Grid, point: _FloatArray) -> bool:
