@@ -47,6 +47,7 @@ from echoloc.pipeline import (
     frame_objects,
     prepare,
     recording_speed_of_sound_m_s,
+    run,
 )
 from echoloc.recording import Recording, read_recording, write_recording
 from echoloc.scene import default_scene
@@ -115,6 +116,7 @@ class Processing:
     background: bool | None = None
     tvg: bool | None = None
     blind_zone_text: str | None = None
+    field_of_view_deg: float | None = None
 
     def open(self) -> tuple[Recording, Chain, range]:
         """Read the recording, check the options, prepare the chain and the frames to run."""
@@ -122,6 +124,9 @@ class Processing:
         _finite("--blanking-s", self.blanking_s, minimum=0.0)
         _finite("--threshold-db", self.threshold_db)
         _finite("--path-sigma-m", self.path_sigma_m, positive=True)
+        _finite("--field-of-view-deg", self.field_of_view_deg, positive=True)
+        if self.field_of_view_deg is not None and self.field_of_view_deg > 180:
+            raise EchoLocError(f"--field-of-view-deg must be at most 180, got {self.field_of_view_deg:g}")
         recording = read_recording(self.recording_path, repair_nonfinite=self.repair_nonfinite)
         calibration = (
             None
@@ -144,6 +149,11 @@ class Processing:
         if self.path_sigma_m is not None:
             chain = replace(
                 chain, locate_options=replace(chain.locate_options, path_sigma_m=self.path_sigma_m)
+            )
+        if self.field_of_view_deg is not None:
+            chain = replace(
+                chain,
+                locate_options=replace(chain.locate_options, field_of_view_deg=self.field_of_view_deg),
             )
         return recording, chain, _frames_option(self.frames_text, recording.n_frames)
 
@@ -245,6 +255,15 @@ def _processing_options(
                     type=float,
                     default=None,
                     help=f"A-priori path error, m [default: {LocateOptions.path_sigma_m}].",
+                )
+            )
+            decorators.append(
+                click.option(
+                    "--field-of-view-deg",
+                    type=float,
+                    default=None,
+                    help="Half-angle of the beams, degrees: points outside are rejected "
+                    "[default: the recording's field_of_view_deg, else 90].",
                 )
             )
         for decorator in reversed(decorators):
@@ -533,14 +552,14 @@ def locate(processing: Processing, as_json: bool) -> None:
     _, chain, frames = processing.open()
     check_locatable(chain)
     if as_json:
-        for index in frames:
-            click.echo(json_line(objects_record(frame_objects(chain, frame_echoes(chain, index)))))
+        for _, objects in run(chain, frames):
+            click.echo(json_line(objects_record(objects)))
         return
     table = Table(title=f"Objects in {processing.recording_path} ({processing.estimator})")
     for column in ("frame", "x mm", "y mm", "z mm", "±σ x, y, z mm", "range mm", "rx", "score"):
         table.add_column(column, justify="right")
-    for index in frames:
-        _object_rows(table, frame_objects(chain, frame_echoes(chain, index)))
+    for _, objects in run(chain, frames):
+        _object_rows(table, objects)
     stdout.print(table)
 
 
@@ -556,7 +575,7 @@ def _object_rows(table: Table, result: FrameObjects) -> None:
             f"{z:.1f}",
             _mm(obj.std_m, digits=2),
             f"{np.linalg.norm(obj.position_m) * 1e3:.1f}",
-            str(len(obj.receivers)),
+            str(len(set(obj.receivers))),
             f"{obj.score:.2f}",
         )
 
@@ -580,8 +599,8 @@ def evaluate_command(processing: Processing, match_radius_m: float, as_json: boo
     check_locatable(chain)
     results = []
     with _progress(len(frames), "locating", not as_json) as advance:
-        for index in frames:
-            results.append(frame_objects(chain, frame_echoes(chain, index)))
+        for _, objects in run(chain, frames):
+            results.append(objects)
             advance(1)
     report = evaluate(results, recording.truth_positions_m, match_radius_m)
     if as_json:
