@@ -576,6 +576,8 @@ def test_simulate_missing_scene_is_bad_input(capsys: pytest.CaptureFixture[str],
         ("locate", "--blanking-s", "-1"),
         ("echoes", "--blanking-s", "-1"),
         ("locate", "--path-sigma-m", "0"),
+        ("locate", "--field-of-view-deg", "0"),
+        ("evaluate", "--field-of-view-deg", "181"),
         ("evaluate", "--match-radius-m", "0"),
     ],
 )
