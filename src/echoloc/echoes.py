@@ -174,7 +174,7 @@ class MatchedFilter:
         spectra = power * analytic_weights(n_fft) / self.energy
         rows = scipy.fft.ifft(spectra * np.exp(-2j * np.pi * freqs * shifts[:, None]), n_fft, axis=-1)
         lags = np.arange(-self.half_width, self.half_width + 1)
-        return np.asarray(rows[:, lags % n_fft])
+        return np.ascontiguousarray(rows[:, lags % n_fft])
 
     @cached_property
     def phase_rate_rad_per_sample(self) -> float:
@@ -745,21 +745,23 @@ def matched_filter_batch(
 ) -> list[list[ChannelEchoes]]:
     """Matched-filter echoes of many frames (n_frames, n_rx, n_samples) at once.
 
-    Every channel first goes through :func:`_isolated_echoes`, which fits the echoes
-    of all channels together with array operations; a channel whose echoes it cannot
-    vouch for (echoes within two main lobes of each other, or anything left in the
-    correlation that its echoes do not explain) is handed to CLEAN (:class:`_Clean`).
-    Both give the same delays for isolated echoes: the fit is the same.
+    The correlation of every channel is computed at once in single precision; then
+    every channel goes through the batch path (:func:`_isolated_echoes`, run as
+    compiled loops by :func:`_compiled_echoes`), which fits isolated echoes as CLEAN
+    does and clusters of echoes within two main lobes jointly. A channel whose echoes
+    it cannot vouch for (echoes within a quarter main lobe, anything left in the
+    correlation that its echoes do not explain, a stretch CLEAN's split test would
+    look at) is handed to CLEAN (:class:`_Clean`) on its double-precision correlation.
     """
     frames = np.asarray(frames)
     n_frames, n_rx, _ = frames.shape
     correlation = mf.correlate_single(frames).reshape(n_frames * n_rx, -1)
-    fast = _isolated_echoes(correlation, mf, options)
+    fast = _compiled_echoes(correlation, mf, options)
     clean = _Clean(mf, options)
     channels = []
     for index, found in enumerate(fast):
         if found is None:
-            components, power = clean.run(correlation[index].astype(complex))
+            components, power = clean.run(mf.correlate(frames.reshape(n_frames * n_rx, -1)[index]))
             tof = np.array([c.tof_samples for c in components])
             amplitude = np.array([abs(c.amplitude) for c in components])
         else:
@@ -935,6 +937,72 @@ def _fit_peaks(
     return tof, amplitude
 
 
+def _sidelobe_envelope(mf: MatchedFilter) -> NDArray[np.float64]:
+    """Sidelobe envelope of the template: max |R| within a sample of each lag (1 within a sample of 0)."""
+    envelope = np.abs(mf.autocorrelation)
+    dilated = np.maximum(envelope, np.maximum(np.roll(envelope, 1), np.roll(envelope, -1)))
+    lags = np.arange(-mf.half_width, mf.half_width + 1)
+    dilated[np.abs(lags) < 2] = 1.0
+    return np.asarray(dilated)
+
+
+_NOISE_STEP = 4
+"""The compiled batch path takes the noise power from the median of every 4th correlation
+sample: the correlation is band-limited (its main lobe is 17 samples wide), so the
+other samples add little, and the median of 600 samples costs a quarter of 2400."""
+
+
+def _compiled_echoes(
+    correlation: NDArray[np.complexfloating[Any, Any]],
+    mf: MatchedFilter,
+    options: EchoOptions,
+    noise_step: int = _NOISE_STEP,
+) -> list[_FastResult | None]:
+    """:func:`_isolated_echoes` in compiled loops (:mod:`echoloc._echoes_kernels`), channel by channel.
+
+    The same candidates, fits and checks; only the noise power comes from every
+    ``noise_step``-th sample (1: all of them, as :func:`_isolated_echoes`).
+    """
+    from echoloc import _echoes_kernels as kernels  # numba: imported (and compiled) on first use
+
+    n_ch = correlation.shape[0]
+    cap = 4 * options.max_echoes
+    out_tof = np.zeros((n_ch, cap))
+    out_amplitude = np.zeros((n_ch, cap))
+    out_count = np.zeros(n_ch, dtype=np.int64)
+    out_power = np.zeros(n_ch)
+    out_status = np.zeros(n_ch, dtype=np.int64)
+    kernels.batch_echoes(
+        np.ascontiguousarray(correlation, dtype=np.complex64).view(np.float32),
+        mf.acf_table,
+        mf.oversample,
+        mf.half_width,
+        mf.phase_rate_rad_per_sample,
+        _sidelobe_envelope(mf),
+        mf.mainlobe_samples,
+        float(np.sum(np.abs(mf.autocorrelation) ** 2)),
+        10 ** (options.threshold_db / 10),
+        10 ** (-options.dynamic_range_db / 10),
+        max(math.ceil(options.blanking_s * mf.sample_rate_hz), 1),
+        cap,
+        _MAX_JOINT,
+        _COMPLEX_ITERATIONS,
+        _REAL_ITERATIONS,
+        noise_step,
+        out_tof,
+        out_amplitude,
+        out_count,
+        out_power,
+        out_status,
+    )
+    return [
+        (out_tof[c, : out_count[c]].copy(), out_amplitude[c, : out_count[c]].copy(), float(out_power[c]))
+        if out_status[c] == kernels.OK
+        else None
+        for c in range(n_ch)
+    ]
+
+
 def _isolated_echoes(
     correlation: NDArray[np.complexfloating[Any, Any]], mf: MatchedFilter, options: EchoOptions
 ) -> list[_FastResult | None]:
@@ -983,12 +1051,8 @@ def _isolated_echoes(
     cand_a = np.zeros((n_ch, width))
     cand_k[ch[kept], rank[kept]] = k[kept]
     cand_a[ch[kept], rank[kept]] = strength[kept]
-    # Sidelobe envelope of the template: max |R| within a sample of each lag, 0 beyond the template.
-    envelope = np.abs(mf.autocorrelation)
-    dilated = np.maximum(envelope, np.maximum(np.roll(envelope, 1), np.roll(envelope, -1)))
+    dilated = _sidelobe_envelope(mf)
     mainlobe = mf.mainlobe_samples
-    lags = np.arange(-mf.half_width, mf.half_width + 1)
-    dilated[np.abs(lags) < 2] = 1.0
     # Strongest first, a candidate is an echo unless the echoes already accepted explain it.
     accepted = np.zeros((n_ch, width), dtype=bool)
     for j in range(width):

@@ -1,0 +1,548 @@
+"""Compiled inner loops of the matched filter's batch path (:func:`echoloc.echoes.matched_filter_batch`).
+
+A frame of four channels holds a dozen echoes; written with numpy, each step of
+detection, fitting and checking is an array call of a few microseconds, and the
+batch path took ~600 µs a frame beside ~70 µs for the correlation itself. Compiled,
+the same arithmetic (per channel: candidates, sidelobe test, phase-refined fits,
+joint fits of clusters, residual checks) takes a few microseconds a channel. The
+formulas are those of :func:`echoloc.echoes._isolated_echoes`, which stays as their
+readable statement (the tests hold the two to the same answers); this module holds
+only their loops.
+
+``cache=True`` keeps the machine code in ``__pycache__``: the first call in a fresh
+environment compiles (some seconds), later processes load it.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from numba import njit
+
+OK, TOO_MANY, CLOSE, TOO_BIG, LEFT_OVER, UNEXPLAINED = 0, 1, 2, 3, 4, 5
+"""Status of a channel: fitted here, or why it goes to CLEAN."""
+
+
+@njit(cache=True, inline="always")
+def _grid(u: int, tof: float) -> tuple[int, int, int, int, float]:  # pragma: no cover - compiled
+    """Where ``tof`` falls in the sub-sample table: whole sample and row of the two nearest shifts, weight."""
+    position = tof * u
+    g = math.floor(position)
+    gi = int(g)
+    return gi // u, gi % u, (gi + 1) // u, (gi + 1) % u, position - g
+
+
+@njit(cache=True, inline="always")
+def _at(
+    table: Any, half: int, base0: int, row0: int, base1: int, row1: int, weight: float, s: int
+) -> tuple[complex, complex]:  # pragma: no cover - compiled
+    """R(s - tof) and (v1 - v0) for a delay on the grid (base0, row0, base1, row1, weight)."""
+    width = 2 * half + 1
+    lag0 = s - base0 + half
+    lag1 = s - base1 + half
+    v0r = v0i = v1r = v1i = 0.0
+    if lag0 >= 0 and lag0 < width:
+        v = table[row0, lag0]
+        v0r, v0i = v.real, v.imag
+    if lag1 >= 0 and lag1 < width:
+        v = table[row1, lag1]
+        v1r, v1i = v.real, v.imag
+    dr, di = v1r - v0r, v1i - v0i
+    return complex(v0r + weight * dr, v0i + weight * di), complex(dr, di)
+
+
+@njit(cache=True)
+def _prepare(u: int, tofs: Any, grid_b: Any, grid_w: Any) -> None:  # pragma: no cover - compiled
+    """Grid positions of every delay (grid_b: base0, row0, base1, row1; grid_w: weight)."""
+    for e in range(len(tofs)):
+        b0, r0, b1, r1, w = _grid(u, tofs[e])
+        grid_b[e, 0], grid_b[e, 1], grid_b[e, 2], grid_b[e, 3] = b0, r0, b1, r1
+        grid_w[e] = w
+
+
+@njit(cache=True)
+def _model(
+    table: Any, half: int, grid_b: Any, grid_w: Any, amps: Any, count: int, s: int, skip_lo: int, skip_hi: int
+) -> complex:  # pragma: no cover - compiled
+    """Sum of a_k R(s - tau_k) over echoes 0..count-1 except those in [skip_lo, skip_hi)."""
+    width = 2 * half + 1
+    total_r = 0.0
+    total_i = 0.0
+    for e in range(count):
+        if skip_lo <= e < skip_hi:
+            continue
+        lag0 = s - grid_b[e, 0] + half
+        lag1 = s - grid_b[e, 2] + half
+        v0r = v0i = v1r = v1i = 0.0
+        if lag0 >= 0 and lag0 < width:
+            v = table[grid_b[e, 1], lag0]
+            v0r, v0i = v.real, v.imag
+        if lag1 >= 0 and lag1 < width:
+            v = table[grid_b[e, 3], lag1]
+            v1r, v1i = v.real, v.imag
+        w = grid_w[e]
+        xr = v0r + w * (v1r - v0r)
+        xi = v0i + w * (v1i - v0i)
+        a = amps[e]
+        total_r += a.real * xr - a.imag * xi
+        total_i += a.real * xi + a.imag * xr
+    return complex(total_r, total_i)
+
+
+@njit(cache=True)
+def _median(values: Any) -> float:  # pragma: no cover - compiled
+    """The median (mean of the two middle values for an even count), by quickselect on a copy."""
+    a = values.copy()
+    n = len(a)
+    k = n // 2
+    lo, hi = 0, n - 1
+    while lo < hi:
+        pivot = a[(lo + hi) // 2]
+        i, j = lo, hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while a[j] > pivot:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    upper = a[k]
+    if n % 2:
+        return float(upper)
+    lower = a[0]
+    for i in range(1, k):
+        lower = max(lower, a[i])
+    return 0.5 * (float(lower) + float(upper))
+
+
+@njit(cache=True)
+def _solve(a: Any, b: Any) -> Any:  # pragma: no cover - compiled
+    """x with a x = b (small): Gaussian elimination with partial pivoting; NaN if singular."""
+    n = a.shape[0]
+    m = a.copy()
+    v = b.copy()
+    x = np.zeros(n)
+    for col in range(n):
+        pivot = col
+        for row in range(col + 1, n):
+            if abs(m[row, col]) > abs(m[pivot, col]):
+                pivot = row
+        if m[pivot, col] == 0.0 or not np.isfinite(m[pivot, col]):
+            x[:] = np.nan
+            return x
+        if pivot != col:
+            for k in range(n):
+                m[col, k], m[pivot, k] = m[pivot, k], m[col, k]
+            v[col], v[pivot] = v[pivot], v[col]
+        for row in range(col + 1, n):
+            f = m[row, col] / m[col, col]
+            for k in range(col, n):
+                m[row, k] -= f * m[col, k]
+            v[row] -= f * v[col]
+    for row in range(n - 1, -1, -1):
+        acc = v[row]
+        for k in range(row + 1, n):
+            acc -= m[row, k] * x[k]
+        x[row] = acc / m[row, row]
+    return x
+
+
+@njit(cache=True)
+def _evaluate(
+    table: Any,
+    u: int,
+    half: int,
+    data: Any,
+    lo: int,
+    valid: Any,
+    tofs: Any,
+    amps: Any,
+    shapes: Any,
+    slopes: Any,
+    residual: Any,
+) -> float:  # pragma: no cover - compiled
+    """Shapes and slopes (k, w, 2: real, imaginary) over samples lo..lo+w-1, the residual
+    data - model (w, 2; 0 where not valid) and its cost |residual|^2."""
+    k, w = shapes.shape[0], shapes.shape[1]
+    width = 2 * half + 1
+    for m in range(k):
+        b0, r0, b1, r1, wt = _grid(u, tofs[m])
+        for j in range(w):
+            v0r = v0i = v1r = v1i = 0.0
+            if valid[j]:
+                lag0 = lo + j - b0 + half
+                lag1 = lo + j - b1 + half
+                if lag0 >= 0 and lag0 < width:
+                    v = table[r0, lag0]
+                    v0r, v0i = v.real, v.imag
+                if lag1 >= 0 and lag1 < width:
+                    v = table[r1, lag1]
+                    v1r, v1i = v.real, v.imag
+            dr, di = v1r - v0r, v1i - v0i
+            shapes[m, j, 0] = v0r + wt * dr
+            shapes[m, j, 1] = v0i + wt * di
+            slopes[m, j, 0] = dr * u
+            slopes[m, j, 1] = di * u
+    cost = 0.0
+    for j in range(w):
+        rr, ri = 0.0, 0.0
+        if valid[j]:
+            rr, ri = data[j, 0], data[j, 1]
+            for m in range(k):
+                ar, ai = amps[m].real, amps[m].imag
+                sr, si = shapes[m, j, 0], shapes[m, j, 1]
+                rr -= ar * sr - ai * si
+                ri -= ar * si + ai * sr
+        residual[j, 0] = rr
+        residual[j, 1] = ri
+        cost += rr * rr + ri * ri
+    return cost
+
+
+@njit(cache=True)
+def _joint_fit(
+    table: Any,
+    u: int,
+    half: int,
+    data: Any,
+    lo: int,
+    valid: Any,
+    tofs: Any,
+    amps: Any,
+    real: bool,
+    iterations: int,
+) -> None:  # pragma: no cover - compiled
+    """Levenberg-Marquardt of sum_k a_k R(s - tau_k) to data (w, 2), in place.
+
+    As echoes._joint_fit_batch does for one row.
+    """
+    k = len(tofs)
+    w = data.shape[0]
+    p = k * (2 if real else 3)
+    shapes = np.zeros((k, w, 2))
+    slopes = np.zeros((k, w, 2))
+    residual = np.zeros((w, 2))
+    trial_shapes = np.zeros((k, w, 2))
+    trial_slopes = np.zeros((k, w, 2))
+    trial_residual = np.zeros((w, 2))
+    cost = _evaluate(table, u, half, data, lo, valid, tofs, amps, shapes, slopes, residual)
+    damping = 1e-3
+    jac = np.zeros((p, w, 2))
+    normal = np.zeros((p, p))
+    gradient = np.zeros(p)
+    new_tofs = np.zeros(k)
+    new_amps = np.zeros(k, dtype=np.complex128)
+    for _ in range(iterations):
+        for m in range(k):
+            ar, ai = amps[m].real, amps[m].imag
+            for j in range(w):
+                sr, si = slopes[m, j, 0], slopes[m, j, 1]
+                jac[m, j, 0] = ar * sr - ai * si
+                jac[m, j, 1] = ar * si + ai * sr
+                jac[k + m, j, 0] = shapes[m, j, 0]
+                jac[k + m, j, 1] = shapes[m, j, 1]
+                if not real:
+                    jac[2 * k + m, j, 0] = -shapes[m, j, 1]
+                    jac[2 * k + m, j, 1] = shapes[m, j, 0]
+        for a in range(p):
+            for b in range(a, p):
+                acc = 0.0
+                for j in range(w):
+                    acc += jac[a, j, 0] * jac[b, j, 0] + jac[a, j, 1] * jac[b, j, 1]
+                normal[a, b] = acc
+                normal[b, a] = acc
+            acc = 0.0
+            for j in range(w):
+                acc += jac[a, j, 0] * residual[j, 0] + jac[a, j, 1] * residual[j, 1]
+            gradient[a] = acc
+        for a in range(p):
+            d = normal[a, a]
+            normal[a, a] = d + damping * d + (1.0 if d == 0 else 0.0)
+        step = _solve(normal, gradient)
+        for m in range(k):
+            new_tofs[m] = tofs[m] + min(max(step[m], -2.0), 2.0)
+            new_amps[m] = amps[m] + step[k + m]
+            if not real:
+                new_amps[m] += 1j * step[2 * k + m]
+        trial = _evaluate(
+            table, u, half, data, lo, valid, new_tofs, new_amps, trial_shapes, trial_slopes, trial_residual
+        )
+        if trial < cost:
+            tofs[:] = new_tofs
+            amps[:] = new_amps
+            shapes[:] = trial_shapes
+            slopes[:] = trial_slopes
+            residual[:] = trial_residual
+            cost = trial
+            damping /= 4
+        else:
+            damping *= 8
+
+
+@njit(cache=True)
+def _fit_peak(
+    table: Any,
+    u: int,
+    half: int,
+    rate: float,
+    corr: Any,
+    peak: int,
+    fit_half: int,
+    grid_b: Any,
+    grid_w: Any,
+    amps: Any,
+    count: int,
+    skip: int,
+) -> tuple[float, complex]:  # pragma: no cover - compiled
+    """One echo as echoes._fit_peaks fits it, the other echoes' model (all but ``skip``) taken out."""
+    n = len(corr) // 2
+    env = np.zeros(3)
+    values = np.zeros(3, dtype=np.complex128)
+    for i in range(3):
+        s = min(max(peak - 1 + i, 0), n - 1)
+        values[i] = complex(corr[2 * s], corr[2 * s + 1]) - _model(
+            table, half, grid_b, grid_w, amps, count, s, skip, skip + 1
+        )
+        env[i] = abs(values[i])
+    a, b, c = env[0], env[1], env[2]
+    curvature = a - 2 * b + c
+    offset = 0.0
+    if curvature < 0:
+        offset = min(max(0.5 * (a - c) / curvature, -0.5), 0.5)
+    coarse = peak + offset
+    period = math.pi / rate
+    weighted = 0.0
+    total = 0.0
+    for i in range(3):
+        s = min(max(peak - 1 + i, 0), n - 1)
+        estimate = s - math.atan2(values[i].imag, values[i].real) / rate
+        estimate += period * np.round((coarse - estimate) / period)
+        weighted += env[i] ** 2 * estimate
+        total += env[i] ** 2
+    tof = weighted / max(total, 1e-300)
+    if abs(tof - coarse) > 1.5:
+        tof = coarse
+    b0, r0, b1, r1, wt = _grid(u, tof)
+    num = 0j
+    den = 0.0
+    for i in range(2 * fit_half + 1):
+        s = peak - fit_half + i
+        if s < 0 or s >= n:
+            continue
+        value = complex(corr[2 * s], corr[2 * s + 1]) - _model(
+            table, half, grid_b, grid_w, amps, count, s, skip, skip + 1
+        )
+        shape, _ = _at(table, half, b0, r0, b1, r1, wt, s)
+        num += shape.conjugate() * value
+        den += shape.real * shape.real + shape.imag * shape.imag
+    return tof, num / max(den, 1e-300)
+
+
+@njit(cache=True)
+def batch_echoes(
+    corr: Any,
+    table: Any,
+    u: int,
+    half: int,
+    rate: float,
+    dilated: Any,
+    mainlobe: float,
+    acf_energy: float,
+    threshold_factor: float,
+    dynamic_range: float,
+    first: int,
+    max_candidates: int,
+    max_joint: int,
+    complex_iterations: int,
+    real_iterations: int,
+    noise_step: int,
+    out_tof: Any,
+    out_amp: Any,
+    out_count: Any,
+    out_power: Any,
+    out_status: Any,
+) -> None:  # pragma: no cover - compiled
+    """Echoes of every channel of ``corr`` this path can vouch for (echoes._isolated_echoes).
+
+    ``corr`` is the complex correlation (n_ch, n) viewed as (n_ch, 2 n) reals.
+    """
+    n_ch, n = corr.shape[0], corr.shape[1] // 2
+    fit_half = max(1, int(np.round(mainlobe / 2)))
+    span = math.ceil(mainlobe)
+    power_map = np.zeros(n)
+    noise = np.zeros((n + noise_step - 1) // noise_step)
+    for ch in range(n_ch):
+        out_count[ch] = 0
+        out_status[ch] = OK
+        row = corr[ch]
+        for k in range(n):
+            re, im = float(row[2 * k]), float(row[2 * k + 1])
+            power_map[k] = re * re + im * im
+        for i in range(len(noise)):
+            noise[i] = power_map[i * noise_step]
+        power = max(_median(noise) / math.log(2.0), 1e-300)
+        out_power[ch] = power
+        threshold = threshold_factor * power
+        # Candidates: local maxima above the threshold, within the dynamic range.
+        n_cand = 0
+        strongest = 0.0
+        for k in range(max(first, 1), n - 1):
+            pk = power_map[k]
+            if pk > threshold and pk > power_map[k - 1] and pk >= power_map[k + 1]:
+                n_cand += 1
+                strongest = max(strongest, pk)
+        if n_cand == 0:
+            continue
+        cand_k = np.zeros(n_cand, dtype=np.int64)
+        cand_a = np.zeros(n_cand)
+        m = 0
+        for k in range(max(first, 1), n - 1):
+            pk = power_map[k]
+            local_max = pk > threshold and pk > power_map[k - 1] and pk >= power_map[k + 1]
+            if local_max and pk >= strongest * dynamic_range:
+                cand_k[m] = k
+                cand_a[m] = math.sqrt(pk)
+                m += 1
+        if m > max_candidates:
+            out_status[ch] = TOO_MANY
+            continue
+        order = np.argsort(-cand_a[:m], kind="mergesort")
+        cand_k = cand_k[:m][order]
+        cand_a = cand_a[:m][order]
+        # Strongest first, a candidate is an echo unless the accepted echoes' sidelobes explain it.
+        accepted = np.zeros(m, dtype=np.bool_)
+        n_echo = 0
+        for j in range(m):
+            bound = 0.0
+            for i in range(j):
+                if accepted[i]:
+                    gap = abs(cand_k[i] - cand_k[j]) + half
+                    if gap <= 2 * half:
+                        bound += dilated[gap] * cand_a[i]
+            accepted[j] = cand_a[j] > 1.5 * bound and cand_a[j] > 0
+            if accepted[j]:
+                n_echo += 1
+        peaks = np.zeros(n_echo, dtype=np.int64)
+        e = 0
+        for j in range(m):
+            if accepted[j]:
+                peaks[e] = cand_k[j]
+                e += 1
+        # Each echo alone, then twice with the others' model taken out (all updated together).
+        tofs = np.zeros(n_echo)
+        amps = np.zeros(n_echo, dtype=np.complex128)
+        grid_b = np.zeros((n_echo, 4), dtype=np.int64)
+        grid_w = np.zeros(n_echo)
+        new_tofs = np.zeros(n_echo)
+        new_amps = np.zeros(n_echo, dtype=np.complex128)
+        for e in range(n_echo):
+            tofs[e], amps[e] = _fit_peak(
+                table, u, half, rate, row, peaks[e], fit_half, grid_b, grid_w, amps, 0, 0
+            )
+        for _ in range(2):
+            _prepare(u, tofs, grid_b, grid_w)
+            for e in range(n_echo):
+                new_tofs[e], new_amps[e] = _fit_peak(
+                    table, u, half, rate, row, peaks[e], fit_half, grid_b, grid_w, amps, n_echo, e
+                )
+            tofs[:] = new_tofs
+            amps[:] = new_amps
+        # Sort by delay; clusters of echoes within two main lobes are fitted jointly.
+        order = np.argsort(tofs, kind="mergesort")
+        tofs = tofs[order]
+        amps = amps[order]
+        peaks = peaks[order]
+        status = OK
+        for e in range(1, n_echo):
+            if tofs[e] - tofs[e - 1] < mainlobe / 4:
+                status = CLOSE
+        _prepare(u, tofs, grid_b, grid_w)
+        fitted_tofs = tofs.copy()
+        fitted_amps = amps.copy()
+        start = 0
+        while start < n_echo and status == OK:
+            stop = start + 1
+            while stop < n_echo and tofs[stop] - tofs[stop - 1] < 2 * mainlobe:
+                stop += 1
+            size = stop - start
+            if size > max_joint:
+                status = TOO_BIG
+            elif size > 1:
+                lo = math.floor(tofs[start]) - fit_half
+                hi = math.ceil(tofs[stop - 1]) + fit_half + 1
+                w = hi - lo
+                data = np.zeros((w, 2))
+                valid = np.zeros(w, dtype=np.bool_)
+                for j in range(w):
+                    s = lo + j
+                    if 0 <= s < n:
+                        valid[j] = True
+                        other = _model(table, half, grid_b, grid_w, amps, n_echo, s, start, stop)
+                        data[j, 0] = row[2 * s] - other.real
+                        data[j, 1] = row[2 * s + 1] - other.imag
+                t = tofs[start:stop].copy()
+                a = amps[start:stop].copy()
+                _joint_fit(table, u, half, data, lo, valid, t, a, False, complex_iterations)
+                for i in range(size):
+                    a[i] = abs(a[i]) if a[i].real >= 0 else -abs(a[i])
+                _joint_fit(table, u, half, data, lo, valid, t, a, True, real_iterations)
+                fitted_tofs[start:stop] = t
+                fitted_amps[start:stop] = a
+            start = stop
+        if status != OK:
+            out_status[ch] = status
+            continue
+        tofs = fitted_tofs
+        amps = fitted_amps
+        _prepare(u, tofs, grid_b, grid_w)
+        # Checks: the model explains the main lobe around each echo's peak, every rejected
+        # candidate, and (CLEAN's split test) two main lobes around each echo.
+        for e in range(n_echo):
+            for i in range(2 * fit_half + 1):
+                s = min(max(peaks[e] - fit_half + i, 0), n - 1)
+                r = complex(row[2 * s], row[2 * s + 1]) - _model(
+                    table, half, grid_b, grid_w, amps, n_echo, s, 0, 0
+                )
+                if r.real * r.real + r.imag * r.imag > threshold:
+                    status = LEFT_OVER
+        for j in range(m):
+            if not accepted[j]:
+                s = cand_k[j]
+                r = complex(row[2 * s], row[2 * s + 1]) - _model(
+                    table, half, grid_b, grid_w, amps, n_echo, s, 0, 0
+                )
+                if r.real * r.real + r.imag * r.imag > threshold:
+                    status = LEFT_OVER
+        for e in range(n_echo):
+            centre = int(np.round(tofs[e]))
+            cost = 0.0
+            inside = 0
+            for i in range(2 * span + 1):
+                s = centre - span + i
+                if 0 <= s < n:
+                    r = complex(row[2 * s], row[2 * s + 1]) - _model(
+                        table, half, grid_b, grid_w, amps, n_echo, s, 0, 0
+                    )
+                    cost += r.real * r.real + r.imag * r.imag
+                    inside += 1
+            magnitude = abs(amps[e])
+            if cost >= 3.0 * power * inside and cost >= 0.003 * magnitude * magnitude * acf_energy:
+                status = UNEXPLAINED
+        out_status[ch] = status
+        if status != OK:
+            continue
+        count = min(n_echo, out_tof.shape[1])
+        for e in range(count):
+            out_tof[ch, e] = tofs[e]
+            out_amp[ch, e] = abs(amps[e])
+        out_count[ch] = count
