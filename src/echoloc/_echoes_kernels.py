@@ -210,7 +210,7 @@ def _evaluate(
 
 
 @njit(cache=True)
-def _joint_fit(
+def joint_fit(
     table: Any,
     u: int,
     half: int,
@@ -221,8 +221,8 @@ def _joint_fit(
     amps: Any,
     real: bool,
     iterations: int,
-) -> None:  # pragma: no cover - compiled
-    """Levenberg-Marquardt of sum_k a_k R(s - tau_k) to data (w, 2), in place.
+) -> float:  # pragma: no cover - compiled
+    """Levenberg-Marquardt of sum_k a_k R(s - tau_k) to data (w, 2), in place; the final cost.
 
     As echoes._joint_fit_batch does for one row.
     """
@@ -287,6 +287,7 @@ def _joint_fit(
             damping /= 4
         else:
             damping *= 8
+    return cost
 
 
 @njit(cache=True)
@@ -492,10 +493,10 @@ def batch_echoes(
                         data[j, 1] = row[2 * s + 1] - other.imag
                 t = tofs[start:stop].copy()
                 a = amps[start:stop].copy()
-                _joint_fit(table, u, half, data, lo, valid, t, a, False, complex_iterations)
+                joint_fit(table, u, half, data, lo, valid, t, a, False, complex_iterations)
                 for i in range(size):
                     a[i] = abs(a[i]) if a[i].real >= 0 else -abs(a[i])
-                _joint_fit(table, u, half, data, lo, valid, t, a, True, real_iterations)
+                joint_fit(table, u, half, data, lo, valid, t, a, True, real_iterations)
                 fitted_tofs[start:stop] = t
                 fitted_amps[start:stop] = a
             start = stop
