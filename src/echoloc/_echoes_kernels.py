@@ -221,10 +221,13 @@ def joint_fit(
     amps: Any,
     real: bool,
     iterations: int,
+    converge: bool = False,
 ) -> float:  # pragma: no cover - compiled
     """Levenberg-Marquardt of sum_k a_k R(s - tau_k) to data (w, 2), in place; the final cost.
 
-    As echoes._joint_fit_batch does for one row.
+    As echoes._joint_fit_batch does for one row: ``iterations`` steps, or with
+    ``converge`` at most that many, stopping once a step moves no delay by more than
+    1e-6 samples or the damping has grown past 1e8 (no step lowers the cost).
     """
     k = len(tofs)
     w = data.shape[0]
@@ -278,6 +281,9 @@ def joint_fit(
             table, u, half, data, lo, valid, new_tofs, new_amps, trial_shapes, trial_slopes, trial_residual
         )
         if trial < cost:
+            moved = 0.0
+            for m in range(k):
+                moved = max(moved, abs(new_tofs[m] - tofs[m]))
             tofs[:] = new_tofs
             amps[:] = new_amps
             shapes[:] = trial_shapes
@@ -285,8 +291,12 @@ def joint_fit(
             residual[:] = trial_residual
             cost = trial
             damping /= 4
+            if converge and moved < 1e-6:
+                break
         else:
             damping *= 8
+            if converge and damping > 1e8:
+                break
     return cost
 
 
