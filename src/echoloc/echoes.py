@@ -14,7 +14,19 @@ estimators are in :mod:`echoloc.envelopes` and the registry of all of them in
     overlapping echoes. Every echo is then re-fitted with the others removed (two
     passes of successive refinement). Each delay is the envelope's peak refined by
     the carrier phase at the peak; the half-cycle ambiguity of the phase (an echo
-    may come back inverted) is resolved by the envelope.
+    may come back inverted) is resolved by the envelope. Echoes whose main lobes
+    overlap are fitted jointly (least squares of ``sum_k a_k R(m - tau_k)``, complex
+    amplitudes then real ones), and the number of echoes in a crowded stretch is
+    chosen by a penalised cost among alternatives: each echo half a carrier cycle
+    off with its sign flipped, each left out, the stretch read afresh as two echoes
+    (:meth:`_Clean._choose_overlapping`, :meth:`_Clean._choose_order`).
+
+    Speed: frames are processed in batches (:func:`matched_filter_batch`). The
+    correlation of all channels is one single-precision FFT pass; a batch path in
+    compiled loops (:mod:`echoloc._echoes_kernels`, stated in numpy by
+    :func:`_isolated_echoes`) fits isolated echoes and clusters of resolved echoes
+    with the same formulas, and hands CLEAN only the channels whose correlation its
+    model does not explain.
 
 Conventions: ``tof_s`` is the delay from emission start to the echo's arrival
 (FORMATS.md), whatever the estimator. ``amplitude`` is the echo's peak amplitude in
