@@ -37,7 +37,8 @@ ROOT = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).resolve().parent / "results" / "locate.md"
 
 
-def _median_time(job: list[FrameEchoes], chain: pipeline.Chain) -> float:
+def _time_per_frame(job: list[FrameEchoes], chain: pipeline.Chain) -> float:
+    """Mean time per frame of one pass over ``job``, s."""
     start = time.perf_counter()
     for echoes in job:
         pipeline.frame_objects(chain, echoes)
@@ -98,7 +99,7 @@ def main() -> None:
         few = group[: args.brute_frames]
         ours, brute = [], []
         for _ in range(args.rounds):
-            ours.append(_median_time(group, chain))
+            ours.append(_time_per_frame(group, chain))
             start = time.perf_counter()
             for e in few:
                 paths = [ch.tof_s * e.speed_of_sound_m_s for ch in e.channels]

@@ -291,6 +291,13 @@ def seed_candidates(
                             row_use[c] = OWN
                             n_own += 1
                             continue
+                        row_echo[c] = -1
+                        row_use[c] = NONE
+                        visible = _in_beam(p, transmitters[c], transmitter_axes[c], cos_fov)
+                        visible = visible and _in_beam(p, receivers[c], receiver_axes[c], cos_fov)
+                        outside = predicted[c] < window_low or predicted[c] > window_high
+                        if not visible or outside:
+                            continue  # this channel cannot see the point: no echo, none needed
                         # Prediction variance from the seed: g_c J_s^-1, squared, times sigma^2.
                         if not _solve(seed_jac.T, jac[c].copy(), gain):
                             keep = False
@@ -299,8 +306,6 @@ def seed_candidates(
                         for k in range(d):
                             var += gain[k] ** 2 * seed_sigmas[k] ** 2
                         lo, hi = offset[c], offset[c + 1]
-                        row_echo[c] = -1
-                        row_use[c] = NONE
                         if hi > lo:
                             pos = lo + np.searchsorted(sorted_paths[lo:hi], predicted[c])
                             best = -1
@@ -315,19 +320,15 @@ def seed_candidates(
                                 row_echo[c] = echo_index
                                 row_use[c] = OWN
                                 n_own += 1
-                            elif gap <= merge_reach + reach:
+                            elif required[c] and gap <= merge_reach + reach:
+                                # A merged peak; on an optional channel (an older frame) a
+                                # larger gap means the reflector moved: no support there.
                                 row_echo[c] = echo_index
                                 row_use[c] = SHARED
                         if row_use[c] == NONE and required[c]:
-                            # A required channel without an echo must be unable to see the point.
-                            outside = predicted[c] < window_low or predicted[c] > window_high
-                            outside = outside or not _in_beam(
-                                p, transmitters[c], transmitter_axes[c], cos_fov
-                            )
-                            outside = outside or not _in_beam(p, receivers[c], receiver_axes[c], cos_fov)
-                            if not outside:
-                                keep = False
-                                break
+                            # A required channel that can see the point must show its echo.
+                            keep = False
+                            break
                     if keep and n_own >= min_own:
                         if count == capacity:
                             return echo_out, use_out, points_out, count, True

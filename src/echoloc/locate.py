@@ -17,14 +17,17 @@ transmitter's place (a transducer that both sends and receives).
   (squared equations ``2 R_i.p - 2 l_i rho = |R_i|^2 - l_i^2``, ``rho = |p - T|``),
   with the covariance ``(J^T W J)^-1`` and the chi-square of the residual.
 - :func:`associate` ("peaks to points"): several objects from the echoes of every
-  channel, each echo used once, ghosts rejected; see its docstring.
+  channel, ghosts rejected; an echo serves two objects only as the merged peak of
+  both; see its docstring.
 """
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from functools import lru_cache
 from itertools import combinations
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -49,7 +52,8 @@ class LocateOptions:
         below the gate's quantile (for 4 receivers: 1 degree of freedom).
     min_receivers
         Echoes of their own (not shared with another object) from at least this many
-        channels make an object (>= 3 in 3-D, >= 2 in 2-D).
+        channels make an object (>= 3 in 3-D, >= 2 in 2-D); one fewer when the object
+        shares merged echoes with objects already found.
     resolution_m
         Two echoes closer in path than this merge into one detection (the pulse's
         resolution, m). A channel whose echo merged with another object's still
@@ -83,6 +87,10 @@ class LocateOptions:
     field_of_view_deg: float = 90.0
     transmitter_axes: NDArray[np.float64] | None = field(default=None, compare=False)
     receiver_axes: NDArray[np.float64] | None = field(default=None, compare=False)
+
+
+class LocateWarning(UserWarning):
+    """A frame could not be located as asked (it is skipped, the stream goes on)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -333,34 +341,16 @@ def _gauss_newton(
     """Gauss-Newton on channels (T_i, R_i); zero weights leave channels out (compiled loop)."""
     from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
 
+    # Fresh C-ordered float64 copies: one compiled signature (views may be read-only).
     position, covariance, chi2, converged = kernels.gauss_newton(
-        np.ascontiguousarray(transmitters, dtype=float),
-        np.ascontiguousarray(receivers, dtype=float),
-        np.ascontiguousarray(paths, dtype=float),
-        np.ascontiguousarray(weights, dtype=float),
-        np.ascontiguousarray(start, dtype=float),
+        np.array(transmitters, dtype=float, order="C"),
+        np.array(receivers, dtype=float, order="C"),
+        np.array(paths, dtype=float, order="C"),
+        np.array(weights, dtype=float, order="C"),
+        np.array(start, dtype=float, order="C"),
         iterations,
     )
     return Solution(position, covariance, chi2, converged)
-
-
-def _jacobian_residual(
-    transmitters: NDArray[np.float64],
-    receivers: NDArray[np.float64],
-    paths: NDArray[np.float64],
-    p: NDArray[np.float64],
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    to_tx = p[:, None, :] - transmitters
-    to_rx = p[:, None, :] - receivers
-    r_tx = np.linalg.norm(to_tx, axis=2)
-    r_rx = np.linalg.norm(to_rx, axis=2)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        jac = to_tx / r_tx[..., None] + to_rx / r_rx[..., None]
-    residual = paths - (r_tx + r_rx)
-    return jac, residual
-
-
-# --- association -------------------------------------------------------------------
 
 
 def path_sigmas_m(
@@ -444,7 +434,7 @@ def associate(
     receiver_index: NDArray[np.int64] | None = None,
     required: NDArray[np.bool_] | None = None,
 ) -> list[LocatedObject]:
-    """Objects from the echo paths of every channel ("peaks to points"); each echo used once.
+    """Objects from the echo paths of every channel ("peaks to points").
 
     ``transmitter_m`` is the one transmitter (D,) of every channel, or one per channel
     (C, D) when frames of several transmitters are combined (:func:`combine_frames`
@@ -452,31 +442,35 @@ def associate(
     ``required`` marks the channels on which every object must show an echo or have
     a reason not to (default: all); the others support an object when they agree.
 
-    1. Seeds: for D channels of one transmitter at a time, every choice of one echo
-       per channel that the triangle inequality allows (``|l_i - l_j| <= |R_i - R_j|
-       + |T_i - T_j|`` and ``l_i >= |R_i - T_i|``, with 4-sigma slack) is solved
-       exactly (:func:`exact_solutions`); points behind the array or outside the
-       beams are dropped.
-    2. Every other channel's path is predicted from the seed, with its variance
-       propagated from the seed's paths; the nearest echo within the chi-square gate
-       is the object's own, one within half the resolution is a merged echo shared
-       with another object (``sigma = resolution / 4``). A channel with neither must
-       have its predicted path outside its window, or the seed is not an object.
+    1. Seeds: for D required channels of one transmitter at a time, every choice of
+       one echo per channel that the triangle inequality allows (``|l_i - l_j| <=
+       |R_i - R_j| + |T_i - T_j|`` and ``l_i >= |R_i - T_i|``, with 4-sigma slack)
+       is solved exactly (:func:`exact_solutions`); points behind the array or
+       outside the seed channels' beams are dropped.
+    2. Every other channel that can see the point (inside its window and beams) has
+       its path predicted from the seed, with the variance propagated from the
+       seed's paths; the nearest echo within the chi-square gate is the object's own,
+       one up to a quarter resolution further is a merged peak (weighted with
+       :func:`_merge_sigma`). A required channel with neither rejects the seed.
     3. Each candidate is refined by Gauss-Newton on all its echoes and kept when its
-       chi-square passes the gate.
-    4. The heaviest set of candidates sharing no own echo is chosen (exact weighted
-       set packing); weights count objects first, then the residual, merged echoes
-       and, when ``amplitudes`` are given, the consistency of the echo amplitudes
-       with spherical spreading (a ghost built from echoes of different reflectors
-       rarely has amplitudes that agree). Candidates that lost only echoes the chosen
-       objects own are then tried again with those echoes shared.
+       chi-square passes the gate (failing that, again without optional channels).
+    4. The heaviest set of candidates with no echo in common is chosen (exact
+       weighted set packing), those with only own echoes first; weights count
+       objects first, then the residual, merged echoes and, when ``amplitudes`` are
+       given, the consistency of the echo amplitudes with spherical spreading (a
+       ghost built from echoes of different reflectors rarely has amplitudes that
+       agree). In rounds, candidates that lost echoes to chosen objects and keep
+       enough of their own are tried again with those echoes shared. Objects whose
+       echoes all but one serve others, and objects that repeat another, go.
     """
     receivers = np.asarray(receivers_m, dtype=float)
     n_ch, dim = receivers.shape
     usable_mask = np.ones(n_ch, dtype=bool) if usable is None else np.asarray(usable, dtype=bool)
     tx = np.broadcast_to(np.asarray(transmitter_m, dtype=float), (n_ch, dim))
-    tx_index = np.zeros(n_ch, dtype=np.int64) if transmitter_index is None else np.asarray(transmitter_index)
-    rx_index = np.arange(n_ch) if receiver_index is None else np.asarray(receiver_index)
+    tx_index = (
+        np.zeros(n_ch, np.int64) if transmitter_index is None else np.asarray(transmitter_index, np.int64)
+    )
+    rx_index = np.arange(n_ch) if receiver_index is None else np.asarray(receiver_index, np.int64)
     if transmitter_index is None and np.ndim(transmitter_m) == 2:
         _, tx_index = np.unique(tx, axis=0, return_inverse=True)
         tx_index = tx_index.reshape(-1)
@@ -548,44 +542,21 @@ def _geometry(
 
 def _seed_sets(geometry: _Geometry) -> list[tuple[int, ...]]:
     """Which D channels seed candidates: per transmitter, every D of its channels, so
-    that an object missing an echo on any one channel still has a seed; best
-    conditioned first (cached per geometry)."""
-    return _seed_sets_cached(
-        geometry.transmitters_m.tobytes(),
-        geometry.receivers_m.tobytes(),
-        geometry.transmitter_index.tobytes(),
-        geometry.dim,
-    )
+    that an object whose echo on some channel merged with another's, or lies outside
+    that channel's window or beam, still has a seed of its own echoes. Only required
+    channels seed: objects are those of the newest frame (cached)."""
+    return _seed_sets_cached(geometry.transmitter_index.tobytes(), geometry.required.tobytes(), geometry.dim)
 
 
 @lru_cache(maxsize=32)
-def _seed_sets_cached(tx: bytes, rx: bytes, tx_index: bytes, dim: int) -> list[tuple[int, ...]]:
-    transmitters = np.frombuffer(tx).reshape(-1, dim)
-    receivers = np.frombuffer(rx).reshape(-1, dim)
+def _seed_sets_cached(tx_index: bytes, required: bytes, dim: int) -> list[tuple[int, ...]]:
     index = np.frombuffer(tx_index, dtype=np.int64)
-    boresight = np.zeros(dim)
-    boresight[-1] = 1.0
-    seeds: list[tuple[int, ...]] = []
-    for t in np.unique(index):
-        channels = np.flatnonzero(index == t)
-        sets = list(combinations(channels.tolist(), dim))
-        sets.sort(key=lambda s: -_seed_spread(transmitters, receivers, s, boresight))
-        seeds.extend(sets)
-    return seeds
-
-
-def _seed_spread(
-    transmitters: NDArray[np.float64],
-    receivers: NDArray[np.float64],
-    channels: tuple[int, ...],
-    boresight: NDArray[np.float64],
-) -> float:
-    """How well D channels fix a point 1 m along the boresight: the Jacobian's smallest singular value."""
-    point = transmitters[channels[0]] + boresight
-    jac, _ = _jacobian_residual(
-        transmitters[list(channels)], receivers[list(channels)], np.zeros((1, len(channels))), point[None]
-    )
-    return float(np.linalg.svd(jac[0], compute_uv=False)[-1])
+    must = np.frombuffer(required, dtype=bool)
+    return [
+        seed
+        for t in np.unique(index[must])
+        for seed in combinations(np.flatnonzero((index == t) & must).tolist(), dim)
+    ]
 
 
 def _seed_candidates(geometry: _Geometry, echoes: _Echoes, options: LocateOptions) -> _Candidates:
@@ -605,7 +576,10 @@ def _seed_candidates(geometry: _Geometry, echoes: _Echoes, options: LocateOption
     from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
 
     while True:
-        contiguous = np.ascontiguousarray
+
+        def contiguous(a: NDArray[Any]) -> NDArray[Any]:
+            return np.array(a, order="C")
+
         echo, use, points, count, overflow = kernels.seed_candidates(
             contiguous(geometry.transmitters_m),
             contiguous(geometry.receivers_m),
@@ -630,9 +604,13 @@ def _seed_candidates(geometry: _Geometry, echoes: _Echoes, options: LocateOption
         if not overflow:
             break
         if capacity >= _MAX_SEED_ROWS:
-            raise GeometryError(
-                f"too many echo combinations (> {_MAX_SEED_ROWS}) to associate; raise the detection threshold"
+            warnings.warn(
+                f"frame skipped: more than {_MAX_SEED_ROWS} echo combinations to associate; "
+                "raise the detection threshold",
+                LocateWarning,
+                stacklevel=4,
             )
+            return _no_candidates(n_ch, dim)
         capacity *= 4
     # The same object comes from several seeds: keep one of each echo set.
     seen: set[tuple[int, ...]] = set()
@@ -694,15 +672,48 @@ def _ahead(geometry: _Geometry, points: NDArray[np.float64]) -> NDArray[np.bool_
 def _refine(
     geometry: _Geometry, candidates: _Candidates, echoes: _Echoes, options: LocateOptions
 ) -> _Candidates:
-    """Step 3: Gauss-Newton on every candidate's echoes; keep those that pass the gate."""
+    """Step 3: Gauss-Newton on every candidate's echoes; keep those that pass the gate.
+
+    A candidate that fails with echoes on optional channels (older frames of other
+    transmitters, whose reflector may have moved since) is fitted again without them.
+    """
     echo, use = candidates.echo, candidates.use
+    solution, ok = _fit_and_gate(geometry, echo, use, candidates.solution.position_m, echoes, options)
+    optional = (use != _NONE) & ~geometry.required
+    retry = ~ok & np.any(optional, axis=1)
+    if np.any(retry):
+        rows = np.flatnonzero(retry)
+        use = use.copy()
+        echo = echo.copy()
+        use[rows[:, None], np.flatnonzero(~geometry.required)[None, :]] = _NONE
+        echo = np.where(use != _NONE, echo, -1)
+        enough = np.sum(use[rows] == _OWN, axis=1) >= max(options.min_receivers, geometry.dim)
+        rows = rows[enough]
+        again, again_ok = _fit_and_gate(
+            geometry, echo[rows], use[rows], candidates.solution.position_m[rows], echoes, options
+        )
+        for field_name in ("position_m", "covariance_m2", "chi2", "converged"):
+            getattr(solution, field_name)[rows] = getattr(again, field_name)
+        ok[rows] = again_ok
+    keep = np.flatnonzero(ok)
+    solution = _rows(solution, list(keep))
+    amplitude_chi2 = _amplitude_chi2(geometry, solution.position_m, echo[keep], use[keep], echoes)
+    return _Candidates(echo[keep], use[keep], solution, amplitude_chi2)
+
+
+def _fit_and_gate(
+    geometry: _Geometry,
+    echo: NDArray[np.int64],
+    use: NDArray[np.int8],
+    start: NDArray[np.float64],
+    echoes: _Echoes,
+    options: LocateOptions,
+) -> tuple[Solution, NDArray[np.bool_]]:
+    """Gauss-Newton on the candidates' echoes; which pass the chi-square gate, in front and in view."""
     measured, weights = _measurements(echoes, echo, use, options)
-    solution = _gauss_newton(
-        geometry.transmitters_m, geometry.receivers_m, measured, weights, candidates.solution.position_m, 6
-    )
+    solution = _gauss_newton(geometry.transmitters_m, geometry.receivers_m, measured, weights, start, 6)
     n_used = np.sum(use != _NONE, axis=1)
     gate = _gates(options.gate_probability, geometry.dim, geometry.n)[n_used]
-    cos_fov = np.cos(np.radians(options.field_of_view_deg))
     ok = solution.converged & (solution.chi2 <= gate)
     if np.any(ok):
         points = solution.position_m[ok]
@@ -713,12 +724,10 @@ def _refine(
             or options.receiver_axes is not None
         ):
             supported = use[ok] != _NONE
+            cos_fov = np.cos(np.radians(options.field_of_view_deg))
             inside &= np.all(_in_beams(geometry, points, cos_fov) | ~supported, axis=1)
         ok[ok] &= inside
-    keep = np.flatnonzero(ok)
-    solution = _rows(solution, list(keep))
-    amplitude_chi2 = _amplitude_chi2(geometry, solution.position_m, echo[keep], use[keep], echoes)
-    return _Candidates(echo[keep], use[keep], solution, amplitude_chi2)
+    return solution, np.asarray(ok)
 
 
 def _measurements(
@@ -786,7 +795,7 @@ def _amplitude_chi2(
 class _Chosen:
     position_m: NDArray[np.float64]
     covariance_m2: NDArray[np.float64]
-    receivers: tuple[int, ...]  # channel indices
+    receivers: tuple[int, ...]  # channel indices (mapped to receivers by associate)
     echo_indices: tuple[int, ...]
     chi2: float
     score: float
@@ -795,7 +804,7 @@ class _Chosen:
 
 @dataclass(frozen=True, eq=False)
 class _Candidate:
-    echoes: frozenset[tuple[int, int]]  # (channel, echo index) pairs it owns
+    echoes: frozenset[tuple[int, int]]  # (channel, echo index) of every echo it uses
     weight: float
     row: int
 
@@ -824,6 +833,13 @@ def _choose(
     # First pass: candidates whose echoes are all their own; each echo used once.
     first_pass = [item for item in items if _SHARED not in use_rows[item.row]]
     picked = [first_pass[i].row for i in _best_disjoint(first_pass)]
+    # Then candidates with a merged-looking echo no chosen object uses (its partner may
+    # be the next candidate, or an echo merely biased): still each echo used once.
+    taken_echoes = {e for k in picked for e in items[k].echoes}
+    second_pass = [
+        item for item in items if _SHARED in use_rows[item.row] and not (item.echoes & taken_echoes)
+    ]
+    picked += [second_pass[i].row for i in _best_disjoint(second_pass)]
     chosen_echo = [echo_rows[k] for k in picked]
     chosen_use = [list(use_rows[k]) for k in picked]
     starts = [candidates.solution.position_m[k] for k in picked]
@@ -905,6 +921,7 @@ def _choose(
     dof = n_used - geometry.dim
     score = np.where(dof > 0, special.chdtrc(np.maximum(dof, 1), final.chi2), 1.0)
     good = final.converged & np.all(np.isfinite(final.covariance_m2), axis=(1, 2))
+    good &= ~_duplicates(geometry, final, use, options)
     result = []
     for k in np.flatnonzero(good).tolist():
         channels = [c for c, u in enumerate(chosen_use[k]) if u != _NONE]
@@ -920,6 +937,24 @@ def _choose(
             )
         )
     return result
+
+
+def _duplicates(
+    geometry: _Geometry, solution: Solution, use: NDArray[np.int8], options: LocateOptions
+) -> NDArray[np.bool_]:
+    """Objects that repeat a better one: their paths on every channel within a merge's reach
+    of its paths, so no echo could tell the two apart (an echo split in two makes them).
+    The one with more shared echoes, then the larger chi-square, goes."""
+    drop = np.zeros(len(use), dtype=bool)
+    if options.resolution_m is None or len(use) < 2:
+        return drop
+    paths = model_paths_m(geometry.transmitters_m, geometry.receivers_m, solution.position_m)
+    close = np.all(np.abs(paths[:, None, :] - paths[None, :, :]) <= _merge_reach(options), axis=2)
+    rank = np.sum(use == _SHARED, axis=1) * 1e6 + np.nan_to_num(solution.chi2, nan=1e6)
+    for i, j in zip(*np.nonzero(np.triu(close, 1)), strict=True):
+        if not (drop[i] or drop[j]):
+            drop[i if rank[i] > rank[j] else j] = True
+    return drop
 
 
 def _users(echo: list[list[int]], use: list[list[int]]) -> dict[tuple[int, int], int]:
@@ -946,8 +981,8 @@ def _best_disjoint(candidates: list[_Candidate], node_limit: int = 50_000) -> li
     """Indices of the heaviest set of candidates that share no echo (weighted set packing).
 
     Solved exactly by branch and bound on each connected group of conflicting
-    candidates. The bound is the best weight per echo times the echoes still free,
-    which is tight because every candidate weighs about its number of echoes. Past
+    candidates. The bound is the best weight per echo times the echoes still free
+    (an upper bound on what the remaining candidates can add). Past
     ``node_limit`` steps in a group the best set found so far is kept (never worse
     than the greedy choice it starts from).
     """

@@ -178,6 +178,10 @@ def run(chain: Chain, frames: Iterable[int] | None = None) -> Iterator[tuple[Fra
         recording = chain.recording
         assert recording.frame_transmitter is not None
         latest[int(recording.frame_transmitter[index])] = echoes
+        # Only the last n_tx frames: a transmitter that stopped firing (or frames
+        # skipped) must not lend old echoes.
+        n_tx = len(recording.transmitters_m)
+        latest = {t: e for t, e in latest.items() if 0 <= index - e.frame < n_tx}
         objects = combine_frames(
             sorted(latest.items()),
             recording.transmitters_m,
