@@ -102,3 +102,17 @@ def test_single_echoes_are_not_split_at_the_reports_snr() -> None:
     for seed in range(40):
         frames = frames_with_echoes([700.37 + seed * 0.1], [1.0], noise_std=1 / 13, seed=100 + seed)
         assert len(matched_filter_echoes(frames[0], MF, EchoOptions())[0].tof_s) == 1
+
+
+def test_model_choice_survives_a_candidate_with_no_echo() -> None:
+    """A stretch left with one echo offers "leave it out" as an empty model: it must lose, not raise
+    (the study's SENT-template run hit this on 4 frames)."""
+    frames = frames_with_echoes([700.37], [1.0], noise_std=0.02)
+    clean = _Clean(MF, EchoOptions())
+    components, power = clean.run(MF.correlate(frames[0, 0]))
+    residual = MF.correlate(frames[0, 0]).copy()
+    for c in components:
+        shape, start = clean._shape(c.tof_samples)
+        residual[start : start + len(shape)] -= c.amplitude * shape
+    chosen = clean._try_models(residual, components, [[]], power, keep=lambda fitted: True)
+    assert [c.tof_samples for c in chosen] == pytest.approx([700.37], abs=0.05)

@@ -625,6 +625,8 @@ class _Clean:
         stretch = np.arange(lo, hi)
         for row in range(n_rows):
             members = np.flatnonzero(active[row])
+            if len(members) == 0:
+                continue
             t, a = start_tof[row, members].copy(), start_amplitude[row, members].copy()
             first = min(max(math.floor(t.min()) - self.fit_half, lo), hi - 2)
             last = max(min(math.ceil(t.max()) + self.fit_half + 1, hi), first + 2)
@@ -703,7 +705,8 @@ class _Clean:
                     moved = _Component(member.tof_samples + step, -member.amplitude)
                     candidates.append([*group[:i], moved, *group[i + 1 :]])
                 rest = [*group[:i], *group[i + 1 :]]
-                candidates.append(rest)
+                if rest:
+                    candidates.append(rest)
                 if len(rest) > 1:
                     # Left out, with another moved by half a cycle: a stray and a slip together.
                     for j, other in enumerate(rest):
