@@ -644,6 +644,8 @@ class _Clean:
             cost[row] = float(np.sum(np.abs(restored[lo:hi] - model) ** 2))
             fit_tof[row, members], fit_amplitude[row, members] = t, a
         best, best_score = group, self._window_cost(residual, lo, hi) + penalty * len(group)
+        if not self._plausible(group):
+            best_score = math.inf  # any plausible candidate replaces it
         for row in range(n_rows):
             fitted = sorted(
                 (
