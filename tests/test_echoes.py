@@ -187,7 +187,7 @@ def test_blanked_ring_down_does_not_set_the_dynamic_range_floor() -> None:
 def test_two_equal_echoes_half_a_chip_apart_are_both_found_at_the_reports_snr() -> None:
     """Issue 8's resolution figure: reflectors 7 mm apart in range (half the 13.7 mm chip),
     equal echoes, per-sample SNR 13, the 50 kHz transducer pair: both echoes within 1 mm
-    of range in at least 95 % of 40 noisy trials (99.5 % on 200 with the study's protocol)."""
+    of range in at least 95 % of 40 noisy trials (200 of 200 with the study's protocol)."""
     from echoloc.crlb import peak_amplitude
     from echoloc.reflectors import PointReflector
     from echoloc.scene import Array, Scene
