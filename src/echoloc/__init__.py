@@ -18,6 +18,7 @@ from echoloc.echoes import ChannelEchoes, EchoOptions, FrameEchoes, MatchedFilte
 from echoloc.errors import EchoLocError, GeometryError, RecordingError, SceneError, WaveformError
 from echoloc.estimators import ESTIMATORS
 from echoloc.evaluate import Evaluation, evaluate
+from echoloc.export import SENSOR_FRAME_ID, write_mcap, write_ply
 from echoloc.locate import (
     FrameObjects,
     LocatedObject,
@@ -65,6 +66,7 @@ __version__ = "0.1.0"
 __all__ = [
     "ESTIMATORS",
     "PRESETS",
+    "SENSOR_FRAME_ID",
     "Array",
     "BackprojectionOptions",
     "Backprojector",
@@ -134,5 +136,7 @@ __all__ = [
     "uncertainty_area",
     "waveform_by_name",
     "waveform_metrics",
+    "write_mcap",
+    "write_ply",
     "write_recording",
 ]
