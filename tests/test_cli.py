@@ -821,3 +821,37 @@ def test_subprocess_long_error_message_stays_on_one_line(tmp_path: Path) -> None
     name = "a-recording-with-a-rather-long-but-perfectly-ordinary-descriptive-file-name.h5"
     result = run_process("locate", name, cwd=tmp_path)
     assert_bad_input(result, name)
+
+
+def test_export_writes_what_locate_finds_as_mcap_and_ply(
+    capsys: pytest.CaptureFixture[str], good_h5: Path, in_tmp: Path
+) -> None:
+    """`echoloc export` writes the objects `locate --json` reports: the MCAP's PointCloud2
+    messages (read back with the MCAP reader) and the PLY's vertices hold the same points."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+    from plyfile import PlyData
+
+    located = json_lines(run(capsys, "locate", good_h5, "--json").out)
+    expected = np.array([o["position_m"] for r in located for o in r["objects"]])
+    assert run(capsys, "export", good_h5, "-o", "out.mcap").code == 0
+    clouds = []
+    with open(in_tmp / "out.mcap", "rb") as stream:
+        for _, _channel, _, message in make_reader(
+            stream, decoder_factories=[DecoderFactory()]
+        ).iter_decoded_messages(topics=["/echoloc/objects"]):
+            assert message.header.frame_id == "echoloc_sensor_optical_frame"
+            points = np.frombuffer(bytes(message.data), dtype=np.float32).reshape(message.width, -1)[:, :3]
+            clouds.append(points)
+    assert len(clouds) == len(located)
+    assert np.vstack(clouds) == pytest.approx(expected, abs=1e-6)
+    assert run(capsys, "export", good_h5, "-o", "out.ply").code == 0
+    vertex = PlyData.read(str(in_tmp / "out.ply"))["vertex"]
+    assert np.column_stack([vertex["x"], vertex["y"], vertex["z"]]) == pytest.approx(expected, abs=1e-6)
+
+
+def test_export_to_an_unknown_format_is_bad_input(
+    capsys: pytest.CaptureFixture[str], good_h5: Path, in_tmp: Path
+) -> None:
+    assert_bad_input(run(capsys, "export", good_h5, "-o", "out.bt"), "out.bt")
+    assert not (in_tmp / "out.bt").exists()

@@ -580,6 +580,51 @@ def _object_rows(table: Table, result: FrameObjects) -> None:
         )
 
 
+@cli.command(name="export")
+@_processing_options(locating=True)
+@click.option(
+    "-o",
+    "--output",
+    "output_path",
+    required=True,
+    type=click.Path(path_type=Path),
+    help="OUT.mcap (ROS 2 Jazzy PointCloud2 + Range per receiver) or OUT.ply (points).",
+)
+@click.option("--start-time-s", type=float, default=0.0, show_default=True, help="ROS time of frame 0, s.")
+@click.option("--ascii", "ascii_ply", is_flag=True, help="PLY as text instead of binary.")
+@click.option("--per-frame", is_flag=True, help="PLY: one file per frame (OUT_000000.ply, ...).")
+def export_command(
+    processing: Processing, output_path: Path, start_time_s: float, ascii_ply: bool, per_frame: bool
+) -> None:
+    """Locate every frame of RECORDING and write the objects for robots: MCAP or PLY.
+
+    MCAP: sensor_msgs/msg/PointCloud2 on /echoloc/objects (x, y, z, intensity, the
+    covariance's diagonal) and sensor_msgs/msg/Range on /echoloc/range/rx{N}, in the
+    frame echoloc_sensor_optical_frame (REP 103), with /tf_static for the receivers.
+    """
+    from echoloc.export import write_mcap, write_ply
+
+    _finite("--start-time-s", start_time_s, minimum=0.0)
+    suffix = output_path.suffix.lower()
+    if suffix not in (".mcap", ".ply"):
+        raise EchoLocError(f"{output_path}: choose the format by extension, .mcap or .ply")
+    recording, chain, frames = processing.open()
+    check_locatable(chain)
+    results = []
+    with _progress(len(frames), "locating", True) as advance:
+        for _, objects in run(chain, frames):
+            results.append(objects)
+            advance(1)
+    if suffix == ".mcap":
+        count = write_mcap(output_path, recording, results, start_time_s=start_time_s)
+        stdout.print(f"wrote {count} messages ({len(results)} frames) to {output_path}")
+    else:
+        written = write_ply(output_path, results, binary=not ascii_ply, per_frame=per_frame)
+        points = sum(len(r.objects) for r in results)
+        where = written[0] if len(written) == 1 else f"{len(written)} files like {written[0]}"
+        stdout.print(f"wrote {points} points ({len(results)} frames) to {where}")
+
+
 @cli.command(name="evaluate")
 @_processing_options(locating=True)
 @click.option(
