@@ -855,3 +855,29 @@ def test_export_to_an_unknown_format_is_bad_input(
 ) -> None:
     assert_bad_input(run(capsys, "export", good_h5, "-o", "out.bt"), "out.bt")
     assert not (in_tmp / "out.bt").exists()
+
+
+def test_backprojection_locates_two_transmitters_reflectors(
+    capsys: pytest.CaptureFixture[str], in_tmp: Path
+) -> None:
+    """`--method backprojection` ("points to peaks") finds the three reflectors of
+    examples/two-transmitters.toml within 5 mm in every frame, and nothing else."""
+    scene = Path(__file__).resolve().parents[1] / "examples" / "two-transmitters.toml"
+    assert run(capsys, "simulate", scene, "-o", "two.h5", "--frames", "3").code == 0
+    result = run(
+        capsys, "evaluate", "two.h5", "--method", "backprojection", "--json", "--match-radius-m", "0.005"
+    )
+    assert result.code == 0, result.err
+    figures = json.loads(result.out)
+    assert figures["recall"] == 1.0
+    assert figures["false_objects"] == 0
+
+
+def test_image_writes_a_png_and_refuses_a_frame_outside(
+    capsys: pytest.CaptureFixture[str], good_h5: Path, in_tmp: Path
+) -> None:
+    result = run(capsys, "image", good_h5, "--frame", "1", "--voxel-m", "0.01", "-o", "frame.png")
+    assert result.code == 0, result.err
+    assert (in_tmp / "frame.png").read_bytes()[:4] == b"\x89PNG"
+    assert "3 objects in frame 1" in result.out
+    assert_bad_input(run(capsys, "image", good_h5, "--frame", "99", "-o", "x.png"), "--frame")

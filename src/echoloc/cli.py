@@ -117,6 +117,7 @@ class Processing:
     tvg: bool | None = None
     blind_zone_text: str | None = None
     field_of_view_deg: float | None = None
+    method: str = "association"
 
     def open(self) -> tuple[Recording, Chain, range]:
         """Read the recording, check the options, prepare the chain and the frames to run."""
@@ -159,6 +160,22 @@ class Processing:
 
 
 _PROCESSING_FIELDS = [f.name for f in fields(Processing)]
+
+
+def _located(
+    processing: Processing, recording: Recording, chain: Chain, frames: range
+) -> Iterator[FrameObjects]:
+    """Objects of every frame by the chosen method (``--method``)."""
+    if processing.method == "backprojection":
+        from echoloc.backprojection import prepare_backprojection, run_backprojection
+
+        bp = prepare_backprojection(
+            recording, speed_of_sound_m_s=chain.speed_of_sound_m_s, conditioning=chain.conditioning
+        )
+        yield from run_backprojection(bp, frames)
+        return
+    for _, objects in run(chain, frames):
+        yield objects
 
 
 def _processing_options(
@@ -255,6 +272,16 @@ def _processing_options(
                     type=float,
                     default=None,
                     help=f"A-priori path error, m [default: {LocateOptions.path_sigma_m}].",
+                )
+            )
+            decorators.append(
+                click.option(
+                    "--method",
+                    type=click.Choice(["association", "backprojection"]),
+                    default="association",
+                    show_default=True,
+                    help="Peaks to points (echoes combined across receivers) or points to peaks "
+                    "(envelopes back-projected on a 5 mm grid of the cubic metre in front).",
                 )
             )
             decorators.append(
@@ -549,16 +576,16 @@ def _echo_rows(table: Table, result: FrameEchoes) -> None:
 @click.option("--json", "as_json", is_flag=True, help="JSON Lines per FORMATS.md instead of a table.")
 def locate(processing: Processing, as_json: bool) -> None:
     """3-D positions of the reflectors in every frame of RECORDING."""
-    _, chain, frames = processing.open()
+    recording, chain, frames = processing.open()
     check_locatable(chain)
     if as_json:
-        for _, objects in run(chain, frames):
+        for objects in _located(processing, recording, chain, frames):
             click.echo(json_line(objects_record(objects)))
         return
     table = Table(title=f"Objects in {processing.recording_path} ({processing.estimator})")
     for column in ("frame", "x mm", "y mm", "z mm", "±σ x, y, z mm", "range mm", "rx", "score"):
         table.add_column(column, justify="right")
-    for _, objects in run(chain, frames):
+    for objects in _located(processing, recording, chain, frames):
         _object_rows(table, objects)
     stdout.print(table)
 
@@ -578,6 +605,52 @@ def _object_rows(table: Table, result: FrameObjects) -> None:
             str(len(set(obj.receivers))),
             f"{obj.score:.2f}",
         )
+
+
+@cli.command(name="image")
+@_processing_options(locating=True)
+@click.option("--frame", "frame_index", type=int, default=0, show_default=True, help="Frame to image.")
+@click.option("--voxel-m", type=float, default=0.005, show_default=True, help="Voxel edge of the grid, m.")
+@click.option("-o", "--output", "output_path", required=True, type=click.Path(path_type=Path), help="PNG.")
+def image_command(processing: Processing, frame_index: int, voxel_m: float, output_path: Path) -> None:
+    """Back-project one frame of RECORDING onto the cubic metre in front and save the image.
+
+    Maximum-intensity projections and slices through the brightest voxel, with the
+    objects back-projection locates (crosses) and the recording's truth (circles).
+    """
+    from echoloc.backprojection import backproject_frame, default_grid, frame_image, prepare_backprojection
+    from echoloc.imaging_plots import save_image_png
+
+    _finite("--voxel-m", voxel_m, positive=True)
+    if not 0.001 <= voxel_m <= 0.1:
+        raise EchoLocError(f"--voxel-m must be between 0.001 and 0.1 m, got {voxel_m:g}")
+    if output_path.suffix.lower() != ".png":
+        raise EchoLocError(f"{output_path}: the image is written as PNG (.png)")
+    recording, chain, _ = processing.open()
+    if not 0 <= frame_index < recording.n_frames:
+        raise EchoLocError(f"--frame {frame_index} is outside the recording's {recording.n_frames} frames")
+    if recording.transmitters_m.shape[1] != 3:
+        raise EchoLocError(f"{processing.recording_path}: images are drawn for 3-D recordings")
+    bp = prepare_backprojection(
+        recording,
+        default_grid(voxel_m),
+        speed_of_sound_m_s=chain.speed_of_sound_m_s,
+        conditioning=chain.conditioning,
+    )
+    objects = backproject_frame(bp, frame_index)
+    truth = None
+    if recording.truth_positions_m is not None:
+        rows = recording.truth_positions_m[frame_index]
+        truth = rows[np.all(np.isfinite(rows), axis=1)]
+    located = np.array([o.position_m for o in objects.objects]).reshape(-1, 3)
+    written = save_image_png(
+        frame_image(bp, frame_index),
+        output_path,
+        objects_m=located,
+        truth_m=truth,
+        title=f"{processing.recording_path.name}, frame {frame_index}: {len(located)} objects",
+    )
+    stdout.print(f"{len(located)} objects in frame {frame_index}; image written to {written}")
 
 
 @cli.command(name="export")
@@ -612,7 +685,7 @@ def export_command(
     check_locatable(chain)
     results = []
     with _progress(len(frames), "locating", True) as advance:
-        for _, objects in run(chain, frames):
+        for objects in _located(processing, recording, chain, frames):
             results.append(objects)
             advance(1)
     if suffix == ".mcap":
@@ -644,7 +717,7 @@ def evaluate_command(processing: Processing, match_radius_m: float, as_json: boo
     check_locatable(chain)
     results = []
     with _progress(len(frames), "locating", not as_json) as advance:
-        for _, objects in run(chain, frames):
+        for objects in _located(processing, recording, chain, frames):
             results.append(objects)
             advance(1)
     report = evaluate(results, recording.truth_positions_m, match_radius_m)
