@@ -8,6 +8,7 @@ examples/ scene files, and errors.py (messages name the file, the field, the val
 from __future__ import annotations
 
 import itertools
+import math
 import textwrap
 from pathlib import Path
 
@@ -15,7 +16,7 @@ import numpy as np
 import pytest
 
 from echoloc.errors import EchoLocError, SceneError
-from echoloc.scene import Array, Scene, default_scene
+from echoloc.scene import Array, Scene, SensorMotion, default_scene
 from echoloc.scenefile import load_scene
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
@@ -226,3 +227,32 @@ def test_report_balls_are_pairwise_distinct_in_range() -> None:
     ranges = np.linalg.norm(default_scene().reflector_positions_m, axis=1)
     gaps = sorted(abs(a - b) for a, b in itertools.combinations(ranges, 2))
     assert np.allclose(gaps, [0.016, 0.069, 0.085], atol=1e-9)
+
+
+def test_pan_scan_is_a_triangle_wave_about_the_heads_vertical() -> None:
+    motion = SensorMotion(pan_deg=30.0, scan_period_s=4.0)
+    pan, tilt = motion.scan_angles_deg(np.array([0.0, 1.0, 2.0, 3.0, 0.5]))
+    np.testing.assert_allclose(pan, [0.0, 30.0, 0.0, -30.0, 15.0], atol=1e-9)
+    np.testing.assert_allclose(tilt, 0.0)
+    rotation, _ = motion.poses(np.array([1.0]))
+    boresight = rotation[0] @ [0.0, 0.0, 1.0]
+    np.testing.assert_allclose(
+        boresight, [math.sin(math.radians(30)), 0.0, math.cos(math.radians(30))], atol=1e-12
+    )
+    assert motion.moving
+    with pytest.raises(EchoLocError, match="pan_deg"):
+        SensorMotion(pan_deg=120.0)
+
+
+def test_scan_keys_are_read_from_scene_files() -> None:
+    from echoloc.scenefile import scene_from_dict
+
+    ball = {"reflectors": [{"kind": "point", "position_m": [0.0, 0.0, 1.0]}]}
+    scene = scene_from_dict({**ball, "motion": {"pan_deg": 20.0, "tilt_deg": 5.0, "scan_period_s": 2.0}})
+    assert scene.motion.pan_deg == 20.0
+    assert scene.motion.tilt_deg == 5.0
+    pan, tilt = scene.motion.scan_angles_deg(np.array([0.5]))
+    assert pan[0] == pytest.approx(20.0)
+    assert tilt[0] == pytest.approx(0.0, abs=1e-12)  # a quarter period behind
+    with pytest.raises(EchoLocError, match="scan_period_s"):
+        scene_from_dict({**ball, "motion": {"scan_period_s": 0.0}})

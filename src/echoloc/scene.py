@@ -200,15 +200,24 @@ class ReceiverSpec:
 
 @dataclass(frozen=True, eq=False)
 class SensorMotion:
-    """Constant velocity (m/s) and angular velocity (deg/s) of the sensor head.
+    """The sensor head's motion: constant velocity and rate, plus an optional pan/tilt scan.
 
-    Both are in the world frame, which is the sensor frame at time 0; the pose at time
-    ``t`` is a rotation by ``angular_velocity * t`` about its axis and a translation
-    ``velocity * t``. Reflectors are placed in the world frame.
+    Velocity (m/s) and angular velocity (deg/s) are in the world frame, which is the
+    sensor frame at time 0. A mechanical scan (the report's pan/tilt "reversed
+    joystick") swings the head about its own ``y`` axis (pan; ``y`` points down in the
+    sensor frame, so pan turns the boresight left and right) by up to ``pan_deg`` and
+    about its own ``x`` axis (tilt) by up to ``tilt_deg``, as triangle waves of period
+    ``scan_period_s`` (pan starts at 0 going positive, tilt a quarter period behind).
+    The world-from-sensor pose at time ``t`` is
+    ``R(t) = Rot(angular_velocity * t) · Rot_y(pan(t)) · Rot_x(tilt(t))`` and
+    ``t_m(t) = velocity * t``.
     """
 
     velocity_m_s: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
     angular_velocity_deg_s: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+    pan_deg: float = 0.0
+    tilt_deg: float = 0.0
+    scan_period_s: float = 1.0
 
     def __post_init__(self) -> None:
         for name in ("velocity_m_s", "angular_velocity_deg_s"):
@@ -216,24 +225,54 @@ class SensorMotion:
             if value.shape != (3,) or not np.all(np.isfinite(value)):
                 raise SceneError(f"motion.{name} must be a finite [x, y, z], got {value.tolist()}")
             object.__setattr__(self, name, value)
+        for name in ("pan_deg", "tilt_deg"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and 0.0 <= value <= 90.0):
+                raise SceneError(f"motion.{name} must be between 0 and 90 degrees, got {value}")
+        if not (math.isfinite(self.scan_period_s) and self.scan_period_s > 0):
+            raise SceneError(f"motion.scan_period_s must be > 0, got {self.scan_period_s}")
 
     @property
     def moving(self) -> bool:
-        return bool(np.any(self.velocity_m_s) or np.any(self.angular_velocity_deg_s))
+        return bool(
+            np.any(self.velocity_m_s)
+            or np.any(self.angular_velocity_deg_s)
+            or self.pan_deg > 0
+            or self.tilt_deg > 0
+        )
+
+    def scan_angles_deg(
+        self, times_s: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Pan and tilt (deg) of the scan at ``times_s``: triangle waves, tilt a quarter period late."""
+        phase = np.asarray(times_s, dtype=float) / self.scan_period_s
+        return self.pan_deg * _triangle(phase), self.tilt_deg * _triangle(phase - 0.25)
+
+    def _rotations(self, times_s: NDArray[np.float64]) -> Rotation:
+        times = np.asarray(times_s, dtype=float)
+        rotation = Rotation.from_rotvec(np.radians(self.angular_velocity_deg_s)[None, :] * times[:, None])
+        if self.pan_deg > 0 or self.tilt_deg > 0:
+            pan, tilt = self.scan_angles_deg(times)
+            rotation = rotation * Rotation.from_euler("YX", np.column_stack([pan, tilt]), degrees=True)
+        return rotation
 
     def poses(self, times_s: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """World-from-sensor rotations (n, 3, 3) and translations (n, 3) at ``times_s``."""
         times = np.asarray(times_s, dtype=float)
-        rotvec = np.radians(self.angular_velocity_deg_s)[None, :] * times[:, None]
-        rotation = Rotation.from_rotvec(rotvec).as_matrix()
-        return rotation, self.velocity_m_s[None, :] * times[:, None]
+        return self._rotations(times).as_matrix().reshape(-1, 3, 3), self.velocity_m_s[None, :] * times[
+            :, None
+        ]
 
     def pose_quaternions(self, times_s: NDArray[np.float64]) -> NDArray[np.float64]:
         """Poses as rows ``[x, y, z, qx, qy, qz, qw]`` (ROS order), world from sensor."""
         times = np.asarray(times_s, dtype=float)
-        rotvec = np.radians(self.angular_velocity_deg_s)[None, :] * times[:, None]
-        quaternion = Rotation.from_rotvec(rotvec).as_quat()
+        quaternion = self._rotations(times).as_quat().reshape(-1, 4)
         return np.hstack([self.velocity_m_s[None, :] * times[:, None], quaternion])
+
+
+def _triangle(phase: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Triangle wave of period 1: 0 at phase 0, +1 at 1/4, 0 at 1/2, -1 at 3/4."""
+    return np.asarray(2.0 / np.pi * np.arcsin(np.sin(2.0 * np.pi * phase)), dtype=float)
 
 
 Firing = Literal["sequential", "simultaneous"]

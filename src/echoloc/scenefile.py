@@ -57,7 +57,7 @@ _SECTIONS: dict[str, set[str]] = {
     "noise": {"snr_db", "path_jitter_m", "kind"},
     "ring_down": {"level", "decay_s", "direct_path"},
     "receiver": {"signal_kind", "output_rate_hz", "adc_rate_hz", "adc_bits", "full_scale", "gain"},
-    "motion": {"velocity_m_s", "angular_velocity_deg_s"},
+    "motion": {"velocity_m_s", "angular_velocity_deg_s", "pan_deg", "tilt_deg", "scan_period_s"},
     "random_reflectors": {"count", "x_m", "y_m", "z_m", "strength"},
 }
 _GAIN_KEYS = {"kind", "gain_db", "slope_db_per_ms", "step_db", "step_s", "max_gain_db"}
@@ -344,6 +344,9 @@ def _scene_from_dict(data: Mapping[str, Any], source: str) -> Scene:
     kwargs["motion"] = SensorMotion(
         velocity_m_s=motion.point("velocity_m_s", [0.0, 0.0, 0.0]),
         angular_velocity_deg_s=motion.point("angular_velocity_deg_s", [0.0, 0.0, 0.0]),
+        pan_deg=motion.number("pan_deg", 0.0),
+        tilt_deg=motion.number("tilt_deg", 0.0),
+        scan_period_s=motion.number("scan_period_s", 1.0),
     )
 
     reflectors = top.raw("reflectors", [])
