@@ -1245,3 +1245,46 @@ def truth_positions_m(transmitter_m: ArrayLike, states: ReflectorStates) -> Floa
         planes = np.where(seen[..., None], foot, np.nan)
         edges = edge_point(tx, tx, states.edge_starts_m, states.edge_ends_m)
     return np.concatenate([states.points_m, spheres, planes, edges], axis=1)
+
+
+def surface_points_m(reflectors: Sequence[Reflector], spacing_m: float) -> FloatArray:
+    """Points sampling every reflector's surface at time 0, no farther apart than ``spacing_m``.
+
+    Points as themselves, spheres on a Fibonacci lattice of their surface, planes on a
+    rectangular lattice including their rims, edges along their segment. The truth
+    against which a map's occupied cells are scored (:func:`echoloc.mapping.map_accuracy`).
+    """
+    if not (math.isfinite(spacing_m) and spacing_m > 0):
+        raise ValueError(f"spacing_m must be > 0, got {spacing_m}")
+    parts: list[FloatArray] = [np.zeros((0, 3))]
+    for reflector in reflectors:
+        if isinstance(reflector, PointReflector):
+            parts.append(np.asarray(reflector.position_m, dtype=float).reshape(1, 3))
+        elif isinstance(reflector, Sphere):
+            area = 4 * math.pi * reflector.radius_m**2
+            n = max(8, math.ceil(2 * area / spacing_m**2))
+            k = np.arange(n) + 0.5
+            polar = np.arccos(1 - 2 * k / n)
+            azimuth = math.pi * (1 + math.sqrt(5)) * k
+            unit = np.column_stack(
+                [np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)]
+            )
+            parts.append(reflector.centre_m + reflector.radius_m * unit)
+        elif isinstance(reflector, Plane):
+            width = _resolved(reflector.width_axis)
+            height = reflector.height_axis
+            u = (
+                np.linspace(-0.5, 0.5, max(2, math.ceil(reflector.width_m / spacing_m) + 1))
+                * reflector.width_m
+            )
+            v = (
+                np.linspace(-0.5, 0.5, max(2, math.ceil(reflector.height_m / spacing_m) + 1))
+                * reflector.height_m
+            )
+            uu, vv = np.meshgrid(u, v, indexing="ij")
+            parts.append(reflector.centre_m + uu.reshape(-1, 1) * width + vv.reshape(-1, 1) * height)
+        elif isinstance(reflector, Edge):
+            length = float(np.linalg.norm(reflector.end_m - reflector.start_m))
+            t = np.linspace(0.0, 1.0, max(2, math.ceil(length / spacing_m) + 1))
+            parts.append(reflector.start_m + t[:, None] * (reflector.end_m - reflector.start_m))
+    return np.asarray(np.vstack(parts), dtype=float)
