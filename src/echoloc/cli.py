@@ -11,6 +11,7 @@ import json
 import math
 import os
 import sys
+import time
 import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -34,7 +35,7 @@ from echoloc.air import (
 )
 from echoloc.calibrate import fit_calibration, read_calibration, write_calibration
 from echoloc.conditioning import Conditioning, parse_blind_zone
-from echoloc.echoes import EchoOptions, FrameEchoes
+from echoloc.echoes import EchoOptions, FrameEchoes, frame_time_s
 from echoloc.errors import EchoLocError
 from echoloc.estimators import ESTIMATORS
 from echoloc.evaluate import Evaluation, evaluate, match
@@ -696,6 +697,178 @@ def export_command(
         points = sum(len(r.objects) for r in results)
         where = written[0] if len(written) == 1 else f"{len(written)} files like {written[0]}"
         stdout.print(f"wrote {points} points ({len(results)} frames) to {where}")
+
+
+_MAP_FORMATS = (".png", ".npz", ".ply", ".bt", ".ot", ".mcap")
+
+
+def _extent_option(text: str | None, dims: int) -> list[tuple[float, float]] | None:
+    """``--extent-m``: "x0,x1,z0,z1" for a floor plan, "x0,x1,y0,y1,z0,z1" in 3-D."""
+    if text is None:
+        return None
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise EchoLocError(
+            f"--extent-m: expected {2 * dims} numbers separated by commas, got {text!r}"
+        ) from None
+    if len(values) != 2 * dims or not all(math.isfinite(v) for v in values):
+        raise EchoLocError(f"--extent-m: expected {2 * dims} finite numbers, got {text!r}")
+    pairs = [(values[2 * i], values[2 * i + 1]) for i in range(dims)]
+    if any(high <= low for low, high in pairs):
+        raise EchoLocError(f"--extent-m: every range must go from low to high, got {text!r}")
+    return pairs
+
+
+@cli.command(name="map")
+@_processing_options(locating=True)
+@click.option(
+    "-o",
+    "--output",
+    "output_path",
+    required=True,
+    type=click.Path(path_type=Path),
+    help="OUT.png (picture), .npz (arrays), .ply (occupied cells), .bt/.ot (OctoMap) "
+    "or .mcap (ROS 2: nav_msgs/OccupancyGrid or a cloud, /tf, objects).",
+)
+@click.option("--cell-m", type=float, default=0.02, show_default=True, help="Cell edge, m.")
+@click.option(
+    "--3d", "three_d", is_flag=True, help="A 3-D grid instead of the floor plan (x-z at one height)."
+)
+@click.option(
+    "--height-m",
+    type=float,
+    default=None,
+    help="Height (y) of the floor plan, m [default: the sensor's mean].",
+)
+@click.option(
+    "--extent-m",
+    "extent_text",
+    default=None,
+    help="Grid extent: x0,x1,z0,z1 (floor plan) or x0,x1,y0,y1,z0,z1 (3-D), m "
+    "[default: everywhere the sensor could hear].",
+)
+@click.option(
+    "--trajectory",
+    "trajectory_path",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="Sensor poses, TUM format (time x y z qx qy qz qw per line) "
+    "[default: the recording's sensor_poses].",
+)
+@click.option(
+    "--objects/--no-objects",
+    "with_objects",
+    default=True,
+    show_default=True,
+    help="Also add the located objects with their covariance.",
+)
+def map_command(
+    processing: Processing,
+    output_path: Path,
+    cell_m: float,
+    three_d: bool,
+    height_m: float | None,
+    extent_text: str | None,
+    trajectory_path: Path | None,
+    with_objects: bool,
+) -> None:
+    """Build an occupancy grid from every frame of RECORDING and write it; the format by extension.
+
+    Each receiver's echoes clear the beam before the first echo and mark the echo's
+    arc (ellipse with the transmitter and receiver as foci) occupied; located objects
+    add their covariance. The map frame is the frame of the sensor poses (the
+    recording's sensor_poses or --trajectory); without poses, the sensor frame.
+    """
+    from echoloc.map_export import write_grid_npz, write_grid_ply, write_map_mcap, write_octomap
+    from echoloc.map_plots import plot_grid
+    from echoloc.mapping import (
+        GridSpec,
+        MapAccumulator,
+        SensorModel,
+        default_box,
+        default_floor_plan,
+        frame_poses,
+        read_trajectory,
+    )
+
+    suffix = output_path.suffix.lower()
+    if suffix not in _MAP_FORMATS:
+        raise EchoLocError(f"{output_path}: choose the format by extension: {', '.join(_MAP_FORMATS)}")
+    _finite("--cell-m", cell_m, positive=True)
+    if not 0.001 <= cell_m <= 1.0:
+        raise EchoLocError(f"--cell-m must be between 0.001 and 1 m, got {cell_m:g}")
+    if height_m is not None:
+        _finite("--height-m", height_m)
+    extent = _extent_option(extent_text, 3 if three_d else 2)
+    trajectory = read_trajectory(trajectory_path) if trajectory_path is not None else None
+    recording, chain, frames = processing.open()
+    poses = frame_poses(recording, trajectory)
+    c = chain.speed_of_sound_m_s
+    if three_d:
+        spec = (
+            GridSpec.box([e[0] for e in extent], [e[1] for e in extent], cell_m)
+            if extent is not None
+            else default_box(recording, poses[list(frames)], cell_m, c)
+        )
+    elif extent is not None:
+        height = float(poses[list(frames), 1].mean()) if height_m is None else height_m
+        spec = GridSpec.floor_plan(extent[0], extent[1], cell_m, height)
+    else:
+        spec = default_floor_plan(recording, poses[list(frames)], cell_m, c)
+        if height_m is not None:
+            spec = GridSpec.floor_plan(
+                (spec.origin_m[0], spec.upper_m[0]), (spec.origin_m[2], spec.upper_m[2]), cell_m, height_m
+            )
+    model = SensorModel(field_of_view_deg=processing.field_of_view_deg)
+    accumulator = MapAccumulator(spec, recording, model, blind_path_m=chain.echo_options.blanking_s * c)
+    located: list[FrameObjects] = []
+    started = time.perf_counter()
+    with _progress(len(frames), "mapping", True) as advance:
+        for echoes, objects in run(chain, frames):
+            transmitter = (
+                0 if recording.frame_transmitter is None else int(recording.frame_transmitter[echoes.frame])
+            )
+            accumulator.add_frame(
+                echoes,
+                poses[echoes.frame],
+                transmitter=transmitter,
+                objects=objects if with_objects else None,
+                usable_receivers=chain.usable_receivers,
+            )
+            located.append(objects)
+            advance(1)
+    elapsed = time.perf_counter() - started
+    grid = accumulator.grid()
+    if suffix == ".png":
+        written = plot_grid(grid, output_path, sensor_path_m=poses[list(frames), :3])
+    elif suffix == ".npz":
+        written = write_grid_npz(grid, output_path)
+    elif suffix == ".ply":
+        written = write_grid_ply(grid, output_path)
+    elif suffix in (".bt", ".ot"):
+        written = write_octomap(grid, output_path)
+    else:
+        times = np.array([frame_time_s(recording, i) for i in range(recording.n_frames)])
+        write_map_mcap(
+            output_path,
+            grid,
+            poses=poses[list(frames)],
+            frame_times_s=times[list(frames)],
+            objects_per_frame=located,
+        )
+        written = output_path
+    n_cells = spec.n_cells
+    occupied = int(grid.occupied().sum())
+    free = int(grid.free().sum())
+    known = int(grid.known().sum())
+    shape = " x ".join(str(n) for n in spec.shape)
+    stdout.print(
+        f"{len(frames)} frames mapped in {elapsed:.1f} s "
+        f"({len(frames) / max(elapsed, 1e-9):.0f} frames/s, echoes and objects included) onto "
+        f"{shape} cells of {cell_m * 100:g} cm: {occupied} occupied, {free} free, "
+        f"{n_cells - known} unknown; written to {written}"
+    )
 
 
 @cli.command(name="evaluate")

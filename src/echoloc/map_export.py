@@ -1,0 +1,308 @@
+"""Occupancy grids for other programs: NPZ, PLY, OctoMap (.bt, .ot) and MCAP with ROS 2 messages.
+
+- **NPZ**: the grid's arrays (:func:`echoloc.mapping.grid_arrays`), read back by
+  :func:`read_grid_npz`.
+- **PLY**: the occupied cells' centres with ``intensity`` = occupancy probability and
+  the covariance diagonal of a uniform cell, ``h²/12`` (:func:`echoloc.export.write_ply`).
+- **OctoMap** through pyoctomap (the OctoMap library's Python binding, wheels with
+  the library bundled): every observed cell is set to its log-odds with the grid's
+  clamping; ``.bt`` keeps the compact maximum-likelihood tree (free or occupied per
+  leaf, OctoMap's ``writeBinary``), ``.ot`` the full probabilities (``write``).
+  OctoMap's resolution is the cell size; its frame is the map frame.
+- **MCAP** (ROS 2 Jazzy definitions, mcap + mcap-ros2-support): ``/tf`` per frame
+  (``echoloc_map`` -> ``echoloc_sensor_optical_frame``, the sensor pose), the frame's
+  located objects on ``/echoloc/objects`` (``sensor_msgs/msg/PointCloud2`` in the
+  sensor frame), and the final map: a floor plan as ``nav_msgs/msg/OccupancyGrid`` on
+  ``/echoloc/map`` (cells -1 unknown, 0-100 percent), a 3-D grid as a PointCloud2 of
+  its occupied cells on ``/echoloc/map_cloud``, both in ``echoloc_map``.
+
+The floor plan is the map frame's x-z plane (y points down, REP 103 optical). The
+OccupancyGrid's own x-y plane is turned onto it by its origin pose: grid x = map x,
+grid y = map z, grid z (its normal) = map -y, up.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from mcap.writer import CompressionType
+from mcap_ros2.writer import Writer as Ros2Writer
+from numpy.typing import NDArray
+
+from echoloc.errors import EchoLocError
+from echoloc.export import (
+    _HEADER_MSG,
+    _QUATERNION_MSG,
+    _TIME_MSG,
+    POINT_CLOUD2_SCHEMA,
+    ROS_DISTRIBUTION,
+    SENSOR_FRAME_ID,
+    TF_MESSAGE_SCHEMA,
+    _check_path,
+    _matrix_quaternion,
+    _schema_text,
+    point_cloud2,
+    ros_time,
+    write_ply,
+)
+from echoloc.locate import FrameObjects, LocatedObject
+from echoloc.mapping import MAP_FRAME_ID, GridSpec, OccupancyGrid, SensorModel, grid_arrays
+
+MAP_TOPIC = "/echoloc/map"
+MAP_CLOUD_TOPIC = "/echoloc/map_cloud"
+OBJECTS_TOPIC = "/echoloc/objects"
+TF_TOPIC = "/tf"
+
+_POINT_MSG = """float64 x
+float64 y
+float64 z
+"""
+_POSE_MSG = """Point position
+Quaternion orientation
+"""
+_MAP_META_DATA_MSG = """builtin_interfaces/Time map_load_time
+float32 resolution
+uint32 width
+uint32 height
+geometry_msgs/Pose origin
+"""
+_OCCUPANCY_GRID_MSG = """std_msgs/Header header
+
+MapMetaData info
+
+int8[] data
+"""
+OCCUPANCY_GRID_SCHEMA = _schema_text(
+    _OCCUPANCY_GRID_MSG,
+    ("std_msgs/Header", _HEADER_MSG),
+    ("builtin_interfaces/Time", _TIME_MSG),
+    ("nav_msgs/MapMetaData", _MAP_META_DATA_MSG),
+    ("geometry_msgs/Pose", _POSE_MSG),
+    ("geometry_msgs/Point", _POINT_MSG),
+    ("geometry_msgs/Quaternion", _QUATERNION_MSG),
+)
+
+# Columns: where the OccupancyGrid's x, y and z axes point in the map frame.
+_FLOOR_PLAN_AXES = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+
+
+# --- NPZ ---------------------------------------------------------------------------------
+
+
+def write_grid_npz(grid: OccupancyGrid, path: str | Path) -> Path:
+    """Save the grid's arrays (``log_odds``, ``updates``, ``origin_m``, ``cell_m``, ...) as NPZ."""
+    target = _check_path(path, ".npz")
+    try:
+        with target.open("wb") as stream:
+            np.savez_compressed(stream, **grid_arrays(grid))
+    except OSError as error:
+        raise EchoLocError(f"{target}: cannot write: {error.strerror or error}") from error
+    return target
+
+
+def read_grid_npz(path: str | Path, model: SensorModel | None = None) -> OccupancyGrid:
+    """Read a grid written by :func:`write_grid_npz`."""
+    source = str(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            log_odds = np.asarray(data["log_odds"], dtype=np.float32)
+            updates = np.asarray(data["updates"], dtype=np.uint16)
+            origin = np.asarray(data["origin_m"], dtype=float)
+            cell = float(data["cell_m"])
+            frames = int(data["frames"])
+    except (OSError, ValueError, KeyError) as error:
+        raise EchoLocError(f"{source}: not an echoloc grid ({error})") from None
+    if log_odds.ndim != 3 or updates.shape != log_odds.shape:
+        raise EchoLocError(f"{source}: log_odds and updates must be 3-D arrays of one shape")
+    shape = (int(log_odds.shape[0]), int(log_odds.shape[1]), int(log_odds.shape[2]))
+    return OccupancyGrid(GridSpec(origin, cell, shape), log_odds, updates, model or SensorModel(), frames)
+
+
+# --- points ------------------------------------------------------------------------------
+
+
+def occupied_points(grid: OccupancyGrid) -> FrameObjects:
+    """The occupied cells as points: centre, covariance ``h²/12`` per axis, score = probability."""
+    occupied = grid.occupied()
+    centres = grid.occupied_centres_m()
+    probability = grid.probability()[occupied]
+    covariance = np.eye(3) * grid.spec.cell_m**2 / 12.0
+    objects = tuple(
+        LocatedObject(centre, covariance, (), (), math.nan, float(p))
+        for centre, p in zip(centres, probability, strict=True)
+    )
+    return FrameObjects(grid.frames, 0.0, objects)
+
+
+def write_grid_ply(grid: OccupancyGrid, path: str | Path, *, binary: bool = True) -> Path:
+    """The occupied cells as a PLY point cloud (intensity = occupancy probability)."""
+    return write_ply(path, [occupied_points(grid)], binary=binary)[0]
+
+
+# --- OctoMap -----------------------------------------------------------------------------
+
+
+def octree(grid: OccupancyGrid) -> Any:
+    """A ``pyoctomap.OcTree`` at the grid's resolution holding every observed cell's log-odds."""
+    import pyoctomap
+
+    tree = pyoctomap.OcTree(grid.spec.cell_m)
+    low, high = grid.model.clamp_probability
+    tree.setClampingThresMin(low)
+    tree.setClampingThresMax(high)
+    tree.setOccupancyThres(grid.model.occupied_probability)
+    known = np.argwhere(grid.known())
+    centres = grid.spec.origin_m + (known + 0.5) * grid.spec.cell_m
+    values = grid.log_odds[tuple(known.T)]
+    for centre, value in zip(centres, values, strict=True):
+        tree.updateNode(centre, float(value), True)
+    tree.updateInnerOccupancy()
+    return tree
+
+
+def write_octomap(grid: OccupancyGrid, path: str | Path) -> Path:
+    """Write an OctoMap file: ``.bt`` (binary, maximum likelihood) or ``.ot`` (full probabilities)."""
+    target = Path(path)
+    suffix = target.suffix.lower()
+    if suffix not in (".bt", ".ot"):
+        raise EchoLocError(f"{target}: an OctoMap file is .bt (binary) or .ot (full)")
+    target = _check_path(target, suffix)
+    tree = octree(grid)
+    if suffix == ".bt":
+        tree.toMaxLikelihood()
+        written = tree.writeBinary(str(target))
+    else:
+        written = tree.write(str(target))
+    if not written:
+        raise EchoLocError(f"{target}: OctoMap could not write the file")
+    return target
+
+
+# --- MCAP ----------------------------------------------------------------------------------
+
+
+def occupancy_grid_message(grid: OccupancyGrid, stamp_s: float) -> dict[str, Any]:
+    """A ``nav_msgs/msg/OccupancyGrid`` (as a dict) of a floor plan, in ``echoloc_map``.
+
+    ``data`` is row-major from the origin cell, grid x fastest (map x), rows along map
+    z; -1 where no reading touched a cell, else round(100 p).
+    """
+    spec = grid.spec
+    if not spec.is_floor_plan:
+        raise EchoLocError("nav_msgs/OccupancyGrid holds a floor plan; this grid is 3-D")
+    probability = grid.probability()[:, 0, :]
+    cells = np.where(grid.known()[:, 0, :], np.rint(100 * probability), -1).astype(np.int8)
+    qx, qy, qz, qw = (float(v) for v in _matrix_quaternion(_FLOOR_PLAN_AXES))
+    x0, y0, z0 = (float(v) for v in spec.origin_m)
+    return {
+        "header": {"stamp": ros_time(stamp_s), "frame_id": MAP_FRAME_ID},
+        "info": {
+            "map_load_time": ros_time(stamp_s),
+            "resolution": float(spec.cell_m),
+            "width": int(spec.shape[0]),
+            "height": int(spec.shape[2]),
+            "origin": {
+                # The grid's plane passes through the layer's centre height.
+                "position": {"x": x0, "y": y0 + spec.cell_m / 2, "z": z0},
+                "orientation": {"x": qx, "y": qy, "z": qz, "w": qw},
+            },
+        },
+        "data": cells.T.reshape(-1).tolist(),
+    }
+
+
+def _tf_message(pose: NDArray[np.float64], stamp_s: float) -> dict[str, Any]:
+    x, y, z, qx, qy, qz, qw = (float(v) for v in pose)
+    return {
+        "transforms": [
+            {
+                "header": {"stamp": ros_time(stamp_s), "frame_id": MAP_FRAME_ID},
+                "child_frame_id": SENSOR_FRAME_ID,
+                "transform": {
+                    "translation": {"x": x, "y": y, "z": z},
+                    "rotation": {"x": qx, "y": qy, "z": qz, "w": qw},
+                },
+            }
+        ]
+    }
+
+
+def write_map_mcap(
+    path: str | Path,
+    grid: OccupancyGrid,
+    *,
+    poses: NDArray[np.float64] | None = None,
+    frame_times_s: NDArray[np.float64] | None = None,
+    objects_per_frame: Sequence[FrameObjects] = (),
+    start_time_s: float = 0.0,
+) -> int:
+    """Write the map (and the sensor's poses and objects per frame) as ROS 2 messages in MCAP.
+
+    ``poses`` (n, 7) and ``frame_times_s`` (n,) give one ``/tf`` per frame; the
+    objects of each frame go on ``/echoloc/objects``; the map is stamped with the last
+    frame's time. Returns the number of messages written.
+    """
+    target = _check_path(path, ".mcap")
+    if not math.isfinite(start_time_s) or start_time_s < 0:
+        raise EchoLocError(f"{target}: start time must be finite and >= 0, got {start_time_s}")
+    times = np.zeros(0) if frame_times_s is None else np.asarray(frame_times_s, dtype=float)
+    if poses is not None and len(poses) != len(times):
+        raise EchoLocError(f"{target}: {len(poses)} poses for {len(times)} frame times")
+    last = start_time_s + (float(times.max()) if len(times) else 0.0)
+    try:
+        stream = target.open("wb")
+    except OSError as error:
+        raise EchoLocError(f"{target}: cannot write: {error.strerror or error}") from error
+    count = 0
+    with stream, Ros2Writer(stream, compression=CompressionType.ZSTD) as writer:
+        writer.add_metadata(
+            "echoloc",
+            {
+                "ros_distribution": ROS_DISTRIBUTION,
+                "map_frame_id": MAP_FRAME_ID,
+                "sensor_frame_id": SENSOR_FRAME_ID,
+                "frame_convention": "REP 103 optical: x right, y down, z boresight",
+            },
+        )
+        cloud_schema = writer.register_msgdef("sensor_msgs/msg/PointCloud2", POINT_CLOUD2_SCHEMA)
+        if poses is not None:
+            tf_schema = writer.register_msgdef("tf2_msgs/msg/TFMessage", TF_MESSAGE_SCHEMA)
+            for index, (pose, time_s) in enumerate(zip(poses, times, strict=True)):
+                stamp = start_time_s + float(time_s)
+                t_ns = round(stamp * 1e9)
+                writer.write_message(
+                    TF_TOPIC,
+                    tf_schema,
+                    _tf_message(pose, stamp),
+                    log_time=t_ns,
+                    publish_time=t_ns,
+                    sequence=index,
+                )
+                count += 1
+        for index, frame in enumerate(objects_per_frame):
+            stamp = start_time_s + (float(times[frame.frame]) if frame.frame < len(times) else frame.time_s)
+            t_ns = round(stamp * 1e9)
+            writer.write_message(
+                OBJECTS_TOPIC,
+                cloud_schema,
+                point_cloud2(frame, stamp),
+                log_time=t_ns,
+                publish_time=t_ns,
+                sequence=index,
+            )
+            count += 1
+        t_ns = round(last * 1e9)
+        if grid.spec.is_floor_plan:
+            map_schema = writer.register_msgdef("nav_msgs/msg/OccupancyGrid", OCCUPANCY_GRID_SCHEMA)
+            writer.write_message(
+                MAP_TOPIC, map_schema, occupancy_grid_message(grid, last), log_time=t_ns, publish_time=t_ns
+            )
+        else:
+            cloud = point_cloud2(occupied_points(grid), last, frame_id=MAP_FRAME_ID)
+            writer.write_message(MAP_CLOUD_TOPIC, cloud_schema, cloud, log_time=t_ns, publish_time=t_ns)
+        count += 1
+    return count

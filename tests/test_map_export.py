@@ -1,0 +1,234 @@
+"""Map exports, each read back with an independent reader: numpy, plyfile, pyoctomap, mcap_ros2."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyoctomap
+import pytest
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+from plyfile import PlyData
+from scipy.spatial.transform import Rotation
+
+from echoloc import cli
+from echoloc.export import SENSOR_FRAME_ID
+from echoloc.map_export import (
+    MAP_CLOUD_TOPIC,
+    MAP_TOPIC,
+    TF_TOPIC,
+    read_grid_npz,
+    write_grid_npz,
+    write_grid_ply,
+    write_map_mcap,
+    write_octomap,
+)
+from echoloc.mapping import MAP_FRAME_ID, GridSpec, OccupancyGrid, SensorModel
+from echoloc.recording import write_recording
+from echoloc.reflectors import Plane
+from echoloc.scene import Array, Scene, SensorMotion
+from echoloc.simulate import simulate
+
+
+def _grid(spec: GridSpec, seed: int = 1) -> OccupancyGrid:
+    """A grid with free, occupied and unknown cells at random."""
+    rng = np.random.default_rng(seed)
+    log_odds = rng.uniform(-1.9, 3.4, spec.shape).astype(np.float32)
+    updates = rng.integers(0, 3, spec.shape).astype(np.uint16)
+    return OccupancyGrid(spec, log_odds, updates, SensorModel(), frames=7)
+
+
+FLOOR = GridSpec.floor_plan((-0.5, 0.5), (0.0, 0.8), 0.05, height_m=0.1)
+BOX = GridSpec.box([-0.2, -0.1, 0.3], [0.2, 0.1, 0.6], 0.05)
+
+
+def _read_mcap(path: Path) -> list[tuple[str, str, Any]]:
+    with path.open("rb") as stream:
+        reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+        return [(c.topic, s.name, m) for s, c, _, m in reader.iter_decoded_messages()]
+
+
+def test_npz_round_trip_is_exact(tmp_path: Path) -> None:
+    grid = _grid(BOX)
+    back = read_grid_npz(write_grid_npz(grid, tmp_path / "g.npz"))
+    np.testing.assert_array_equal(back.log_odds, grid.log_odds)
+    np.testing.assert_array_equal(back.updates, grid.updates)
+    np.testing.assert_array_equal(back.spec.origin_m, grid.spec.origin_m)
+    assert back.spec.shape == grid.spec.shape
+    assert back.frames == 7
+
+
+def test_ply_holds_the_occupied_cells_with_their_probability(tmp_path: Path) -> None:
+    grid = _grid(BOX)
+    ply = PlyData.read(str(write_grid_ply(grid, tmp_path / "g.ply")))
+    vertex = ply["vertex"]
+    points = np.column_stack([vertex["x"], vertex["y"], vertex["z"]])
+    np.testing.assert_allclose(points, grid.occupied_centres_m(), atol=1e-6)
+    np.testing.assert_allclose(vertex["intensity"], grid.probability()[grid.occupied()], atol=1e-6)
+    np.testing.assert_allclose(vertex["cov_xx"], 0.05**2 / 12, rtol=1e-5)
+
+
+@pytest.mark.parametrize("suffix", [".bt", ".ot"])
+def test_octomap_leaves_are_the_grids_cells(tmp_path: Path, suffix: str) -> None:
+    grid = _grid(BOX)
+    path = write_octomap(grid, tmp_path / f"g{suffix}")
+    tree = pyoctomap.OcTree(0.1)
+    if suffix == ".bt":
+        assert tree.readBinary(str(path))
+    else:
+        tree = tree.read(str(path))
+    assert tree.getResolution() == pytest.approx(0.05)
+    known = np.argwhere(grid.known())
+    centres = grid.spec.origin_m + (known + 0.5) * grid.spec.cell_m
+    for cell, centre in zip(known[::7], centres[::7], strict=True):
+        node = tree.search(centre)
+        assert node is not None
+        occupied = bool(grid.log_odds[tuple(cell)] > 0)
+        assert tree.isNodeOccupied(node) == occupied
+        if suffix == ".ot":  # full probabilities kept
+            assert node.getLogOdds() == pytest.approx(float(grid.log_odds[tuple(cell)]), abs=1e-5)
+    unknown = np.argwhere(~grid.known())[0]
+    assert tree.search(grid.spec.origin_m + (unknown + 0.5) * grid.spec.cell_m) is None
+
+
+def test_mcap_floor_plan_decodes_to_the_grid(tmp_path: Path) -> None:
+    grid = _grid(FLOOR)
+    q = Rotation.from_euler("y", 20, degrees=True).as_quat()
+    poses = np.array([[0.0, 0.0, 0.0, 0, 0, 0, 1], [0.1, 0.0, 0.05, *q]])
+    count = write_map_mcap(tmp_path / "m.mcap", grid, poses=poses, frame_times_s=np.array([0.0, 0.01]))
+    messages = _read_mcap(tmp_path / "m.mcap")
+    assert count == len(messages) == 3
+    tfs = [m for topic, _, m in messages if topic == TF_TOPIC]
+    assert [t.transforms[0].header.frame_id for t in tfs] == [MAP_FRAME_ID] * 2
+    assert tfs[1].transforms[0].child_frame_id == SENSOR_FRAME_ID
+    rotation = tfs[1].transforms[0].transform.rotation
+    np.testing.assert_allclose([rotation.x, rotation.y, rotation.z, rotation.w], q)
+    ((_topic, schema, msg),) = [m for m in messages if m[0] == MAP_TOPIC]
+    assert schema == "nav_msgs/msg/OccupancyGrid"
+    assert msg.header.frame_id == MAP_FRAME_ID
+    assert (msg.info.width, msg.info.height) == (FLOOR.shape[0], FLOOR.shape[2])
+    cells = np.array(msg.data, dtype=np.int8).reshape(msg.info.height, msg.info.width).T
+    expected = np.where(grid.known()[:, 0, :], np.rint(100 * grid.probability()[:, 0, :]), -1)
+    np.testing.assert_array_equal(cells, expected)
+    # The origin pose turns the grid's x-y plane onto the map's x-z plane, its normal up (-y).
+    o = msg.info.origin
+    turn = Rotation.from_quat([o.orientation.x, o.orientation.y, o.orientation.z, o.orientation.w])
+    np.testing.assert_allclose(
+        turn.apply([[1, 0, 0], [0, 1, 0], [0, 0, 1]]), [[1, 0, 0], [0, 0, 1], [0, -1, 0]], atol=1e-12
+    )
+    # Cell (i, j) of the message has its centre where the grid's cell (i, 0, j) has it.
+    i, j = 3, 5
+    centre = np.array([o.position.x, o.position.y, o.position.z]) + turn.apply(
+        [(i + 0.5) * 0.05, (j + 0.5) * 0.05, 0]
+    )
+    np.testing.assert_allclose(centre, FLOOR.origin_m + (np.array([i, 0, j]) + 0.5) * 0.05, atol=1e-9)
+
+
+def test_mcap_of_a_3d_grid_is_a_cloud_of_its_occupied_cells(tmp_path: Path) -> None:
+    grid = _grid(BOX)
+    write_map_mcap(tmp_path / "m.mcap", grid)
+    ((_, schema, msg),) = [m for m in _read_mcap(tmp_path / "m.mcap") if m[0] == MAP_CLOUD_TOPIC]
+    assert schema == "sensor_msgs/msg/PointCloud2"
+    assert msg.header.frame_id == MAP_FRAME_ID
+    table = np.frombuffer(bytes(msg.data), dtype="<f4").reshape(msg.width, 7)
+    np.testing.assert_allclose(table[:, :3], grid.occupied_centres_m(), atol=1e-6)
+
+
+# --- the command ------------------------------------------------------------------------
+
+
+def _run(capsys: pytest.CaptureFixture[str], *args: object) -> tuple[int, str, str]:
+    """``echoloc ARGS`` in-process: exit code, stdout, stderr."""
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as info:
+        cli.main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    assert isinstance(info.value.code, int)
+    return info.value.code, out, err
+
+
+@pytest.fixture(scope="module")
+def panned_wall(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    array = Array(
+        transmitters_m=np.zeros((1, 3)),
+        receivers_m=np.array([[0.25, 0, 0], [-0.25, 0, 0], [0, 0.25, 0], [0, -0.25, 0.0]]),
+    )
+    wall = Plane(
+        centre_m=np.array([0.0, -0.25, 1.0]),
+        normal=np.array([0.0, 0.0, -1.0]),
+        width_m=2.0,
+        height_m=1.5,
+        width_axis=np.array([1.0, 0.0, 0.0]),
+    )
+    scene = Scene(
+        array=array,
+        objects=(wall,),
+        transducer="electrostatic50",
+        snr_db=20.0,
+        seed=3,
+        motion=SensorMotion(velocity_m_s=np.array([0.1, 0.0, 0.0]), pan_deg=20.0, scan_period_s=1.0),
+    )
+    path = tmp_path_factory.mktemp("map") / "wall.h5"
+    write_recording(simulate(scene, 120), path)
+    return path
+
+
+@pytest.mark.parametrize("suffix", [".png", ".npz", ".ply", ".bt", ".ot", ".mcap"])
+def test_map_command_writes_each_format(
+    capsys: pytest.CaptureFixture[str], panned_wall: Path, tmp_path: Path, suffix: str
+) -> None:
+    out = tmp_path / f"map{suffix}"
+    code, stdout, stderr = _run(capsys, "map", panned_wall, "-o", out, "--extent-m=-1,1,0,1.5")
+    assert code == 0, stderr
+    assert "120 frames mapped" in " ".join(stdout.split())
+    assert out.stat().st_size > 0
+    if suffix == ".npz":
+        grid = read_grid_npz(out)
+        assert grid.frames == 120
+        # The wall at z = 1.0 is occupied, the space before it free.
+        occupied = grid.occupied_centres_m()
+        assert len(occupied) > 10
+        assert np.median(np.abs(occupied[:, 2] - 1.0)) <= grid.spec.cell_m
+    if suffix == ".png":
+        assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_map_command_3d_and_trajectory(
+    capsys: pytest.CaptureFixture[str], panned_wall: Path, tmp_path: Path
+) -> None:
+    trajectory = tmp_path / "traj.txt"
+    trajectory.write_text("0 0 0 0 0 0 0 1\n10 0 0 0 0 0 0 1\n")
+    out = tmp_path / "map.npz"
+    code, _, stderr = _run(
+        capsys, "map", panned_wall, "-o", out, "--3d", "--cell-m", "0.05", "--trajectory", trajectory
+    )
+    assert code == 0, stderr
+    grid = read_grid_npz(out)
+    assert grid.spec.shape[1] > 1
+    # Identity poses: the beam never left the boresight, so nothing far to the side was heard.
+    centres = grid.spec.origin_m + (np.argwhere(grid.known()) + 0.5) * grid.spec.cell_m
+    angle = np.degrees(np.arctan2(np.hypot(centres[:, 0], centres[:, 1]), centres[:, 2]))
+    assert angle.max() < 25
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["-o", "map.txt"], "choose the format by extension"),
+        (["-o", "map.png", "--cell-m", "0"], "--cell-m"),
+        (["-o", "map.png", "--extent-m", "1,2,3"], "--extent-m"),
+        (["-o", "map.png", "--extent-m", "1,0,0,1"], "low to high"),
+        (["-o", "map.png", "--trajectory", "missing.txt"], "cannot read"),
+    ],
+)
+def test_map_command_refuses_bad_input_in_one_line(
+    capsys: pytest.CaptureFixture[str], panned_wall: Path, tmp_path: Path, args: list[str], message: str
+) -> None:
+    args = [a if not a.startswith("map.") else str(tmp_path / a) for a in args]
+    code, _, stderr = _run(capsys, "map", panned_wall, *args)
+    assert code == 2
+    assert message in stderr
+    assert "Traceback" not in stderr
+    assert len([line for line in stderr.splitlines() if line.strip()]) == 1
