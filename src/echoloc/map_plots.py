@@ -106,7 +106,8 @@ def plot_grid(
     slices: int = 3,
 ) -> Path:
     """Draw ``grid`` to a PNG: the floor plan, or for a 3-D grid ``slices`` horizontal
-    slices (x-z at several heights y) and the maximum occupancy along y."""
+    slices (x-z at several heights y) and a projection over y in which a column shows
+    its most occupied cell when any is occupied, else its freest."""
     target = Path(path)
     if target.suffix.lower() != ".png":
         raise EchoLocError(f"{target}: a grid picture must be a .png file")
@@ -137,8 +138,20 @@ def plot_grid(
             )
         axes = figure.add_subplot(1, len(layers) + 1, len(layers) + 1)
         seen = np.asarray(known.any(axis=1))
-        projection = np.where(known, probability, 0.0).max(axis=1)
-        _panel(axes, grid, _shown(projection, seen), 0, 2, sensor_path_m, None, "maximum over y")
+        # A column is as occupied as its most occupied cell, else as free as its freest.
+        highest = np.where(known, probability, 0.0).max(axis=1)
+        lowest = np.where(known, probability, 1.0).min(axis=1)
+        projection = np.where(highest > 0.5, highest, lowest)
+        _panel(
+            axes,
+            grid,
+            _shown(projection, seen),
+            0,
+            2,
+            sensor_path_m,
+            None,
+            "all heights (occupied over free)",
+        )
     try:
         figure.savefig(target, dpi=110)
     except OSError as error:
