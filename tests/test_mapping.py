@@ -398,27 +398,28 @@ def test_a_pan_scan_widens_what_a_narrow_beam_sees(scanned_wall: tuple[Scene, Re
     assert areas[1] > 2.0 * areas[0]
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=40, deadline=None)
 @given(
-    st.floats(-40, 40),
+    st.floats(-180, 180),
     st.floats(-0.3, 0.3),
     st.lists(st.floats(0.6, 3.5), min_size=0, max_size=3),
     st.booleans(),
+    st.sampled_from([8.0, 25.0, 90.0]),
 )
 def test_compiled_channel_update_equals_its_numpy_statement(
-    yaw_deg: float, rx_x: float, paths: list[float], heard_before: bool
+    yaw_deg: float, rx_x: float, paths: list[float], heard_before: bool, fov_deg: float
 ) -> None:
     from echoloc import _mapping_kernels as kernels
 
     spec = GridSpec.box([-1.0, -0.3, 0.0], [1.0, 0.3, 2.0], 0.05)
     shape = np.array(spec.shape, dtype=np.int64)
     n = spec.n_cells
-    rotation = Rotation.from_euler("y", yaw_deg, degrees=True).as_matrix()
-    tx, rx = np.zeros(3), np.array([rx_x, 0.0, 0.0])
+    rotation = Rotation.from_euler("yx", [yaw_deg, 0.3 * yaw_deg], degrees=True).as_matrix()
+    tx, rx = np.array([0.0, 0.0, 1.0]), np.array([rx_x, 0.0, 1.0])
     tx_axis = rotation @ [0.0, 0.0, 1.0]
     rx_axis = rotation @ [0.0, 0.1, 1.0]
     rx_axis /= np.linalg.norm(rx_axis)
-    cos_null, table = beam_table(25.0)
+    cos_null, table = beam_table(fov_deg)
     echo_paths = np.sort(np.array(paths))
     free_below = echo_paths[0] - 0.006 if len(echo_paths) else 2.5
     reach = echo_paths[-1] + 0.1 if len(echo_paths) else 2.5

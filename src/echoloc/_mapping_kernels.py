@@ -49,6 +49,64 @@ def _beam_gain(cos_angle: float, cos_null: float, table: np.ndarray) -> float:
 
 
 @njit(cache=True)
+def _column_range(
+    alpha: float, rho2: float, az: float, cos_null: float, radius2: float
+) -> tuple[float, float]:
+    """A range of ``u`` holding every point of a column inside the cone and the ball.
+
+    The column is the line ``d(u) = (dx, dy, u)`` from the apex (``alpha = dx ax + dy
+    ay``, ``rho2 = dx² + dy²``); the cone is ``d·a >= cos_null |d|`` (one nappe: convex,
+    so the line meets it in one interval); the ball ``|d|² <= radius2``. Returns
+    (lo, hi), empty when lo > hi; a superset is fine, the caller tests every cell.
+    """
+    if rho2 > radius2:
+        return 1.0, -1.0
+    half = math.sqrt(radius2 - rho2)
+    lo, hi = -half, half
+    # The half-space alpha + az u >= 0.
+    if az > 0.0:
+        lo = max(lo, -alpha / az)
+    elif az < 0.0:
+        hi = min(hi, -alpha / az)
+    elif alpha < 0.0:
+        return 1.0, -1.0
+    if lo > hi:
+        return lo, hi
+    # (alpha + az u)² - c² (rho2 + u²) >= 0: a u² + b u + c0 >= 0.
+    c2 = cos_null * cos_null
+    a = az * az - c2
+    b = 2.0 * alpha * az
+    c0 = alpha * alpha - c2 * rho2
+    if abs(a) < 1e-12:
+        if abs(b) < 1e-12:
+            return (lo, hi) if c0 >= 0.0 else (1.0, -1.0)
+        root = -c0 / b
+        return (max(lo, root), hi) if b > 0.0 else (lo, min(hi, root))
+    disc = b * b - 4.0 * a * c0
+    if disc < 0.0:
+        return (lo, hi) if a > 0.0 else (1.0, -1.0)
+    sq = math.sqrt(disc)
+    r1 = (-b - sq) / (2.0 * a)
+    r2 = (-b + sq) / (2.0 * a)
+    if r1 > r2:
+        r1, r2 = r2, r1
+    if a < 0.0:
+        return max(lo, r1), min(hi, r2)
+    # Two rays (-inf, r1] and [r2, inf); the half-space keeps the nappe's, take the hull.
+    left_lo, left_hi = lo, min(hi, r1)
+    right_lo, right_hi = max(lo, r2), hi
+    left = left_lo <= left_hi
+    right = right_lo <= right_hi
+    if left and right:
+        return lo, hi
+    if left:
+        return left_lo, left_hi
+    if right:
+        return right_lo, right_hi
+    return 1.0, -1.0
+
+
+@njit(cache=True)
 def channel_update(
     origin: np.ndarray,
     cell_m: float,
@@ -103,11 +161,31 @@ def channel_update(
     """
     ny, nz = shape[1], shape[2]
     n_echoes = echo_paths_m.shape[0]
+    bx = transmitter[0] - receiver[0]
+    by = transmitter[1] - receiver[1]
+    bz = transmitter[2] - receiver[2]
+    # path <= reach bounds |p - T| by (reach + |T - R|) / 2 (triangle inequality).
+    radius = 0.5 * (reach_m + math.sqrt(bx * bx + by * by + bz * bz)) + cell_m
+    pad = math.sqrt(3.0) * cell_m
     for i in range(lower[0], upper[0]):
         px = origin[0] + (i + 0.5) * cell_m
         for j in range(lower[1], upper[1]):
             py = origin[1] + (j + 0.5) * cell_m
-            for k in range(lower[2], upper[2]):
+            # Only the part of the column inside the cone and the ball (a superset).
+            cx = px - transmitter[0]
+            cy = py - transmitter[1]
+            u_lo, u_hi = _column_range(
+                cx * tx_axis[0] + cy * tx_axis[1],
+                cx * cx + cy * cy,
+                tx_axis[2],
+                max(0.0, cos_null - 1e-9),
+                radius * radius,
+            )
+            if u_lo > u_hi:
+                continue
+            k_lo = max(lower[2], math.floor((transmitter[2] + u_lo - pad - origin[2]) / cell_m - 0.5))
+            k_hi = min(upper[2], math.ceil((transmitter[2] + u_hi + pad - origin[2]) / cell_m - 0.5) + 1)
+            for k in range(k_lo, k_hi):
                 pz = origin[2] + (k + 0.5) * cell_m
                 dtx = px - transmitter[0]
                 dty = py - transmitter[1]

@@ -471,7 +471,7 @@ class MapAccumulator:
 
     ``add_frame`` integrates one frame's echoes (and, if given, its located objects) at
     one pose; ``grid()`` returns a frozen :class:`OccupancyGrid` snapshot. Scratch
-    arrays for a frame's updates are allocated once, so memory stays at about 44
+    arrays for a frame's updates are allocated once, so memory stays at about 36
     bytes per cell whatever the number of frames.
     """
 
@@ -496,15 +496,15 @@ class MapAccumulator:
         n = spec.n_cells
         self._log_odds = np.zeros(n, dtype=np.float32)
         self._updates = np.zeros(n, dtype=np.uint16)
-        self._occupied = np.zeros(n, dtype=np.float64)
-        self._free = np.zeros(n, dtype=np.float64)
+        self._occupied = np.zeros(n, dtype=np.float32)
+        self._free = np.zeros(n, dtype=np.float32)
         self._hit_axes = np.zeros((n, 3), dtype=np.float32)
         self._support = np.zeros(n, dtype=np.uint8)
         self._central = np.zeros(n, dtype=np.uint8)
         clear_angle = self.model.clear_angle_deg or half_power_angle_deg(min(90.0, fov))
         self._clear_cos = math.cos(math.radians(clear_angle))
         self._stamp = np.full(n, -1, dtype=np.int32)
-        self._touched = np.zeros(n, dtype=np.int64)
+        self._touched = np.zeros(n, dtype=np.int32)
         self._frames = 0
         self._blind_m = float(blind_path_m)
         self._window_m = window_path_m
