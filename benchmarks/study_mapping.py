@@ -1,0 +1,210 @@
+"""Mapping study: a simulated room mapped by a moving, spinning sensor, and what a pan scan adds.
+
+1. **Room** (examples/mapping/room.toml): four walls, a box and a pole, double
+   reflections on; the head drives diagonally and spins at 30 deg/s for one turn
+   (1200 frames). The floor plan at 2 cm (and 1 cm) is scored against the true
+   surfaces (:func:`echoloc.mapping.map_accuracy`):
+
+   - *coverage*: of the surface the sensor saw, the fraction with an occupied cell
+     within one cell. "Seen" = within a cell of a true reflection point (the
+     recording's ``truth_positions``) inside the beam that at least two receivers
+     heard within 2 cm of its path (the map's ``min_support``); the figure for
+     "heard by at least one receiver" is given beside it;
+   - *precision*: occupied cells within one cell of any true surface;
+   - *ghosts in free space*: occupied cells in the room's interior, farther than 1.5
+     cells from every surface, as a fraction of the observed interior and as area.
+
+2. **Mechanical scanning** (examples/mapping/pan-scan.toml): the head standing still
+   with a fixed boresight, then panning +-45 degrees (period 4 s), 400 frames each:
+   the area it observes and the poles and wall it hears.
+
+    python benchmarks/study_mapping.py
+
+Writes benchmarks/results/mapping.md, map_room.png and map_scan.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from echoloc import pipeline
+from echoloc.map_plots import draw_floor_plan, plot_grid
+from echoloc.mapping import (
+    GridSpec,
+    OccupancyGrid,
+    build_map,
+    frame_poses,
+    map_accuracy,
+    seen_surface_points_m,
+    seen_truth_points_m,
+)
+from echoloc.recording import Recording
+from echoloc.reflectors import Edge, surface_points_m
+from echoloc.scene import Scene, SensorMotion
+from echoloc.scenefile import load_scene
+from echoloc.simulate import simulate
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "benchmarks" / "results"
+ROOM = ROOT / "examples" / "mapping" / "room.toml"
+SCAN = ROOT / "examples" / "mapping" / "pan-scan.toml"
+# The room's interior and the box, from room.toml.
+ROOM_X, ROOM_Z = (-1.4, 1.6), (-1.0, 2.0)
+BOX_X, BOX_Z = (0.2, 0.6), (1.1, 1.5)
+POLE_XZ = (-0.7, 0.9)
+EXTENT = ((-1.6, 1.8), (-1.2, 2.2))
+
+
+def _free_space(spec: GridSpec) -> np.ndarray:
+    margin = 1.5 * spec.cell_m
+    x, z = np.meshgrid(spec.centres_m(0), spec.centres_m(2), indexing="ij")
+    inside = (
+        (x > ROOM_X[0] + margin)
+        & (x < ROOM_X[1] - margin)
+        & (z > ROOM_Z[0] + margin)
+        & (z < ROOM_Z[1] - margin)
+    )
+    in_box = (
+        (x > BOX_X[0] - margin) & (x < BOX_X[1] + margin) & (z > BOX_Z[0] - margin) & (z < BOX_Z[1] + margin)
+    )
+    near_pole = np.hypot(x - POLE_XZ[0], z - POLE_XZ[1]) < margin + 0.02
+    return np.asarray((inside & ~in_box & ~near_pole)[:, None, :])
+
+
+def _score(scene: Scene, recording: Recording, results: list, grid: OccupancyGrid) -> dict[str, float]:
+    spec = grid.spec
+    surface = surface_points_m(scene.objects, spec.cell_m / 4)
+    echoes = [e for e, _ in results]
+    row: dict[str, float] = {}
+    for channels in (2, 1):
+        heard = seen_truth_points_m(recording, echoes, tolerance_m=0.02, min_channels=channels)
+        seen = seen_surface_points_m(surface, heard, spec)
+        accuracy = map_accuracy(grid, surface, seen, free_space=_free_space(spec))
+        row[f"coverage_{channels}"] = accuracy.coverage
+        row[f"seen_m_{channels}"] = len(seen) * spec.cell_m / 4
+    row.update(
+        precision=accuracy.precision,
+        occupied=accuracy.occupied_cells,
+        ghost_fraction=accuracy.ghost_fraction,
+        ghost_area_m2=accuracy.ghost_area_m2,
+        free_m2=accuracy.free_cells * spec.cell_m**2,
+    )
+    return row
+
+
+def room(n_frames: int) -> list[str]:
+    scene = load_scene(ROOM)
+    recording = simulate(scene, n_frames)
+    results = list(pipeline.run(pipeline.prepare(recording)))
+    poses = frame_poses(recording)
+    lines = [
+        "## 1. The room: a moving, spinning sensor",
+        "",
+        f"`{ROOM.relative_to(ROOT)}`, {n_frames} frames: floor plan at the head's height, scored against the "
+        "true surfaces (module doc).",
+        "",
+        "| cells | seen by >= 2 receivers | coverage | seen by >= 1 | coverage | precision | "
+        "ghosts in free space | ghost area | free area observed |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for cell in (0.02, 0.01):
+        spec = GridSpec.floor_plan(EXTENT[0], EXTENT[1], cell)
+        grid = build_map(recording, results, spec, poses=poses)
+        r = _score(scene, recording, results, grid)
+        lines.append(
+            f"| {cell * 100:g} cm | {r['seen_m_2']:.2f} m | **{r['coverage_2']:.3f}** | "
+            f"{r['seen_m_1']:.2f} m | "
+            f"{r['coverage_1']:.3f} | {r['precision']:.3f} | **{100 * r['ghost_fraction']:.2f} %** | "
+            f"{r['ghost_area_m2'] * 1e4:.0f} cm² | {r['free_m2']:.2f} m² |"
+        )
+        if cell == 0.02:
+            truth = surface_points_m(scene.objects, cell / 4)
+            truth = truth[np.abs(truth[:, 1]) < cell / 2]
+            for target in (RESULTS / "map_room.png", ROOT / "docs" / "map_room.png"):
+                plot_grid(grid, target, sensor_path_m=poses[:, :3], truth_m=truth)
+    lines += [
+        "",
+        "![room](map_room.png)",
+        "",
+    ]
+    return lines
+
+
+def scan(n_frames: int) -> list[str]:
+    panned = load_scene(SCAN)
+    still = dataclasses.replace(panned, motion=SensorMotion())
+    spec = GridSpec.floor_plan((-1.8, 1.8), (-0.2, 2.2), 0.02)
+    figure = Figure(figsize=(14, 5.5), layout="constrained")
+    lines = [
+        "## 2. Mechanical scanning: a narrow beam standing still, then panning +-45 degrees",
+        "",
+        f"`{SCAN.relative_to(ROOT)}`: five poles 1.3 m away at -40 ... 40 degrees and a wall 1.8 m ahead; "
+        f"{n_frames} frames ({n_frames / 100:g} s) each, floor plan at 2 cm. A reflector counts as heard "
+        "when at least two receivers heard it within 2 cm of its path in some frame.",
+        "",
+        "| head | area observed | free area | poles heard | wall heard | occupied cells |",
+        "|---|---|---|---|---|---|",
+    ]
+    for k, (name, scene) in enumerate((("fixed boresight", still), ("pan +-45 deg, period 4 s", panned))):
+        recording = simulate(scene, n_frames)
+        results = list(pipeline.run(pipeline.prepare(recording)))
+        grid = build_map(recording, results, spec)
+        heard = seen_truth_points_m(recording, [e for e, _ in results], tolerance_m=0.02, min_channels=2)
+        poles = [obj for obj in scene.objects if isinstance(obj, Edge)]
+        poles_heard = sum(
+            bool(len(heard))
+            and bool(np.min(np.hypot(heard[:, 0] - pole.start_m[0], heard[:, 2] - pole.start_m[2])) < 0.03)
+            for pole in poles
+        )
+        wall = seen_surface_points_m(surface_points_m(scene.objects[:1], 0.005), heard, spec)
+        lines.append(
+            f"| {name} | {grid.known().sum() * spec.cell_m**2:.2f} m² | "
+            f"{grid.free().sum() * spec.cell_m**2:.2f} m² | "
+            f"{poles_heard} of {len(poles)} | {len(wall) * 0.005:.2f} m | {int(grid.occupied().sum())} |"
+        )
+        truth = surface_points_m(scene.objects, 0.005)
+        draw_floor_plan(
+            figure.add_subplot(1, 2, k + 1),
+            grid,
+            sensor_path_m=np.zeros((1, 3)),
+            truth_m=truth[np.abs(truth[:, 1]) < 0.01],
+            title=name,
+        )
+    figure.savefig(RESULTS / "map_scan.png", dpi=110)
+    lines += [
+        "",
+        "![scan](map_scan.png)",
+        "",
+        "The pan widens what the 18-degree beam covers; the poles' arcs still run together, because a "
+        "pole 1.3 m away is heard mostly by the vertical receiver pair, whose ellipses coincide in the "
+        "horizontal plane: angle within the beam is known only where the horizontal pair hears too.",
+        "",
+    ]
+    return lines
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=1200)
+    parser.add_argument("--scan-frames", type=int, default=400)
+    args = parser.parse_args()
+    lines = [
+        "# study_mapping.py — last run",
+        "",
+        f"`python benchmarks/study_mapping.py --frames {args.frames}`",
+        "",
+    ]
+    lines += room(args.frames)
+    lines += scan(args.scan_frames)
+    text = "\n".join(lines)
+    (RESULTS / "mapping.md").write_text(text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
