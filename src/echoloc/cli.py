@@ -6,6 +6,7 @@ internal error.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import math
@@ -1421,6 +1422,483 @@ def design_command(
     if output is not None:
         for written_path in record["plots"]:
             stderr.print(f"plot written to {written_path}")
+
+
+# --- real time: send, stream, record, bench ----------------------------------------
+
+
+def _listen_options(func: Callable[..., None]) -> Callable[..., None]:
+    """--listen, --udp, --geometry and --queue, shared by stream and record."""
+    from echoloc.transport import DEFAULT_HOST, DEFAULT_PORT
+
+    decorators = [
+        click.option(
+            "--listen",
+            "listen_text",
+            metavar="[HOST:]PORT",
+            default=f"{DEFAULT_HOST}:{DEFAULT_PORT}",
+            show_default=True,
+            help="Where to listen (127.0.0.1: this machine only; 0.0.0.0 for every interface).",
+        ),
+        click.option("--udp", is_flag=True, help="UDP (one datagram a frame) instead of TCP."),
+        click.option(
+            "--geometry",
+            "geometry_path",
+            type=click.Path(path_type=Path),
+            default=None,
+            help="Take the session (geometry, waveform, air) from this recording instead of the "
+            "sender's session message.",
+        ),
+        click.option(
+            "--queue",
+            "queue_frames",
+            type=click.IntRange(1, 1_000_000),
+            default=64,
+            show_default=True,
+            help="Frames held between the socket and the processor; when full the oldest is dropped.",
+        ),
+        click.option(
+            "--block",
+            is_flag=True,
+            help="Never drop a frame that arrived: make a TCP sender wait instead (replaying files).",
+        ),
+        click.option(
+            "--once", is_flag=True, help="Stop when the sender says it is done or (TCP) disconnects."
+        ),
+        click.option(
+            "--max-frames",
+            type=click.IntRange(1, None),
+            default=None,
+            help="Stop after this many frames.",
+        ),
+        click.option(
+            "--duration", "duration_s", type=float, default=None, help="Stop after this many seconds."
+        ),
+    ]
+    for decorator in reversed(decorators):
+        func = decorator(func)
+    return func
+
+
+@contextmanager
+def _terminate_as_interrupt() -> Iterator[None]:
+    """SIGTERM (a service manager stopping us) ends a stream as Ctrl-C does: cleanly."""
+    import signal
+
+    def interrupt(signum: int, frame: object) -> None:
+        del signum, frame
+        raise KeyboardInterrupt
+
+    try:
+        previous = signal.signal(signal.SIGTERM, interrupt)
+    except ValueError:  # not the main thread (tests calling main() from a thread)
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _events(listener: Any, once: bool, max_frames: int | None, duration_s: float | None) -> Iterator[Any]:
+    """Sessions and frames off the listener's queue until a stop condition; errors to stderr."""
+    import time
+
+    from echoloc.stream import StreamFrame
+    from echoloc.transport import EndEvent
+
+    _finite("--duration", duration_s, positive=True)
+    deadline = None if duration_s is None else time.monotonic() + duration_s
+    frames = 0
+    while True:
+        for message in listener.errors():
+            stderr.print(f"echoloc: warning: {message}", markup=False, highlight=False)
+        if deadline is not None and time.monotonic() >= deadline:
+            return
+        item = listener.queue.get(0.1)
+        if item is None:
+            continue
+        if isinstance(item, EndEvent):
+            if once:
+                return
+            continue
+        yield item
+        if isinstance(item, StreamFrame):
+            frames += 1
+            if max_frames is not None and frames >= max_frames:
+                return
+
+
+def _open_listener(
+    listen_text: str, udp: bool, geometry_path: Path | None, queue_frames: int, block: bool
+) -> Any:
+    from echoloc.stream import FrameQueue
+    from echoloc.transport import Listener, parse_endpoint
+
+    endpoint = parse_endpoint(listen_text, "udp" if udp else "tcp")
+    geometry = None if geometry_path is None else read_recording(geometry_path)
+    return Listener(endpoint, FrameQueue(queue_frames, block=block), geometry=geometry)
+
+
+def _warm_kernels(estimator: str) -> None:
+    """Load (or compile) the chain's kernels before the first session arrives.
+
+    The kernels do not depend on the geometry: a chain on the default scene loads
+    them, so the first frames of a stream are not late for it.
+    """
+    from echoloc.stream import StreamProcessor
+
+    with contextlib.suppress(EchoLocError):  # an estimator the default scene does not suit
+        StreamProcessor(prepare(recording_header(default_scene()), estimator=estimator)).warm_up()
+
+
+@cli.command(name="send")
+@click.argument("recording_path", metavar="RECORDING", type=click.Path(path_type=Path))
+@click.option(
+    "--to", "to_text", metavar="[HOST:]PORT", default="127.0.0.1:7447", show_default=True, help="Receiver."
+)
+@click.option("--udp", is_flag=True, help="UDP (one datagram a frame) instead of TCP.")
+@click.option(
+    "--speed",
+    type=float,
+    default=1.0,
+    show_default=True,
+    help="1: the recording's own pace; N: N times faster; 0: as fast as the receiver takes it.",
+)
+@click.option("--rate", "rate_hz", type=float, default=None, help="Frames per second instead of --speed.")
+@click.option(
+    "--loop", "loops", type=click.IntRange(0, None), default=1, show_default=True, help="Passes; 0: forever."
+)
+@click.option(
+    "--sample-format",
+    type=click.Choice(["auto", "float32", "float64", "int16"]),
+    default="auto",
+    show_default=True,
+    help="Samples on the wire. auto: float32 if that is exact, else float64 (float32 on UDP); "
+    "int16: rounded, as ADC counts; iq recordings are sent complex64.",
+)
+@click.option(
+    "--connect-timeout", "connect_timeout_s", type=float, default=5.0, show_default=True, help="TCP, s."
+)
+def send_command(
+    recording_path: Path,
+    to_text: str,
+    udp: bool,
+    speed: float,
+    rate_hz: float | None,
+    loops: int,
+    sample_format: str,
+    connect_timeout_s: float,
+) -> None:
+    """Replay RECORDING to a receiver in the stream protocol (docs/STREAM_PROTOCOL.md)."""
+    from echoloc.transport import parse_endpoint, send_recording
+
+    endpoint = parse_endpoint(to_text, "udp" if udp else "tcp")
+    recording = read_recording(recording_path)
+    try:
+        with _terminate_as_interrupt():
+            report = send_recording(
+                recording,
+                endpoint,
+                speed=speed,
+                rate_hz=rate_hz,
+                loops=loops,
+                sample_format=sample_format,
+                connect_timeout_s=connect_timeout_s,
+            )
+    except KeyboardInterrupt:
+        stderr.print("echoloc: send: interrupted", markup=False)
+        return
+    stderr.print(f"echoloc: send: {report.summary(endpoint)}", markup=False, highlight=False)
+
+
+@cli.command(name="stream")
+@_listen_options
+@click.option("--json", "as_json", is_flag=True, help="JSON Lines of `echoloc locate --json`, one a frame.")
+@click.option(
+    "--record", "record_path", type=click.Path(path_type=Path), default=None, help="Also record to HDF5."
+)
+@click.option("--view", is_flag=True, help="Serve the live view (Foxglove WebSocket) on 127.0.0.1.")
+@click.option("--view-port", type=click.IntRange(0, 65535), default=8765, show_default=True)
+@click.option(
+    "--deadline-ms",
+    type=float,
+    default=100.0,
+    show_default=True,
+    help="Frames waiting longer than this before processing are counted as late.",
+)
+@click.option(
+    "--estimator",
+    type=click.Choice(sorted(ESTIMATORS)),
+    default="matched",
+    show_default=True,
+    help="Time-of-flight estimator.",
+)
+@click.option("--threshold-db", type=float, default=EchoOptions.threshold_db, show_default=True)
+@click.option("--blanking-s", type=float, default=0.0, show_default=True, help="Ignore earlier echoes, s.")
+@click.option("--speed-of-sound", "speed_of_sound_m_s", type=float, default=None, help="Override, m/s.")
+@click.option(
+    "--calibration",
+    "calibration_path",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="From `echoloc calibrate`.",
+)
+def stream_command(
+    listen_text: str,
+    udp: bool,
+    geometry_path: Path | None,
+    queue_frames: int,
+    block: bool,
+    once: bool,
+    max_frames: int | None,
+    duration_s: float | None,
+    as_json: bool,
+    record_path: Path | None,
+    view: bool,
+    view_port: int,
+    deadline_ms: float,
+    estimator: str,
+    threshold_db: float,
+    blanking_s: float,
+    speed_of_sound_m_s: float | None,
+    calibration_path: Path | None,
+) -> None:
+    """Locate objects in frames arriving over the network, as they arrive.
+
+    Listens for the stream protocol (docs/STREAM_PROTOCOL.md; `echoloc send` replays a
+    recording in it), runs the chain of `echoloc locate` on every frame and prints
+    its objects. Lost, dropped and late frames are counted and reported at the end
+    (Ctrl-C or SIGTERM ends the stream cleanly).
+    """
+    from echoloc.stream import StreamProcessor, StreamResult
+    from echoloc.transport import Recorder, SessionEvent
+
+    _finite("--deadline-ms", deadline_ms, positive=True)
+    _finite("--speed-of-sound", speed_of_sound_m_s, positive=True)
+    _finite("--blanking-s", blanking_s, minimum=0.0)
+    calibration_file = calibration_path
+    listener = _open_listener(listen_text, udp, geometry_path, queue_frames, block)
+    _warm_kernels(estimator)
+    live = None
+    recorder: Recorder | None = None
+    processor: StreamProcessor | None = None
+    header: Recording | None = None
+    interrupted = False
+    last_status = 0.0
+    try:
+        if view:
+            from echoloc.liveview import LiveView
+
+            live = LiveView(port=view_port)
+            stderr.print(
+                f"echoloc: stream: live view on {live.url} (Foxglove: open connection)", markup=False
+            )
+        listener.start()
+        stderr.print(f"echoloc: stream: listening on {listener.address}", markup=False, highlight=False)
+        with _terminate_as_interrupt():
+            try:
+                for item in _events(listener, once, max_frames, duration_s):
+                    if isinstance(item, SessionEvent):
+                        header = item.header
+                        calibration = (
+                            None
+                            if calibration_file is None
+                            else read_calibration(calibration_file, header.n_receivers)
+                        )
+                        chain = prepare(
+                            header,
+                            estimator=estimator,
+                            echo_options=EchoOptions(threshold_db=threshold_db, blanking_s=blanking_s),
+                            speed_of_sound_m_s=speed_of_sound_m_s,
+                            calibration=calibration,
+                        )
+                        check_locatable(chain)
+                        processor = StreamProcessor(chain, deadline_s=deadline_ms / 1e3)
+                        processor.warm_up()
+                        if record_path is not None and recorder is None:
+                            recorder = Recorder(record_path, header)
+                        stderr.print(
+                            f"echoloc: stream: session: {header.n_receivers} receivers, "
+                            f"{len(header.transmitters_m)} transmitter(s), {header.n_samples} samples at "
+                            f"{header.sample_rate_hz:g} Hz, c = {chain.speed_of_sound_m_s:.2f} m/s",
+                            markup=False,
+                            highlight=False,
+                        )
+                        continue
+                    assert processor is not None
+                    assert header is not None
+                    result: StreamResult = processor.process(item)
+                    if recorder is not None:
+                        recorder.add(item)
+                    if as_json:
+                        click.echo(json_line(objects_record(result.objects)))
+                    if live is not None:
+                        live.publish(
+                            result,
+                            item.samples,
+                            header.sample_rate_hz,
+                            processor.stats(**listener.counters()),
+                        )
+                    if not as_json and stderr.is_terminal and item.arrival_s - last_status > 0.5:
+                        last_status = item.arrival_s
+                        stats = processor.stats(**listener.counters())
+                        found = ", ".join(
+                            f"({o.position_m[0] * 1e3:.0f}, {o.position_m[1] * 1e3:.0f}, "
+                            f"{o.position_m[2] * 1e3:.0f}) mm"
+                            for o in result.objects.objects
+                        )
+                        stderr.print(
+                            f"frame {result.objects.frame}: {len(result.objects.objects)} objects {found}; "
+                            f"{stats.summary()}",
+                            markup=False,
+                            highlight=False,
+                        )
+            except KeyboardInterrupt:
+                interrupted = True
+    finally:
+        listener.stop()
+        if live is not None:
+            live.close()
+        record_error: BaseException | None = None
+        if recorder is not None:
+            try:
+                recorder.close()
+            except BaseException as error:
+                record_error = error
+        if processor is None:
+            counters = listener.counters()
+            stats_line = ", ".join(f"{k} {v}" for k, v in counters.items())
+        else:
+            stats_line = processor.stats(**listener.counters()).summary()
+        end = " (interrupted)" if interrupted else ""
+        stderr.print(f"echoloc: stream: {stats_line}{end}", markup=False, highlight=False)
+        if recorder is not None and record_error is None:
+            stderr.print(
+                f"echoloc: stream: recorded {recorder.frames} frames to {record_path} "
+                f"({recorder.dropped} not recorded: the recorder fell behind)",
+                markup=False,
+                highlight=False,
+            )
+    if record_error is not None:
+        raise record_error
+
+
+@cli.command(name="record")
+@click.argument("output", metavar="OUT.h5", type=click.Path(path_type=Path))
+@_listen_options
+@click.option(
+    "--batch-frames",
+    type=click.IntRange(1, 1_000_000),
+    default=64,
+    show_default=True,
+    help="Frames appended and flushed at a time.",
+)
+@click.option(
+    "--batch-seconds", "batch_s", type=float, default=0.5, show_default=True, help="...or after this long."
+)
+@click.option("-v", "--verbose", is_flag=True, help="One line on stderr per batch written.")
+def record_command(
+    output: Path,
+    listen_text: str,
+    udp: bool,
+    geometry_path: Path | None,
+    queue_frames: int,
+    block: bool,
+    once: bool,
+    max_frames: int | None,
+    duration_s: float | None,
+    batch_frames: int,
+    batch_s: float,
+    verbose: bool,
+) -> None:
+    """Record frames arriving over the network to OUT.h5, in batches flushed as they are written.
+
+    A recorder killed at any moment (even SIGKILL, or a power cut) leaves OUT.h5
+    readable, with every frame but at most those of the last batch.
+    """
+    from echoloc.stream import StreamFrame
+    from echoloc.transport import Recorder, SessionEvent
+
+    def progress(frames: int) -> None:
+        if verbose:
+            stderr.print(
+                f"echoloc: record: {frames} frames written to {output}", markup=False, highlight=False
+            )
+
+    listener = _open_listener(listen_text, udp, geometry_path, queue_frames, block)
+    recorder: Recorder | None = None
+    interrupted = False
+    try:
+        listener.start()
+        stderr.print(f"echoloc: record: listening on {listener.address}", markup=False, highlight=False)
+        with _terminate_as_interrupt():
+            try:
+                for item in _events(listener, once, max_frames, duration_s):
+                    if isinstance(item, SessionEvent):
+                        if recorder is not None:
+                            stderr.print(
+                                "echoloc: warning: the sender started a different session; "
+                                f"{output} keeps the first (start a new recording for the new one)",
+                                markup=False,
+                            )
+                            break
+                        recorder = Recorder(
+                            output, item.header, batch_frames=batch_frames, batch_s=batch_s, on_batch=progress
+                        )
+                    elif isinstance(item, StreamFrame) and recorder is not None:
+                        recorder.add(item)
+            except KeyboardInterrupt:
+                interrupted = True
+    finally:
+        listener.stop()
+        counters = listener.counters()
+        if recorder is not None:
+            recorder.close()
+    if recorder is None:
+        raise EchoLocError(f"{output}: no session arrived on {listener.address}, nothing recorded")
+    dropped = counters["dropped"] + recorder.dropped
+    end = " (interrupted)" if interrupted else ""
+    stderr.print(
+        f"echoloc: record: {recorder.frames} frames in {recorder.batches} batches to {output}; "
+        f"lost {counters['lost']}, dropped {dropped}, malformed {counters['malformed']}, "
+        f"rejected {counters['rejected']}{end}",
+        markup=False,
+        highlight=False,
+    )
+
+
+@cli.command(name="bench")
+@click.option(
+    "--reflectors",
+    type=click.IntRange(0, 50),
+    default=5,
+    show_default=True,
+    help="Random reflectors in the default scene (0: the report's three balls).",
+)
+@click.option("--frames", "n_frames", type=click.IntRange(2, 100_000), default=200, show_default=True)
+@click.option(
+    "--baseline-frames",
+    type=click.IntRange(1, 1000),
+    default=2,
+    show_default=True,
+    help="Frames for the scipy chain (its brute-force locate takes seconds a frame).",
+)
+@click.option("--json", "as_json", is_flag=True, help="One JSON object with the figures.")
+def bench_command(reflectors: int, n_frames: int, baseline_frames: int, as_json: bool) -> None:
+    """Frames/s, latency p50/p99 and peak memory of the full chain, beside a plain scipy chain."""
+    from echoloc.benchmark import bench_chains, bench_scene, format_bench
+
+    stderr.print(
+        f"echoloc: bench: simulating {n_frames} frames, then timing both chains on one core...",
+        markup=False,
+    )
+    recording = simulate(bench_scene(reflectors), n_frames)
+    report = bench_chains(recording, baseline_frames=baseline_frames)
+    if as_json:
+        click.echo(json.dumps(report, allow_nan=False))
+        return
+    click.echo(format_bench(report))
 
 
 # --- entry point -------------------------------------------------------------------
