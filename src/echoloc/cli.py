@@ -1734,12 +1734,7 @@ def stream_command(
                     if as_json:
                         click.echo(json_line(objects_record(result.objects)))
                     if live is not None:
-                        live.publish(
-                            result,
-                            item.samples,
-                            header.sample_rate_hz,
-                            processor.stats(**listener.counters()),
-                        )
+                        live.publish(result, item.samples, processor.stats(**listener.counters()))
                     if not as_json and stderr.is_terminal and item.arrival_s - last_status > 0.5:
                         last_status = item.arrival_s
                         stats = processor.stats(**listener.counters())
