@@ -226,3 +226,39 @@ def test_processor_counts_late_frames_and_refuses_misfits(recording):
     assert processor.stats().late == 1
     with pytest.raises(EchoLocError, match="3 channels"):
         processor.process(StreamFrame(1, recording.frames[0][:3], 0.0))
+
+
+def test_a_sender_written_from_the_protocol_page_alone_is_located_right():
+    """examples/minimal_sender.py uses only the standard library and docs/STREAM_PROTOCOL.md."""
+    import subprocess
+    import sys
+
+    script = EXAMPLES / "minimal_sender.py"
+    assert "echoloc" not in {
+        line.split()[1].split(".")[0]
+        for line in script.read_text().splitlines()
+        if line.startswith("import ")
+    }
+    reflector = (0.05, -0.03, 0.6)
+    with Listener(Endpoint("127.0.0.1", 0, "tcp"), FrameQueue(16)) as listener:
+        subprocess.run(
+            [
+                sys.executable,
+                str(script),
+                *("--to", f"127.0.0.1:{listener.address.port}", "--frames", "3", "--rate", "200"),
+                *("--reflector", *map(str, reflector)),
+            ],
+            check=True,
+            timeout=60,
+        )
+        items = _drain(listener, 3)
+        counters = listener.counters()
+    assert counters["malformed"] == counters["rejected"] == 0
+    session, *frames = items
+    assert isinstance(session, SessionEvent)
+    assert len(frames) == 3
+    processor = StreamProcessor(prepare(session.header))
+    for frame in frames:
+        (obj,) = processor.process(frame).objects.objects
+        # int16 samples, noise 1 % of full scale: within a millimetre.
+        np.testing.assert_allclose(obj.position_m, reflector, atol=1e-3)
