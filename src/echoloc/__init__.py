@@ -19,6 +19,7 @@ from echoloc.errors import EchoLocError, GeometryError, RecordingError, SceneErr
 from echoloc.estimators import ESTIMATORS
 from echoloc.evaluate import Evaluation, evaluate
 from echoloc.export import SENSOR_FRAME_ID, write_mcap, write_ply
+from echoloc.liveview import LiveView
 from echoloc.locate import (
     FrameObjects,
     LocatedObject,
@@ -28,11 +29,40 @@ from echoloc.locate import (
     solve_positions,
 )
 from echoloc.pipeline import Chain, find_echoes, frame_echoes, frame_objects, prepare, run
-from echoloc.recording import Recording, RecordingWarning, read_recording, write_recording
+from echoloc.protocol import (
+    ProtocolError,
+    WireFrame,
+    decode_frame,
+    decode_header,
+    decode_session,
+    encode_end,
+    encode_frame,
+    encode_session,
+)
+from echoloc.recording import (
+    FrameBatch,
+    Recording,
+    RecordingWarning,
+    append_recording_stream,
+    read_recording,
+    write_recording,
+    write_recording_stream,
+)
 from echoloc.scene import Array, Scene, default_scene
 from echoloc.scenefile import load_scene
 from echoloc.simulate import simulate
+from echoloc.stream import (
+    FrameQueue,
+    LatencyHistogram,
+    SequenceTracker,
+    StreamFrame,
+    StreamProcessor,
+    StreamResult,
+    StreamStats,
+    stream_recording,
+)
 from echoloc.transducer import PRESETS, Transducer, array_factor, piston_beam_angles, piston_directivity
+from echoloc.transport import Endpoint, Listener, Recorder, parse_endpoint, send_recording
 from echoloc.uncertainty import (
     ErrorMap,
     PositionErrors,
@@ -74,30 +104,45 @@ __all__ = [
     "ChannelEchoes",
     "EchoLocError",
     "EchoOptions",
+    "Endpoint",
     "ErrorMap",
     "Evaluation",
+    "FrameBatch",
     "FrameEchoes",
     "FrameObjects",
+    "FrameQueue",
     "GeometryError",
     "Grid",
+    "LatencyHistogram",
+    "Listener",
+    "LiveView",
     "LocateOptions",
     "LocatedObject",
     "MatchedFilter",
     "PositionErrors",
+    "ProtocolError",
+    "Recorder",
     "Recording",
     "RecordingError",
     "RecordingWarning",
     "Scene",
     "SceneError",
+    "SequenceTracker",
     "SpacingRecommendation",
     "SpacingStudy",
+    "StreamFrame",
+    "StreamProcessor",
+    "StreamResult",
+    "StreamStats",
     "Transducer",
     "UncertaintyArea",
     "Waveform",
     "WaveformError",
     "WaveformMetrics",
+    "WireFrame",
     "__version__",
     "absorption_db_per_m",
+    "append_recording_stream",
     "array_factor",
     "associate",
     "backproject_frame",
@@ -105,7 +150,13 @@ __all__ = [
     "barker_waveform",
     "chirp_waveform",
     "code_metrics",
+    "decode_frame",
+    "decode_header",
+    "decode_session",
     "default_scene",
+    "encode_end",
+    "encode_frame",
+    "encode_session",
     "error_map",
     "evaluate",
     "find_echoes",
@@ -118,6 +169,7 @@ __all__ = [
     "mls",
     "modulate",
     "paired_closed_form",
+    "parse_endpoint",
     "piston_beam_angles",
     "piston_directivity",
     "position_errors",
@@ -127,11 +179,13 @@ __all__ = [
     "recommended_spacing",
     "run",
     "run_backprojection",
+    "send_recording",
     "simulate",
     "solve_positions",
     "spacing_study",
     "speed_of_sound_cramer_m_s",
     "speed_of_sound_m_s",
+    "stream_recording",
     "tone_burst",
     "uncertainty_area",
     "waveform_by_name",
@@ -139,4 +193,5 @@ __all__ = [
     "write_mcap",
     "write_ply",
     "write_recording",
+    "write_recording_stream",
 ]
