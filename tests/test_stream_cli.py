@@ -44,13 +44,20 @@ class Proc:
             text=True,
         )
         self.lines: list[str] = []
+        self._stdout: list[str] = []
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
+        self._out_reader = threading.Thread(target=self._read_stdout, daemon=True)
+        self._out_reader.start()
 
     def _read(self) -> None:
         assert self.popen.stderr is not None
         for line in self.popen.stderr:
             self.lines.append(line.rstrip("\n"))
+
+    def _read_stdout(self) -> None:
+        assert self.popen.stdout is not None
+        self._stdout.append(self.popen.stdout.read())
 
     def wait_for(self, pattern: str, timeout_s: float = TIMEOUT_S) -> re.Match[str]:
         deadline = time.monotonic() + timeout_s
@@ -70,12 +77,12 @@ class Proc:
 
     def finish(self, timeout_s: float = TIMEOUT_S) -> tuple[int, str]:
         try:
-            stdout, _ = self.popen.communicate(timeout=timeout_s)
+            self.popen.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired:
             self.kill()
             raise
-        self.kill()  # closes the pipes
-        return self.popen.returncode, stdout
+        self.kill()  # waits for the readers, closes the pipes
+        return self.popen.returncode, "".join(self._stdout)
 
     def kill(self) -> None:
         """Kill it if still running, and close its pipes."""
@@ -83,6 +90,7 @@ class Proc:
             self.popen.kill()
         self.popen.wait(10)
         self._reader.join(5)
+        self._out_reader.join(5)
         for pipe in (self.popen.stdout, self.popen.stderr):
             if pipe is not None:
                 pipe.close()

@@ -1667,116 +1667,187 @@ def stream_command(
     """Locate objects in frames arriving over the network, as they arrive.
 
     Listens for the stream protocol (docs/STREAM_PROTOCOL.md; `echoloc send` replays a
-    recording in it), runs the chain of `echoloc locate` on every frame and prints
-    its objects. Lost, dropped and late frames are counted and reported at the end
-    (Ctrl-C or SIGTERM ends the stream cleanly).
+    recording in it), runs the chain of `echoloc locate` on every frame and shows
+    the latest objects (a live table on a terminal; with --json the lines of `locate
+    --json` on stdout). Lost, dropped and late frames are counted and reported at the
+    end; Ctrl-C or SIGTERM ends the stream cleanly.
     """
-    from echoloc.stream import StreamProcessor, StreamResult
-    from echoloc.transport import Recorder, SessionEvent
+    from rich.live import Live
 
     _finite("--deadline-ms", deadline_ms, positive=True)
     _finite("--speed-of-sound", speed_of_sound_m_s, positive=True)
     _finite("--blanking-s", blanking_s, minimum=0.0)
-    calibration_file = calibration_path
+    options = EchoOptions(threshold_db=threshold_db, blanking_s=blanking_s)
+
+    def make_chain(header: Recording) -> Chain:
+        calibration = (
+            None if calibration_path is None else read_calibration(calibration_path, header.n_receivers)
+        )
+        chain = prepare(
+            header,
+            estimator=estimator,
+            echo_options=options,
+            speed_of_sound_m_s=speed_of_sound_m_s,
+            calibration=calibration,
+        )
+        check_locatable(chain)
+        return chain
+
     listener = _open_listener(listen_text, udp, geometry_path, queue_frames, block)
     _warm_kernels(estimator)
-    live = None
-    recorder: Recorder | None = None
-    processor: StreamProcessor | None = None
-    header: Recording | None = None
+    session = _LiveStream(listener, make_chain, deadline_ms / 1e3, as_json, record_path)
     interrupted = False
-    last_status = 0.0
     try:
         if view:
             from echoloc.liveview import LiveView
 
-            live = LiveView(port=view_port)
+            session.view = LiveView(port=view_port)
             stderr.print(
-                f"echoloc: stream: live view on {live.url} (Foxglove: open connection)", markup=False
+                f"echoloc: stream: live view on {session.view.url} (Foxglove: open connection)", markup=False
             )
         listener.start()
         stderr.print(f"echoloc: stream: listening on {listener.address}", markup=False, highlight=False)
-        with _terminate_as_interrupt():
+        table = not as_json and stderr.is_terminal
+        with (
+            _terminate_as_interrupt(),
+            Live(console=stderr, refresh_per_second=4, transient=True)
+            if table
+            else contextlib.nullcontext() as live,
+        ):
+            session.live = live
             try:
                 for item in _events(listener, once, max_frames, duration_s):
-                    if isinstance(item, SessionEvent):
-                        header = item.header
-                        calibration = (
-                            None
-                            if calibration_file is None
-                            else read_calibration(calibration_file, header.n_receivers)
-                        )
-                        chain = prepare(
-                            header,
-                            estimator=estimator,
-                            echo_options=EchoOptions(threshold_db=threshold_db, blanking_s=blanking_s),
-                            speed_of_sound_m_s=speed_of_sound_m_s,
-                            calibration=calibration,
-                        )
-                        check_locatable(chain)
-                        processor = StreamProcessor(chain, deadline_s=deadline_ms / 1e3)
-                        processor.warm_up()
-                        if record_path is not None and recorder is None:
-                            recorder = Recorder(record_path, header)
-                        stderr.print(
-                            f"echoloc: stream: session: {header.n_receivers} receivers, "
-                            f"{len(header.transmitters_m)} transmitter(s), {header.n_samples} samples at "
-                            f"{header.sample_rate_hz:g} Hz, c = {chain.speed_of_sound_m_s:.2f} m/s",
-                            markup=False,
-                            highlight=False,
-                        )
-                        continue
-                    assert processor is not None
-                    assert header is not None
-                    result: StreamResult = processor.process(item)
-                    if recorder is not None:
-                        recorder.add(item)
-                    if as_json:
-                        click.echo(json_line(objects_record(result.objects)))
-                    if live is not None:
-                        live.publish(result, item.samples, processor.stats(**listener.counters()))
-                    if not as_json and stderr.is_terminal and item.arrival_s - last_status > 0.5:
-                        last_status = item.arrival_s
-                        stats = processor.stats(**listener.counters())
-                        found = ", ".join(
-                            f"({o.position_m[0] * 1e3:.0f}, {o.position_m[1] * 1e3:.0f}, "
-                            f"{o.position_m[2] * 1e3:.0f}) mm"
-                            for o in result.objects.objects
-                        )
-                        stderr.print(
-                            f"frame {result.objects.frame}: {len(result.objects.objects)} objects {found}; "
-                            f"{stats.summary()}",
-                            markup=False,
-                            highlight=False,
-                        )
+                    session.handle(item)
             except KeyboardInterrupt:
                 interrupted = True
     finally:
         listener.stop()
-        if live is not None:
-            live.close()
-        record_error: BaseException | None = None
-        if recorder is not None:
-            try:
-                recorder.close()
-            except BaseException as error:
-                record_error = error
-        if processor is None:
-            counters = listener.counters()
-            stats_line = ", ".join(f"{k} {v}" for k, v in counters.items())
-        else:
-            stats_line = processor.stats(**listener.counters()).summary()
-        end = " (interrupted)" if interrupted else ""
-        stderr.print(f"echoloc: stream: {stats_line}{end}", markup=False, highlight=False)
-        if recorder is not None and record_error is None:
-            stderr.print(
-                f"echoloc: stream: recorded {recorder.frames} frames to {record_path} "
-                f"({recorder.dropped} not recorded: the recorder fell behind)",
-                markup=False,
-                highlight=False,
+        session.close(interrupted)
+    if session.record_error is not None:
+        raise session.record_error
+
+
+class _LiveStream:
+    """What `echoloc stream` does with each session and frame off the listener's queue."""
+
+    STATUS_EVERY_S = 10.0
+
+    def __init__(
+        self,
+        listener: Any,
+        make_chain: Callable[[Recording], Chain],
+        deadline_s: float,
+        as_json: bool,
+        record_path: Path | None,
+    ) -> None:
+        self.listener = listener
+        self.make_chain = make_chain
+        self.deadline_s = deadline_s
+        self.as_json = as_json
+        self.record_path = record_path
+        self.processor: Any = None
+        self.recorder: Any = None
+        self.header: Recording | None = None
+        self.view: Any = None
+        self.live: Any = None
+        self.record_error: BaseException | None = None
+        self._last_status = 0.0
+        self._last_table = 0.0
+
+    def stats(self) -> Any:
+        return self.processor.stats(**self.listener.counters())
+
+    def handle(self, item: Any) -> None:
+        from echoloc.stream import StreamProcessor
+        from echoloc.transport import Recorder, SessionEvent
+
+        if isinstance(item, SessionEvent):
+            header = item.header
+            chain = self.make_chain(header)
+            self.processor = StreamProcessor(chain, deadline_s=self.deadline_s)
+            self.processor.warm_up()
+            if self.view is not None:
+                self.view.set_session(header)
+            if self.recorder is not None and self.header is not None:
+                self._stop_recording("the sender started a different session")
+            if self.record_path is not None and self.recorder is None and self.header is None:
+                self.recorder = Recorder(self.record_path, header)
+            self.header = header
+            self._say(
+                f"session: {header.n_receivers} receivers, {len(header.transmitters_m)} transmitter(s), "
+                f"{header.n_samples} samples at {header.sample_rate_hz:g} Hz, "
+                f"c = {chain.speed_of_sound_m_s:.2f} m/s"
             )
-    if record_error is not None:
-        raise record_error
+            return
+        result = self.processor.process(item)
+        if self.recorder is not None:
+            self.recorder.add(item)
+        if self.as_json:
+            click.echo(json_line(objects_record(result.objects)))
+        if self.view is not None:
+            self.view.publish(result, item.samples, self.stats())
+        now = item.arrival_s
+        if self.live is not None:
+            if now - self._last_table > 0.2:
+                self._last_table = now
+                self.live.update(_stream_table(result.objects, self.stats()))
+        elif now - self._last_status > self.STATUS_EVERY_S:
+            self._last_status = now
+            self._say(self.stats().summary())
+
+    def _say(self, text: str) -> None:
+        (self.live.console if self.live is not None else stderr).print(
+            f"echoloc: stream: {text}", markup=False, highlight=False
+        )
+
+    def _stop_recording(self, why: str) -> None:
+        try:
+            self.recorder.close()
+        except BaseException as error:
+            self.record_error = error
+        self._say(f"recording stopped ({why}): {self.recorder.frames} frames in {self.record_path}")
+        self.recorder = None
+
+    def close(self, interrupted: bool) -> None:
+        if self.view is not None:
+            self.view.close()
+        if self.recorder is not None:
+            try:
+                self.recorder.close()
+            except BaseException as error:
+                self.record_error = error
+        if self.processor is None:
+            line = ", ".join(f"{k} {v}" for k, v in self.listener.counters().items()) + "; no session arrived"
+        else:
+            line = self.stats().summary()
+        self._say(line + (" (interrupted)" if interrupted else ""))
+        if self.recorder is not None and self.record_error is None:
+            self._say(
+                f"recorded {self.recorder.frames} frames to {self.record_path} "
+                f"({self.recorder.dropped} not recorded: the recorder fell behind)"
+            )
+
+
+def _stream_table(objects: FrameObjects, stats: Any) -> Table:
+    """The live view on a terminal: the latest frame's objects and the stream's counters."""
+    table = Table(
+        title=f"frame {objects.frame} at {objects.time_s:.3f} s: {len(objects.objects)} objects",
+        caption=stats.summary(),
+    )
+    for column in ("x mm", "y mm", "z mm", "±σ x, y, z mm", "range mm", "rx", "score"):
+        table.add_column(column, justify="right")
+    for obj in objects.objects:
+        x, y, z = obj.position_m * 1e3
+        table.add_row(
+            f"{x:.1f}",
+            f"{y:.1f}",
+            f"{z:.1f}",
+            _mm(obj.std_m, digits=2),
+            f"{np.linalg.norm(obj.position_m) * 1e3:.1f}",
+            str(len(set(obj.receivers))),
+            f"{obj.score:.2f}",
+        )
+    return table
 
 
 @cli.command(name="record")

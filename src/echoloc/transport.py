@@ -538,7 +538,10 @@ class Recorder:
         self._thread.start()
 
     def add(self, frame: StreamFrame) -> None:
-        """Hand over one frame (never blocks)."""
+        """Hand over one frame (never blocks; after a write error frames are counted as dropped)."""
+        if self.error is not None:
+            self.dropped += 1
+            return
         try:
             self._queue.put_nowait(frame)
         except queue.Full:
@@ -546,7 +549,12 @@ class Recorder:
 
     def close(self) -> None:
         """Write what is gathered, close the file, and raise what the writer met (an EchoLocError)."""
-        self._queue.put(None)
+        while self._thread.is_alive():
+            try:
+                self._queue.put(None, timeout=0.1)
+                break
+            except queue.Full:
+                continue
         self._thread.join()
         if self.error is not None:
             raise self.error
@@ -585,9 +593,9 @@ class Recorder:
             append_recording_stream(self.header, self._batches(), self.path)
         except BaseException as error:  # handed to close(), which raises it in the caller's thread
             self.error = error
-            while True:  # unblock nothing: add() never blocks; drain what is left
+            while True:  # what was handed over and will not be written
                 try:
-                    if self._queue.get_nowait() is None:
-                        break
+                    item = self._queue.get_nowait()
                 except queue.Empty:
                     break
+                self.dropped += item is not None
