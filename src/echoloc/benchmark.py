@@ -39,7 +39,7 @@ from scipy import optimize, signal, stats
 
 from echoloc.evaluate import evaluate
 from echoloc.locate import FrameObjects, LocatedObject, model_paths_m
-from echoloc.pipeline import Chain, prepare
+from echoloc.pipeline import Chain, prepare, samples_echoes
 from echoloc.recording import Recording
 from echoloc.scene import RandomReflectors, Scene, default_scene
 from echoloc.stream import StreamProcessor, recording_frames
@@ -130,6 +130,14 @@ def one_core() -> Iterator[int | None]:
         os.sched_setaffinity(0, before)
 
 
+def _frame_rate_hz(recording: Recording) -> float:
+    """Frames a second the recording was taken at: its frame_times, else back-to-back frames."""
+    times = recording.frame_times_s
+    if times is not None and len(times) > 1:
+        return float(1 / np.median(np.diff(times)))
+    return recording.sample_rate_hz / recording.n_samples
+
+
 def _figures(latencies_s: list[float], wall_s: float) -> dict[str, float]:
     arr = np.asarray(latencies_s)
     return {
@@ -189,6 +197,15 @@ def bench_chains(recording: Recording, *, baseline_frames: int = 2, warmup_frame
             base_found.append(baseline_locate(chain, i, baseline_echoes(chain, recording.frames[i])))
             base_latencies.append(time.perf_counter() - t0)
         base_wall = time.perf_counter() - base_start
+        # The echoes stage alone, both ways, on every frame (the scipy locate is the slow part).
+        stage_start = time.perf_counter()
+        for i in range(n):
+            samples_echoes(chain, recording.frames[i], i, 0.0)
+        echoes_s = (time.perf_counter() - stage_start) / n
+        stage_start = time.perf_counter()
+        for i in range(n):
+            baseline_echoes(chain, recording.frames[i])
+        base_echoes_s = (time.perf_counter() - stage_start) / n
     echoloc_figures = _figures(latencies, wall)
     echoloc_figures["peak_mib"] = _peak_mib(lambda: ours()[: min(n, 50)])
     baseline_figures = _figures(base_latencies, base_wall)
@@ -215,10 +232,12 @@ def bench_chains(recording: Recording, *, baseline_frames: int = 2, warmup_frame
         "cpu": cpu,
         "speed_of_sound_m_s": c,
         "physics_frames_per_s": physics_fps,
-        "recording_frames_per_s": recording.sample_rate_hz / recording.n_samples,
+        "recording_frames_per_s": _frame_rate_hz(recording),
         "echoloc": echoloc_figures,
         "scipy": baseline_figures,
         "speedup": baseline_figures["ms_per_frame"] / echoloc_figures["ms_per_frame"],
+        "echoes_ms_per_frame": echoes_s * 1e3,
+        "scipy_echoes_ms_per_frame": base_echoes_s * 1e3,
         "times_physics": echoloc_figures["frames_per_s"] / physics_fps,
         "process_max_rss_mib": max_rss_mib,
     }
@@ -241,6 +260,9 @@ def format_bench(report: dict[str, Any]) -> str:
             f"{f['latency_p50_ms']:.3f} | {f['latency_p99_ms']:.3f} | {f['peak_mib']:.2f} | {recall} |"
         )
     lines += [
+        "",
+        f"The echoes stage alone, every frame: echoloc {report['echoes_ms_per_frame']:.3f} ms, "
+        f"scipy (correlate + hilbert + find_peaks) {report['scipy_echoes_ms_per_frame']:.3f} ms a frame.",
         "",
         f"echoloc is {report['speedup']:.1f}x the scipy chain, and {report['times_physics']:.1f}x the "
         f"{report['physics_frames_per_s']:.1f} frames/s that sound allows one transmitter for "
