@@ -12,6 +12,7 @@ import json
 import math
 import os
 import sys
+import time
 import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -1502,8 +1503,6 @@ def _terminate_as_interrupt() -> Iterator[None]:
 
 def _events(listener: Any, once: bool, max_frames: int | None, duration_s: float | None) -> Iterator[Any]:
     """Sessions and frames off the listener's queue until a stop condition; errors to stderr."""
-    import time
-
     from echoloc.stream import StreamFrame
     from echoloc.transport import EndEvent
 
@@ -1751,7 +1750,7 @@ class _LiveStream:
         self.view: Any = None
         self.live: Any = None
         self.record_error: BaseException | None = None
-        self._last_status = 0.0
+        self._last_status = time.monotonic()  # the first status line comes after STATUS_EVERY_S
         self._last_table = 0.0
 
     def stats(self) -> Any:
