@@ -262,3 +262,36 @@ def test_a_sender_written_from_the_protocol_page_alone_is_located_right():
         (obj,) = processor.process(frame).objects.objects
         # int16 samples, noise 1 % of full scale: within a millimetre.
         np.testing.assert_allclose(obj.position_m, reflector, atol=1e-3)
+
+
+def test_session_of_two_transmitters_combines_frames_as_the_batch_chain(two_tx):
+    """Over the wire the frames name their transmitter; the header alone must combine them."""
+    from echoloc.protocol import decode_header, decode_session
+
+    message = encode_session(two_tx)
+    header = decode_session(decode_header(message), message[52:], "test")
+    assert header.frame_transmitter is None
+    processor = StreamProcessor(prepare(header))
+    streamed = [objects_record(processor.process(f).objects) for f in recording_frames(two_tx)]
+    batch = [objects_record(o) for _, o in run(prepare(two_tx))]
+    assert streamed == batch
+    # Combined: after the first frame, objects are supported by both transmitters' channels.
+    assert all(o["channels"] == 8 for line in batch[1:] for o in line["objects"])
+
+
+def test_geometry_file_replaces_the_session_message(recording):
+    with Listener(Endpoint("127.0.0.1", 0, "udp"), FrameQueue(8), geometry=recording) as listener:
+        out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        for seq in range(3):  # frames only, as a firmware without a session would send
+            out.sendto(
+                encode_frame(
+                    recording.frames[seq], sequence=seq, sample_rate_hz=2e5, frame_time_s=seq * 0.01
+                ),
+                ("127.0.0.1", listener.address.port),
+            )
+        out.close()
+        items = _drain(listener, 3, timeout_s=5)
+    assert isinstance(items[0], SessionEvent)
+    assert items[0].header.n_frames == 0
+    assert [f.index for f in items[1:]] == [0, 1, 2]
+    assert listener.counters()["rejected"] == 0
