@@ -224,3 +224,32 @@ def test_stream_record_writes_the_processed_frames(tmp_path, recording_path):
     assert [json.loads(line)["frame"] for line in stdout.splitlines()] == list(range(15))
     assert read_recording(out).n_frames == 15
     assert any("recorded 15 frames" in line for line in stream.lines)
+
+
+@pytest.mark.parametrize("command", ["send", "stream", "record", "bench"])
+def test_help_of_the_real_time_commands(command):
+    from click.testing import CliRunner
+
+    from echoloc.cli import cli
+
+    result = CliRunner().invoke(cli, [command, "--help"])
+    assert result.exit_code == 0
+    assert f"Usage: cli {command}" in result.output or f"Usage: echoloc {command}" in result.output
+    if command in ("stream", "record"):
+        assert "127.0.0.1:7447" in result.output  # loopback unless told otherwise
+
+
+def test_bench_reports_both_chains_and_the_physics():
+    done = subprocess.run(
+        [*ECHOLOC, "bench", "--reflectors", "0", "--frames", "4", "--baseline-frames", "1", "--json"],
+        capture_output=True,
+        text=True,
+        timeout=TIMEOUT_S,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout)
+    assert report["objects"] == 3
+    assert report["echoloc"]["recall"] == 1.0
+    assert report["speedup"] > 1  # the brute-force locate of the scipy chain takes seconds
+    assert report["physics_frames_per_s"] == pytest.approx(85.8, abs=0.1)

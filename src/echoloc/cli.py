@@ -1618,7 +1618,9 @@ def send_command(
     "--record", "record_path", type=click.Path(path_type=Path), default=None, help="Also record to HDF5."
 )
 @click.option("--view", is_flag=True, help="Serve the live view (Foxglove WebSocket) on 127.0.0.1.")
-@click.option("--view-port", type=click.IntRange(0, 65535), default=8765, show_default=True)
+@click.option(
+    "--view-port", type=click.IntRange(0, 65535), default=8765, show_default=True, help="Live view's port."
+)
 @click.option(
     "--deadline-ms",
     type=float,
@@ -1633,7 +1635,13 @@ def send_command(
     show_default=True,
     help="Time-of-flight estimator.",
 )
-@click.option("--threshold-db", type=float, default=EchoOptions.threshold_db, show_default=True)
+@click.option(
+    "--threshold-db",
+    type=float,
+    default=EchoOptions.threshold_db,
+    show_default=True,
+    help="Detection threshold on the echo's output SNR, dB.",
+)
 @click.option("--blanking-s", type=float, default=0.0, show_default=True, help="Ignore earlier echoes, s.")
 @click.option("--speed-of-sound", "speed_of_sound_m_s", type=float, default=None, help="Override, m/s.")
 @click.option(
