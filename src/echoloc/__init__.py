@@ -60,6 +60,7 @@ from echoloc.stream import (
     StreamResult,
     StreamStats,
     stream_recording,
+    warm_kernels,
 )
 from echoloc.transducer import PRESETS, Transducer, array_factor, piston_beam_angles, piston_directivity
 from echoloc.transport import Endpoint, Listener, Recorder, parse_endpoint, send_recording
@@ -188,6 +189,7 @@ __all__ = [
     "stream_recording",
     "tone_burst",
     "uncertainty_area",
+    "warm_kernels",
     "waveform_by_name",
     "waveform_metrics",
     "write_mcap",

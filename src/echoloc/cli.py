@@ -1539,18 +1539,6 @@ def _open_listener(
     return Listener(endpoint, FrameQueue(queue_frames, block=block), geometry=geometry)
 
 
-def _warm_kernels(estimator: str) -> None:
-    """Load (or compile) the chain's kernels before the first session arrives.
-
-    The kernels do not depend on the geometry: a chain on the default scene loads
-    them, so the first frames of a stream are not late for it.
-    """
-    from echoloc.stream import StreamProcessor
-
-    with contextlib.suppress(EchoLocError):  # an estimator the default scene does not suit
-        StreamProcessor(prepare(recording_header(default_scene()), estimator=estimator)).warm_up()
-
-
 @cli.command(name="send")
 @click.argument("recording_path", metavar="RECORDING", type=click.Path(path_type=Path))
 @click.option(
@@ -1681,6 +1669,8 @@ def stream_command(
     """
     from rich.live import Live
 
+    from echoloc.stream import warm_kernels
+
     _finite("--deadline-ms", deadline_ms, positive=True)
     _finite("--speed-of-sound", speed_of_sound_m_s, positive=True)
     _finite("--blanking-s", blanking_s, minimum=0.0)
@@ -1701,7 +1691,7 @@ def stream_command(
         return chain
 
     listener = _open_listener(listen_text, udp, geometry_path, queue_frames, block)
-    _warm_kernels(estimator)
+    warm_kernels(estimator)
     session = _LiveStream(listener, make_chain, deadline_ms / 1e3, as_json, record_path)
     interrupted = False
     try:

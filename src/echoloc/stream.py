@@ -22,6 +22,7 @@ Nothing here grows with the length of a stream.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
 import time
@@ -36,8 +37,17 @@ from numpy.typing import NDArray
 from echoloc.echoes import FrameEchoes, frame_time_s
 from echoloc.errors import EchoLocError
 from echoloc.locate import FrameObjects
-from echoloc.pipeline import Chain, combine_latest, combines_transmitters, samples_echoes, transmitter_objects
+from echoloc.pipeline import (
+    Chain,
+    combine_latest,
+    combines_transmitters,
+    prepare,
+    samples_echoes,
+    transmitter_objects,
+)
 from echoloc.recording import Recording
+from echoloc.scene import default_scene
+from echoloc.simulate import recording_header
 
 Samples = NDArray[np.floating] | NDArray[np.complexfloating]
 
@@ -388,6 +398,18 @@ class StreamProcessor:
             latency_max_s=self.latency.max_s,
             **counters,
         )
+
+
+def warm_kernels(estimator: str = "matched") -> None:
+    """Load (or compile) the chain's kernels before any session is known.
+
+    The compiled kernels do not depend on the geometry: running a chain on the
+    default scene's header once loads them, so the first frames of a stream do not
+    wait for them (half a second from the on-disk cache, seconds on the very first
+    run). An estimator that the default scene does not suit is left cold.
+    """
+    with contextlib.suppress(EchoLocError):
+        StreamProcessor(prepare(recording_header(default_scene()), estimator=estimator)).warm_up()
 
 
 def recording_frames(recording: Recording, frames: Iterable[int] | None = None) -> Iterator[StreamFrame]:
