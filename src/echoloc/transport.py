@@ -22,6 +22,7 @@ import queue
 import socket
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -131,7 +132,8 @@ class Listener:
         self.rejected = 0
         self.bytes_skipped = 0
         self.last_error: str | None = None
-        self._errors: queue.SimpleQueue[str] = queue.SimpleQueue()
+        # Bounded: a caller that never reads errors() must not make a flood of garbage grow memory.
+        self._errors: deque[str] = deque(maxlen=100)
         self._stop = threading.Event()
         self._first_arrival: float | None = None
         family = socket.AF_INET6 if ":" in endpoint.host else socket.AF_INET
@@ -180,8 +182,8 @@ class Listener:
         """Messages about refused input since the last call (one line each, for stderr)."""
         while True:
             try:
-                yield self._errors.get_nowait()
-            except queue.Empty:
+                yield self._errors.popleft()
+            except IndexError:
                 return
 
     def counters(self) -> dict[str, int]:
@@ -200,7 +202,7 @@ class Listener:
     def _complain(self, counter: str, message: str) -> None:
         setattr(self, counter, getattr(self, counter) + 1)
         if message != self.last_error:  # one line per kind of problem in a row, not one per frame
-            self._errors.put(message)
+            self._errors.append(message)
         self.last_error = message
 
     def _run(self) -> None:
@@ -211,7 +213,7 @@ class Listener:
                 self._run_udp()
         except OSError as error:
             if not self._stop.is_set():
-                self._errors.put(f"{self.endpoint}: {error}")
+                self._errors.append(f"{self.endpoint}: {error}")
 
     def _run_tcp(self) -> None:
         while not self._stop.is_set():
@@ -517,7 +519,7 @@ class Recorder:
         *,
         batch_frames: int = 64,
         batch_s: float = 0.5,
-        max_frames: int = 4096,
+        max_frames: int = 1024,
         on_batch: Callable[[int], None] | None = None,
     ) -> None:
         if batch_frames < 1:
