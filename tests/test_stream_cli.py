@@ -253,3 +253,45 @@ def test_bench_reports_both_chains_and_the_physics():
     assert report["echoloc"]["recall"] == 1.0
     assert report["speedup"] > 1  # the brute-force locate of the scipy chain takes seconds
     assert report["physics_frames_per_s"] == pytest.approx(85.8, abs=0.1)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["record", "x.npz"], "recorded to HDF5"),
+        (["record", "/no/such/dir/x.h5"], "does not exist"),
+        (["stream", "--record", "x.npz"], "recorded to HDF5"),
+        (["stream", "--listen", "127.0.0.1:abc"], "port 'abc' is not a number"),
+        (["record", "x.h5", "--udp", "--listen", "127.0.0.1:99999"], "outside 0..65535"),
+        (["send", "/no/such.h5"], "no such file"),
+        (["send", "x.h5", "--rate", "0"], None),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(capsys, tmp_path, recording_path, args, message):
+    from echoloc import cli
+
+    args = [str(recording_path) if a == "x.h5" and args[0] == "send" else a for a in args]
+    with pytest.raises(SystemExit) as info:
+        cli.main(args)
+    _, err = capsys.readouterr()
+    assert info.value.code == 2
+    assert len(err.strip().splitlines()) == 1
+    assert err.startswith("echoloc: error: ")
+    if message is not None:
+        assert message in err
+
+
+def test_a_busy_port_is_one_line_and_exit_2(capsys):
+    import socket
+
+    from echoloc import cli
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen(1)
+        port = busy.getsockname()[1]
+        with pytest.raises(SystemExit) as info:
+            cli.main(["record", "out.h5", "--listen", f"127.0.0.1:{port}"])
+    _, err = capsys.readouterr()
+    assert info.value.code == 2
+    assert f"cannot listen on tcp://127.0.0.1:{port}" in err

@@ -1670,6 +1670,7 @@ def stream_command(
     from rich.live import Live
 
     from echoloc.stream import warm_kernels
+    from echoloc.transport import Recorder
 
     _finite("--deadline-ms", deadline_ms, positive=True)
     _finite("--speed-of-sound", speed_of_sound_m_s, positive=True)
@@ -1690,6 +1691,8 @@ def stream_command(
         check_locatable(chain)
         return chain
 
+    if record_path is not None:
+        Recorder.check_path(record_path)
     listener = _open_listener(listen_text, udp, geometry_path, queue_frames, block)
     warm_kernels(estimator)
     session = _LiveStream(listener, make_chain, deadline_ms / 1e3, as_json, record_path)
@@ -1889,6 +1892,7 @@ def record_command(
                 f"echoloc: record: {frames} frames written to {output}", markup=False, highlight=False
             )
 
+    Recorder.check_path(output)
     listener = _open_listener(listen_text, udp, geometry_path, queue_frames, block)
     recorder: Recorder | None = None
     interrupted = False

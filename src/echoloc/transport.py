@@ -512,6 +512,16 @@ class Recorder:
     :attr:`dropped`, never waited for, so recording never holds up the stream.
     """
 
+    @staticmethod
+    def check_path(path: Path) -> None:
+        """Refuse, before anything arrives, a target that cannot be recorded to (one line)."""
+        if path.suffix.lower() not in (".h5", ".hdf5"):
+            raise EchoLocError(
+                f"{path}: a stream is recorded to HDF5 (.h5 or .hdf5): a .npz is readable only once complete"
+            )
+        if not path.parent.is_dir():
+            raise EchoLocError(f"{path}: directory {str(path.parent)!r} does not exist")
+
     def __init__(
         self,
         path: Path,
