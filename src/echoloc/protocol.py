@@ -29,7 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from echoloc.errors import EchoLocError
-from echoloc.recording import Recording, _build, _file_items, validate_header
+from echoloc.recording import Recording, contract_items, recording_from_items, validate_header
 
 MAGIC = b"ECHL"
 VERSION = 1
@@ -321,7 +321,7 @@ def session_record(header: Recording) -> dict[str, Any]:
     Per-frame fields (``frames``, ``frame_times``, ``frame_transmitter``, truth,
     poses) are not part of a session; a per-frame ``background`` is refused.
     """
-    attrs, data = _file_items(header)
+    attrs, data = contract_items(header)
     record: dict[str, Any] = dict(attrs)
     for name in ("frames", "frame_times", "frame_transmitter", "truth_positions", "sensor_poses"):
         data.pop(name, None)
@@ -406,7 +406,7 @@ def decode_session(header: MessageHeader, payload: bytes | bytearray | memoryvie
         # Anything else is a field of a later contract: ignored, as FORMATS.md asks.
     dtype = np.complex128 if header.signal_kind == "iq" else np.float64
     data["frames"] = np.zeros((0, header.n_channels, header.n_samples), dtype=dtype)
-    rec = _build(source, attrs, data)
+    rec = recording_from_items(source, attrs, data)
     if rec.signal_kind != header.signal_kind or rec.sample_rate_hz != header.sample_rate_hz:
         raise ProtocolError(
             f"{source}: session header says {header.signal_kind} at {header.sample_rate_hz:g} Hz, "

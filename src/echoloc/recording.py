@@ -1387,3 +1387,20 @@ def _durable(file: Any) -> None:
     file.flush()
     with contextlib.suppress(Exception):  # a driver without a file descriptor: flushed is all we get
         os.fsync(file.id.get_vfd_handle())
+
+
+def contract_items(rec: Recording) -> tuple[dict[str, object], dict[str, NDArray[Any]]]:
+    """The root attributes and datasets of ``rec`` by their FORMATS.md names, as a file holds them.
+
+    For other carriers of the contract (the stream protocol's session message).
+    """
+    return _file_items(rec)
+
+
+def recording_from_items(source: str, attrs: dict[str, object], data: dict[str, NDArray[Any]]) -> Recording:
+    """A :class:`Recording` from attributes and datasets by their FORMATS.md names, as a reader makes it.
+
+    Checks names, types and dtypes as :func:`read_recording` does (not the
+    contract's other rules: validate the result). ``source`` names it in messages.
+    """
+    return _build(source, attrs, data)
