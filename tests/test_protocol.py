@@ -188,3 +188,24 @@ def test_byte_stream_split_resynchronises_after_garbage():
     assert len(errors) >= 1
     assert all(isinstance(e, ProtocolError) and "\n" not in str(e) for e in errors)
     assert len(buffer) < len(MAGIC)
+
+
+def test_the_protocol_page_example_is_what_the_encoder_writes():
+    """docs/STREAM_PROTOCOL.md's hex dump decodes to the frame it describes, and back."""
+    from pathlib import Path
+
+    page = (Path(__file__).resolve().parents[1] / "docs" / "STREAM_PROTOCOL.md").read_text()
+    dump = page.split("payload CRC set:\n\n```\n", 1)[1].split("```", 1)[0]
+    data = bytes.fromhex("".join(line[6:] for line in dump.splitlines()))
+    header = decode_header(data)
+    frame = decode_frame(header, data[header.header_bytes :])
+    np.testing.assert_array_equal(frame.samples, [[1, 2, 3], [-1, -2, -3]])
+    assert (frame.sequence, frame.frame_time_s, frame.sample_rate_hz) == (1, 0.01, 200e3)
+    samples = np.array([[1, 2, 3], [-1, -2, -3]])
+    assert (
+        encode_frame(samples, sequence=1, sample_rate_hz=200e3, frame_time_s=0.01, sample_format="int16")
+        == data
+    )
+    # The CRC the page gives as the check value.
+    assert zlib.crc32(b"123456789") == 0xCBF43926
+    assert "0xCBF43926" in page
