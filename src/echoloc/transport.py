@@ -22,6 +22,7 @@ import queue
 import socket
 import threading
 import time
+import warnings
 from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
@@ -343,19 +344,27 @@ class SendReport:
         )
 
 
+def recording_span_s(recording: Recording) -> float:
+    """Length of one pass of a recording on its own clock: first to last frame, plus one period.
+
+    The period is the median step of its frame times (back-to-back frames without them).
+    """
+    times = np.array([frame_time_s(recording, i) for i in range(recording.n_frames)])
+    period = recording.n_samples / recording.sample_rate_hz
+    if len(times) > 1:
+        period = float(np.median(np.diff(times)))
+    return float(times[-1] - times[0] + period)
+
+
 def _schedule_s(recording: Recording, speed: float, rate_hz: float | None) -> tuple[np.ndarray, float]:
     """When each frame is due after the start, s, and the length of one pass."""
     n = recording.n_frames
     if rate_hz is not None:
         return np.arange(n) / rate_hz, n / rate_hz
-    times = np.array([frame_time_s(recording, i) for i in range(n)])
-    period = recording.n_samples / recording.sample_rate_hz
-    if n > 1:
-        period = float(np.median(np.diff(times)))
-    duration = times[-1] - times[0] + period
     if speed <= 0:
         return np.zeros(n), 0.0
-    return (times - times[0]) / speed, duration / speed
+    times = np.array([frame_time_s(recording, i) for i in range(n)])
+    return (times - times[0]) / speed, recording_span_s(recording) / speed
 
 
 def send_recording(
@@ -395,7 +404,15 @@ def send_recording(
     session = encode_session(recording, sample_format=sample_format)
     due, pass_s = _schedule_s(recording, speed, rate_hz)
     times = [frame_time_s(recording, i) for i in range(recording.n_frames)]
-    span_s = (times[-1] - times[0]) + recording.n_samples / recording.sample_rate_hz
+    span_s = recording_span_s(recording)  # frame times of pass k are shifted by k spans
+    if sample_format == "int16":
+        peak = float(np.max(np.abs(recording.frames)))
+        if peak < 256:
+            warnings.warn(
+                f"{recording.source}: int16 rounds samples to whole ADC counts and the largest is "
+                f"{peak:.3g}: the signal keeps fewer than 9 bits (use float32 unless these are counts)",
+                stacklevel=2,
+            )
     if udp and len(session) > MAX_UDP_BYTES:
         raise EchoLocError(
             f"the session message is {len(session)} bytes, over the {MAX_UDP_BYTES} of one UDP datagram "
