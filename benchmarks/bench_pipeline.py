@@ -1,6 +1,7 @@
 """Time per frame of `echoes` and `locate`, side by side with straightforward baselines.
 
-Baselines, written the obvious way with scipy:
+Baselines, written the obvious way with scipy (echoloc.benchmark, shared with
+`echoloc bench` and bench_stream.py):
 
 - echoes: per channel, ``scipy.signal.correlate`` with the pulse, ``scipy.signal.hilbert``
   for the envelope, ``scipy.signal.find_peaks`` (height 5 sigma of the envelope noise,
@@ -19,67 +20,18 @@ a speed-up never hides a loss of accuracy.
 from __future__ import annotations
 
 import argparse
-import itertools
 import time
 from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
-from scipy import optimize, signal, stats
 
+from echoloc.benchmark import baseline_echoes, baseline_locate
 from echoloc.echoes import MatchedFilter, matched_filter_batch
 from echoloc.evaluate import evaluate
-from echoloc.locate import FrameObjects, LocatedObject, model_paths_m
 from echoloc.pipeline import Chain, frame_echoes, frame_objects, prepare
 from echoloc.scene import RandomReflectors, default_scene
 from echoloc.simulate import simulate
-
-
-def baseline_echoes(chain: Chain, index: int) -> list[np.ndarray]:
-    """Paths (m) per receiver by correlate + hilbert + find_peaks + parabola."""
-    recording = chain.recording
-    pulse = np.asarray(recording.waveform)
-    fs = recording.sample_rate_hz
-    chip = round(4 / 50e3 * fs)
-    result = []
-    for channel in recording.frames[index]:
-        correlation = signal.correlate(channel, pulse, mode="full")[len(pulse) - 1 :]
-        envelope = np.abs(signal.hilbert(correlation))
-        noise = np.median(envelope) / np.sqrt(np.log(4))
-        peaks, _ = signal.find_peaks(envelope, height=5 * noise, distance=chip)
-        peaks = peaks[envelope[peaks] > 0.1 * envelope.max()]
-        a, b, c = envelope[peaks - 1], envelope[peaks], envelope[np.minimum(peaks + 1, len(envelope) - 1)]
-        offset = 0.5 * (a - c) / np.where(a - 2 * b + c < 0, a - 2 * b + c, -1.0)
-        result.append((peaks + offset) / fs * chain.speed_of_sound_m_s)
-    return result
-
-
-def baseline_locate(chain: Chain, index: int, paths: list[np.ndarray]) -> FrameObjects:
-    """Brute force: least_squares on every 4-combination, chi-square gate, greedy by residual."""
-    recording = chain.recording
-    tx, rx = recording.transmitters_m[0], recording.receivers_m
-    sigma = chain.locate_options.path_sigma_m
-    gate = stats.chi2.ppf(chain.locate_options.gate_probability, 1)
-    found = []
-    for combo in itertools.product(*[range(len(p)) for p in paths]):
-        measured = np.array([paths[i][k] for i, k in enumerate(combo)])
-
-        def residual(p: np.ndarray, measured: np.ndarray = measured) -> np.ndarray:
-            return (model_paths_m(tx, rx, p[None])[0] - measured) / sigma
-
-        fit = optimize.least_squares(residual, x0=np.array([0.0, 0.0, np.mean(measured) / 2]))
-        chi2 = float(np.sum(fit.fun**2))
-        if chi2 <= gate and fit.x[2] > 0:
-            found.append((chi2, combo, fit.x))
-    used: list[set[int]] = [set() for _ in paths]
-    objects = []
-    for chi2, combo, position in sorted(found, key=lambda f: f[0]):
-        if any(k in used[i] for i, k in enumerate(combo)):
-            continue
-        for i, k in enumerate(combo):
-            used[i].add(k)
-        objects.append(LocatedObject(position, np.eye(3) * sigma**2, (0, 1, 2, 3), combo, chi2, 1.0))
-    return FrameObjects(index, 0.0, tuple(objects))
 
 
 def _time(job: Callable[[], object]) -> float:
@@ -92,12 +44,12 @@ def bench(name: str, chain: Chain, n_frames: int, rounds: int, brute_frames: int
     frames = range(n_frames)
     # The brute-force locate takes seconds a frame: it runs on the first few frames only.
     few = range(min(brute_frames, n_frames))
+    recording = chain.recording
     echoes = [frame_echoes(chain, i) for i in frames]
-    base_paths = [baseline_echoes(chain, i) for i in frames]
+    base_paths = [baseline_echoes(chain, recording.frames[i]) for i in frames]
     timings: dict[str, list[float]] = {
         k: [] for k in ("echoes", "echoes_batch", "echoes_base", "locate", "locate_base")
     }
-    recording = chain.recording
     mf = MatchedFilter(np.asarray(recording.waveform, float), recording.n_samples, recording.sample_rate_hz)
     block = recording.frames[:n_frames]
     for _ in range(rounds):
@@ -105,7 +57,9 @@ def bench(name: str, chain: Chain, n_frames: int, rounds: int, brute_frames: int
         timings["echoes_batch"].append(
             _time(lambda: matched_filter_batch(block, mf, chain.echo_options)) / n_frames
         )
-        timings["echoes_base"].append(_time(lambda: [baseline_echoes(chain, i) for i in frames]) / n_frames)
+        timings["echoes_base"].append(
+            _time(lambda: [baseline_echoes(chain, recording.frames[i]) for i in frames]) / n_frames
+        )
         timings["locate"].append(_time(lambda: [frame_objects(chain, e) for e in echoes]) / n_frames)
         timings["locate_base"].append(
             _time(lambda: [baseline_locate(chain, i, base_paths[i]) for i in few]) / len(few)

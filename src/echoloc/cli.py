@@ -6,6 +6,7 @@ internal error.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import math
@@ -1594,6 +1595,549 @@ def design_command(
     if output is not None:
         for written_path in record["plots"]:
             stderr.print(f"plot written to {written_path}")
+
+
+# --- real time: send, stream, record, bench ----------------------------------------
+
+
+def _listen_options(func: Callable[..., None]) -> Callable[..., None]:
+    """--listen, --udp, --geometry and --queue, shared by stream and record."""
+    from echoloc.transport import DEFAULT_HOST, DEFAULT_PORT
+
+    decorators = [
+        click.option(
+            "--listen",
+            "listen_text",
+            metavar="[HOST:]PORT",
+            default=f"{DEFAULT_HOST}:{DEFAULT_PORT}",
+            show_default=True,
+            help="Where to listen (127.0.0.1: this machine only; 0.0.0.0 for every interface).",
+        ),
+        click.option("--udp", is_flag=True, help="UDP (one datagram a frame) instead of TCP."),
+        click.option(
+            "--geometry",
+            "geometry_path",
+            type=click.Path(path_type=Path),
+            default=None,
+            help="Take the session (geometry, waveform, air) from this recording instead of the "
+            "sender's session message.",
+        ),
+        click.option(
+            "--queue",
+            "queue_frames",
+            type=click.IntRange(1, 1_000_000),
+            default=64,
+            show_default=True,
+            help="Frames held between the socket and the processor; when full the oldest is dropped.",
+        ),
+        click.option(
+            "--block",
+            is_flag=True,
+            help="Never drop a frame that arrived: make a TCP sender wait instead (replaying files).",
+        ),
+        click.option(
+            "--once", is_flag=True, help="Stop when the sender says it is done or (TCP) disconnects."
+        ),
+        click.option(
+            "--max-frames",
+            type=click.IntRange(1, None),
+            default=None,
+            help="Stop after this many frames.",
+        ),
+        click.option(
+            "--duration", "duration_s", type=float, default=None, help="Stop after this many seconds."
+        ),
+    ]
+    for decorator in reversed(decorators):
+        func = decorator(func)
+    return func
+
+
+@contextmanager
+def _terminate_as_interrupt() -> Iterator[None]:
+    """SIGTERM (a service manager stopping us) ends a stream as Ctrl-C does: cleanly."""
+    import signal
+
+    def interrupt(signum: int, frame: object) -> None:
+        del signum, frame
+        raise KeyboardInterrupt
+
+    try:
+        previous = signal.signal(signal.SIGTERM, interrupt)
+    except ValueError:  # not the main thread (tests calling main() from a thread)
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _events(listener: Any, once: bool, max_frames: int | None, duration_s: float | None) -> Iterator[Any]:
+    """Sessions and frames off the listener's queue until a stop condition; errors to stderr."""
+    from echoloc.stream import StreamFrame
+    from echoloc.transport import EndEvent
+
+    _finite("--duration", duration_s, positive=True)
+    deadline = None if duration_s is None else time.monotonic() + duration_s
+    frames = 0
+    while True:
+        for message in listener.errors():
+            stderr.print(f"echoloc: warning: {message}", markup=False, highlight=False)
+        if deadline is not None and time.monotonic() >= deadline:
+            return
+        item = listener.queue.get(0.1)
+        if item is None:
+            continue
+        if isinstance(item, EndEvent):
+            if once:
+                return
+            continue
+        yield item
+        if isinstance(item, StreamFrame):
+            frames += 1
+            if max_frames is not None and frames >= max_frames:
+                return
+
+
+def _open_listener(
+    listen_text: str, udp: bool, geometry_path: Path | None, queue_frames: int, block: bool
+) -> Any:
+    from echoloc.stream import FrameQueue
+    from echoloc.transport import Listener, parse_endpoint
+
+    endpoint = parse_endpoint(listen_text, "udp" if udp else "tcp")
+    geometry = None if geometry_path is None else read_recording(geometry_path)
+    return Listener(endpoint, FrameQueue(queue_frames, block=block), geometry=geometry)
+
+
+@cli.command(name="send")
+@click.argument("recording_path", metavar="RECORDING", type=click.Path(path_type=Path))
+@click.option(
+    "--to", "to_text", metavar="[HOST:]PORT", default="127.0.0.1:7447", show_default=True, help="Receiver."
+)
+@click.option("--udp", is_flag=True, help="UDP (one datagram a frame) instead of TCP.")
+@click.option(
+    "--speed",
+    type=float,
+    default=1.0,
+    show_default=True,
+    help="1: the recording's own pace; N: N times faster; 0: as fast as the receiver takes it.",
+)
+@click.option("--rate", "rate_hz", type=float, default=None, help="Frames per second instead of --speed.")
+@click.option(
+    "--loop", "loops", type=click.IntRange(0, None), default=1, show_default=True, help="Passes; 0: forever."
+)
+@click.option(
+    "--sample-format",
+    type=click.Choice(["auto", "float32", "float64", "int16"]),
+    default="auto",
+    show_default=True,
+    help="Samples on the wire. auto: float32 if that is exact, else float64 (float32 on UDP); "
+    "int16: rounded, as ADC counts; iq recordings are sent complex64.",
+)
+@click.option(
+    "--connect-timeout", "connect_timeout_s", type=float, default=5.0, show_default=True, help="TCP, s."
+)
+def send_command(
+    recording_path: Path,
+    to_text: str,
+    udp: bool,
+    speed: float,
+    rate_hz: float | None,
+    loops: int,
+    sample_format: str,
+    connect_timeout_s: float,
+) -> None:
+    """Replay RECORDING to a receiver in the stream protocol (docs/STREAM_PROTOCOL.md)."""
+    from echoloc.transport import parse_endpoint, send_recording
+
+    endpoint = parse_endpoint(to_text, "udp" if udp else "tcp")
+    recording = read_recording(recording_path)
+    try:
+        with _terminate_as_interrupt():
+            report = send_recording(
+                recording,
+                endpoint,
+                speed=speed,
+                rate_hz=rate_hz,
+                loops=loops,
+                sample_format=sample_format,
+                connect_timeout_s=connect_timeout_s,
+            )
+    except KeyboardInterrupt:
+        stderr.print("echoloc: send: interrupted", markup=False)
+        return
+    stderr.print(f"echoloc: send: {report.summary(endpoint)}", markup=False, highlight=False)
+
+
+@cli.command(name="stream")
+@_listen_options
+@click.option("--json", "as_json", is_flag=True, help="JSON Lines of `echoloc locate --json`, one a frame.")
+@click.option(
+    "--record", "record_path", type=click.Path(path_type=Path), default=None, help="Also record to HDF5."
+)
+@click.option("--view", is_flag=True, help="Serve the live view (Foxglove WebSocket) on 127.0.0.1.")
+@click.option(
+    "--view-port", type=click.IntRange(0, 65535), default=8765, show_default=True, help="Live view's port."
+)
+@click.option(
+    "--deadline-ms",
+    type=float,
+    default=100.0,
+    show_default=True,
+    help="Frames waiting longer than this before processing are counted as late.",
+)
+@click.option(
+    "--estimator",
+    type=click.Choice(sorted(ESTIMATORS)),
+    default="matched",
+    show_default=True,
+    help="Time-of-flight estimator.",
+)
+@click.option(
+    "--threshold-db",
+    type=float,
+    default=EchoOptions.threshold_db,
+    show_default=True,
+    help="Detection threshold on the echo's output SNR, dB.",
+)
+@click.option("--blanking-s", type=float, default=0.0, show_default=True, help="Ignore earlier echoes, s.")
+@click.option("--speed-of-sound", "speed_of_sound_m_s", type=float, default=None, help="Override, m/s.")
+@click.option(
+    "--calibration",
+    "calibration_path",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="From `echoloc calibrate`.",
+)
+def stream_command(
+    listen_text: str,
+    udp: bool,
+    geometry_path: Path | None,
+    queue_frames: int,
+    block: bool,
+    once: bool,
+    max_frames: int | None,
+    duration_s: float | None,
+    as_json: bool,
+    record_path: Path | None,
+    view: bool,
+    view_port: int,
+    deadline_ms: float,
+    estimator: str,
+    threshold_db: float,
+    blanking_s: float,
+    speed_of_sound_m_s: float | None,
+    calibration_path: Path | None,
+) -> None:
+    """Locate objects in frames arriving over the network, as they arrive.
+
+    Listens for the stream protocol (docs/STREAM_PROTOCOL.md; `echoloc send` replays a
+    recording in it), runs the chain of `echoloc locate` on every frame and shows
+    the latest objects (a live table on a terminal; with --json the lines of `locate
+    --json` on stdout). Lost, dropped and late frames are counted and reported at the
+    end; Ctrl-C or SIGTERM ends the stream cleanly.
+    """
+    from rich.live import Live
+
+    from echoloc.stream import warm_kernels
+    from echoloc.transport import Recorder
+
+    _finite("--deadline-ms", deadline_ms, positive=True)
+    _finite("--speed-of-sound", speed_of_sound_m_s, positive=True)
+    _finite("--blanking-s", blanking_s, minimum=0.0)
+    options = EchoOptions(threshold_db=threshold_db, blanking_s=blanking_s)
+
+    def make_chain(header: Recording) -> Chain:
+        calibration = (
+            None if calibration_path is None else read_calibration(calibration_path, header.n_receivers)
+        )
+        chain = prepare(
+            header,
+            estimator=estimator,
+            echo_options=options,
+            speed_of_sound_m_s=speed_of_sound_m_s,
+            calibration=calibration,
+        )
+        check_locatable(chain)
+        return chain
+
+    if record_path is not None:
+        Recorder.check_path(record_path)
+    listener = _open_listener(listen_text, udp, geometry_path, queue_frames, block)
+    warm_kernels(estimator)
+    session = _LiveStream(listener, make_chain, deadline_ms / 1e3, as_json, record_path)
+    interrupted = False
+    try:
+        if view:
+            from echoloc.liveview import LiveView
+
+            session.view = LiveView(port=view_port)
+            stderr.print(
+                f"echoloc: stream: live view on {session.view.url} (Foxglove: open connection)", markup=False
+            )
+        listener.start()
+        stderr.print(f"echoloc: stream: listening on {listener.address}", markup=False, highlight=False)
+        table = not as_json and stderr.is_terminal
+        with (
+            _terminate_as_interrupt(),
+            Live(console=stderr, refresh_per_second=4, transient=True)
+            if table
+            else contextlib.nullcontext() as live,
+        ):
+            session.live = live
+            try:
+                for item in _events(listener, once, max_frames, duration_s):
+                    session.handle(item)
+            except KeyboardInterrupt:
+                interrupted = True
+    finally:
+        listener.stop()
+        session.close(interrupted)
+    if session.record_error is not None:
+        raise session.record_error
+
+
+class _LiveStream:
+    """What `echoloc stream` does with each session and frame off the listener's queue."""
+
+    STATUS_EVERY_S = 10.0
+
+    def __init__(
+        self,
+        listener: Any,
+        make_chain: Callable[[Recording], Chain],
+        deadline_s: float,
+        as_json: bool,
+        record_path: Path | None,
+    ) -> None:
+        self.listener = listener
+        self.make_chain = make_chain
+        self.deadline_s = deadline_s
+        self.as_json = as_json
+        self.record_path = record_path
+        self.processor: Any = None
+        self.recorder: Any = None
+        self.header: Recording | None = None
+        self.view: Any = None
+        self.live: Any = None
+        self.record_error: BaseException | None = None
+        self._last_status = time.monotonic()  # the first status line comes after STATUS_EVERY_S
+        self._last_table = 0.0
+
+    def stats(self) -> Any:
+        return self.processor.stats(**self.listener.counters())
+
+    def handle(self, item: Any) -> None:
+        from echoloc.stream import StreamProcessor
+        from echoloc.transport import Recorder, SessionEvent
+
+        if isinstance(item, SessionEvent):
+            header = item.header
+            chain = self.make_chain(header)
+            self.processor = StreamProcessor(chain, deadline_s=self.deadline_s)
+            self.processor.warm_up()
+            if self.view is not None:
+                self.view.set_session(header)
+            if self.recorder is not None and self.header is not None:
+                self._stop_recording("the sender started a different session")
+            if self.record_path is not None and self.recorder is None and self.header is None:
+                self.recorder = Recorder(self.record_path, header)
+            self.header = header
+            self._say(
+                f"session: {header.n_receivers} receivers, {len(header.transmitters_m)} transmitter(s), "
+                f"{header.n_samples} samples at {header.sample_rate_hz:g} Hz, "
+                f"c = {chain.speed_of_sound_m_s:.2f} m/s"
+            )
+            return
+        result = self.processor.process(item)
+        if self.recorder is not None:
+            self.recorder.add(item)
+        if self.as_json:
+            click.echo(json_line(objects_record(result.objects)))
+        if self.view is not None:
+            self.view.publish(result, item.samples, self.stats())
+        now = item.arrival_s
+        if self.live is not None:
+            if now - self._last_table > 0.2:
+                self._last_table = now
+                self.live.update(_stream_table(result.objects, self.stats()))
+        elif now - self._last_status > self.STATUS_EVERY_S:
+            self._last_status = now
+            self._say(self.stats().summary())
+
+    def _say(self, text: str) -> None:
+        (self.live.console if self.live is not None else stderr).print(
+            f"echoloc: stream: {text}", markup=False, highlight=False
+        )
+
+    def _stop_recording(self, why: str) -> None:
+        try:
+            self.recorder.close()
+        except BaseException as error:
+            self.record_error = error
+        self._say(f"recording stopped ({why}): {self.recorder.frames} frames in {self.record_path}")
+        self.recorder = None
+
+    def close(self, interrupted: bool) -> None:
+        if self.view is not None:
+            self.view.close()
+        if self.recorder is not None:
+            try:
+                self.recorder.close()
+            except BaseException as error:
+                self.record_error = error
+        if self.processor is None:
+            line = ", ".join(f"{k} {v}" for k, v in self.listener.counters().items()) + "; no session arrived"
+        else:
+            line = self.stats().summary()
+        self._say(line + (" (interrupted)" if interrupted else ""))
+        if self.recorder is not None and self.record_error is None:
+            self._say(
+                f"recorded {self.recorder.frames} frames to {self.record_path} "
+                f"({self.recorder.dropped} not recorded: the recorder fell behind)"
+            )
+
+
+def _stream_table(objects: FrameObjects, stats: Any) -> Table:
+    """The live view on a terminal: the latest frame's objects and the stream's counters."""
+    table = Table(
+        title=f"frame {objects.frame} at {objects.time_s:.3f} s: {len(objects.objects)} objects",
+        caption=stats.summary(),
+    )
+    for column in ("x mm", "y mm", "z mm", "±σ x, y, z mm", "range mm", "rx", "score"):
+        table.add_column(column, justify="right")
+    for obj in objects.objects:
+        x, y, z = obj.position_m * 1e3
+        table.add_row(
+            f"{x:.1f}",
+            f"{y:.1f}",
+            f"{z:.1f}",
+            _mm(obj.std_m, digits=2),
+            f"{np.linalg.norm(obj.position_m) * 1e3:.1f}",
+            str(len(set(obj.receivers))),
+            f"{obj.score:.2f}",
+        )
+    return table
+
+
+@cli.command(name="record")
+@click.argument("output", metavar="OUT.h5", type=click.Path(path_type=Path))
+@_listen_options
+@click.option(
+    "--batch-frames",
+    type=click.IntRange(1, 1_000_000),
+    default=64,
+    show_default=True,
+    help="Frames appended and flushed at a time.",
+)
+@click.option(
+    "--batch-seconds", "batch_s", type=float, default=0.5, show_default=True, help="...or after this long."
+)
+@click.option("-v", "--verbose", is_flag=True, help="One line on stderr per batch written.")
+def record_command(
+    output: Path,
+    listen_text: str,
+    udp: bool,
+    geometry_path: Path | None,
+    queue_frames: int,
+    block: bool,
+    once: bool,
+    max_frames: int | None,
+    duration_s: float | None,
+    batch_frames: int,
+    batch_s: float,
+    verbose: bool,
+) -> None:
+    """Record frames arriving over the network to OUT.h5, in batches flushed as they are written.
+
+    A recorder killed at any moment (even SIGKILL, or a power cut) leaves OUT.h5
+    readable, with every frame but at most those of the last batch.
+    """
+    from echoloc.stream import StreamFrame
+    from echoloc.transport import Recorder, SessionEvent
+
+    def progress(frames: int) -> None:
+        if verbose:
+            stderr.print(
+                f"echoloc: record: {frames} frames written to {output}", markup=False, highlight=False
+            )
+
+    Recorder.check_path(output)
+    listener = _open_listener(listen_text, udp, geometry_path, queue_frames, block)
+    recorder: Recorder | None = None
+    interrupted = False
+    try:
+        listener.start()
+        stderr.print(f"echoloc: record: listening on {listener.address}", markup=False, highlight=False)
+        with _terminate_as_interrupt():
+            try:
+                for item in _events(listener, once, max_frames, duration_s):
+                    if isinstance(item, SessionEvent):
+                        if recorder is not None:
+                            stderr.print(
+                                "echoloc: warning: the sender started a different session; "
+                                f"{output} keeps the first (start a new recording for the new one)",
+                                markup=False,
+                            )
+                            break
+                        recorder = Recorder(
+                            output, item.header, batch_frames=batch_frames, batch_s=batch_s, on_batch=progress
+                        )
+                    elif isinstance(item, StreamFrame) and recorder is not None:
+                        recorder.add(item)
+            except KeyboardInterrupt:
+                interrupted = True
+    finally:
+        listener.stop()
+        counters = listener.counters()
+        if recorder is not None:
+            recorder.close()
+    if recorder is None:
+        raise EchoLocError(f"{output}: no session arrived on {listener.address}, nothing recorded")
+    dropped = counters["dropped"] + recorder.dropped
+    end = " (interrupted)" if interrupted else ""
+    stderr.print(
+        f"echoloc: record: {recorder.frames} frames in {recorder.batches} batches to {output}; "
+        f"lost {counters['lost']}, dropped {dropped}, malformed {counters['malformed']}, "
+        f"rejected {counters['rejected']}{end}",
+        markup=False,
+        highlight=False,
+    )
+
+
+@cli.command(name="bench")
+@click.option(
+    "--reflectors",
+    type=click.IntRange(0, 50),
+    default=5,
+    show_default=True,
+    help="Random reflectors in the default scene (0: the report's three balls).",
+)
+@click.option("--frames", "n_frames", type=click.IntRange(2, 100_000), default=200, show_default=True)
+@click.option(
+    "--baseline-frames",
+    type=click.IntRange(1, 1000),
+    default=2,
+    show_default=True,
+    help="Frames for the scipy chain (its brute-force locate takes seconds a frame).",
+)
+@click.option("--json", "as_json", is_flag=True, help="One JSON object with the figures.")
+def bench_command(reflectors: int, n_frames: int, baseline_frames: int, as_json: bool) -> None:
+    """Frames/s, latency p50/p99 and peak memory of the full chain, beside a plain scipy chain."""
+    from echoloc.benchmark import bench_chains, bench_scene, format_bench
+
+    stderr.print(
+        f"echoloc: bench: simulating {n_frames} frames, then timing both chains on one core...",
+        markup=False,
+    )
+    recording = simulate(bench_scene(reflectors), n_frames)
+    report = bench_chains(recording, baseline_frames=baseline_frames)
+    if as_json:
+        click.echo(json.dumps(report, allow_nan=False))
+        return
+    click.echo(format_bench(report))
 
 
 # --- entry point -------------------------------------------------------------------

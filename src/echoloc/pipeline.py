@@ -203,3 +203,62 @@ def find_echoes(
     chain = prepare(recording, estimator=estimator, echo_options=options)
     indices = range(recording.n_frames) if frames is None else frames
     return [frame_echoes(chain, i) for i in indices]
+
+
+# ----------------------------------------------------------------------------- streaming
+# The same chain, fed samples instead of a recording's frame index (echoloc.stream).
+
+
+def samples_echoes(
+    chain: Chain,
+    samples: NDArray[np.floating] | NDArray[np.complexfloating],
+    index: int,
+    time_s: float,
+) -> FrameEchoes:
+    """Echoes of one frame given by its samples (n_rx, n_samples), as :func:`frame_echoes` finds them.
+
+    ``index`` is the frame's number (it indexes a per-frame background of
+    ``chain.recording`` when there is one); ``time_s`` its start time.
+    """
+    recording = chain.recording
+    frame = condition_frame(samples, recording, chain.conditioning, index)
+    channels = chain.estimator(frame)
+    echoes = FrameEchoes(index, time_s, chain.speed_of_sound_m_s, tuple(channels))
+    if chain.calibration is not None:
+        echoes = apply_calibration(echoes, chain.calibration)
+        return replace(echoes, speed_of_sound_m_s=chain.speed_of_sound_m_s)
+    return echoes
+
+
+def transmitter_objects(chain: Chain, echoes: FrameEchoes, transmitter: int) -> FrameObjects:
+    """Objects of one frame fired by ``transmitter``, as :func:`frame_objects` finds them."""
+    recording = chain.recording
+    return locate_frame(
+        echoes,
+        recording.transmitters_m[transmitter],
+        recording.receivers_m,
+        chain.locate_options,
+        chain.usable_receivers,
+    )
+
+
+def combine_latest(
+    chain: Chain, latest: dict[int, FrameEchoes], echoes: FrameEchoes, transmitter: int
+) -> tuple[dict[int, FrameEchoes], FrameObjects]:
+    """One step of :func:`run` with transmitters fired in turn: the new ``latest`` and the objects.
+
+    ``latest`` maps a transmitter to its most recent echoes; only those of the last
+    n_tx frame numbers are kept, so a transmitter that stopped firing, or frames
+    lost on the way, never lend old echoes.
+    """
+    recording = chain.recording
+    n_tx = len(recording.transmitters_m)
+    kept = {t: e for t, e in {**latest, transmitter: echoes}.items() if 0 <= echoes.frame - e.frame < n_tx}
+    objects = combine_frames(
+        sorted(kept.items()),
+        recording.transmitters_m,
+        recording.receivers_m,
+        chain.locate_options,
+        chain.usable_receivers,
+    )
+    return kept, objects

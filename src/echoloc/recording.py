@@ -1307,3 +1307,100 @@ def write_recording_stream(
     storage = _storage_dtype(source, frames_dtype, header.frames.dtype.kind == "c")
     stream = _stream_hdf5 if hdf5 else _stream_npz
     return _atomic_write(target, source, lambda tmp: stream(tmp, source, header, batches, storage))
+
+
+def append_recording_stream(
+    header: Recording,
+    batches: Iterable[FrameBatch],
+    path: str | os.PathLike[str],
+    *,
+    frames_dtype: DTypeLike = np.float32,
+) -> Path:
+    """Write a recording batch by batch into ``path`` itself, durable after every batch.
+
+    For recording a live stream (``echoloc record``): unlike
+    :func:`write_recording_stream` the file is not written under a temporary name,
+    so whatever was written survives the writer. After every batch the HDF5 file is
+    flushed (HDF5 keeps its metadata, such as a dataset's length, in memory until a
+    flush, so an unflushed file may not open at all) and synced to disk. A writer
+    killed at any moment therefore leaves a file that reads back with
+    :func:`read_recording` holding every batch but at most the one it was writing;
+    a writer killed before its first batch was flushed leaves a file without
+    ``frames``, which the reader refuses. On an exception (KeyboardInterrupt too)
+    the frames written so far are kept, the file is closed, and the exception
+    propagates. HDF5 only (``.h5``/``.hdf5``): a zip archive is readable only once
+    complete.
+
+    Parameters
+    ----------
+    header, batches, frames_dtype
+        As for :func:`write_recording_stream`.
+    path
+        The file to create (an existing file is replaced).
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Raises
+    ------
+    RecordingError
+        As :func:`write_recording_stream`, and for a path that is not HDF5.
+    """
+    target, source, hdf5 = _target(path)
+    if not hdf5:
+        raise _error(source, "a stream is recorded to HDF5 (.h5): a .npz is readable only once complete")
+    if not target.parent.is_dir():
+        raise _error(source, f"directory {str(target.parent)!r} does not exist")
+    validate_header(header)
+    storage = _storage_dtype(source, frames_dtype, header.frames.dtype.kind == "c")
+    attrs, data = _file_items(header)
+    del data["frames"]
+    with _write_errors(source):
+        file = h5py.File(target, "w")
+    with file:
+        with _write_errors(source):
+            for name, value in attrs.items():
+                file.attrs[name] = value
+            for name, arr in data.items():
+                file.create_dataset(name, data=arr)
+            _durable(file)
+        sink = _Hdf5Sink(file)
+
+        def flushed(batches: Iterable[FrameBatch]) -> Iterator[FrameBatch]:
+            for batch in batches:
+                yield batch
+                # Back here once the batch is appended, before the next is made.
+                with _write_errors(source):
+                    _durable(file)
+
+        _append_batches(source, header, flushed(batches), storage, sink.append)
+        with _write_errors(source):
+            sink.finish()
+    _fsync(target.parent, directory=True)
+    return target
+
+
+def _durable(file: Any) -> None:
+    """Flush an open HDF5 file to the operating system, then to the disk."""
+    file.flush()
+    with contextlib.suppress(Exception):  # a driver without a file descriptor: flushed is all we get
+        os.fsync(file.id.get_vfd_handle())
+
+
+def contract_items(rec: Recording) -> tuple[dict[str, object], dict[str, NDArray[Any]]]:
+    """The root attributes and datasets of ``rec`` by their FORMATS.md names, as a file holds them.
+
+    For other carriers of the contract (the stream protocol's session message).
+    """
+    return _file_items(rec)
+
+
+def recording_from_items(source: str, attrs: dict[str, object], data: dict[str, NDArray[Any]]) -> Recording:
+    """A :class:`Recording` from attributes and datasets by their FORMATS.md names, as a reader makes it.
+
+    Checks names, types and dtypes as :func:`read_recording` does (not the
+    contract's other rules: validate the result). ``source`` names it in messages.
+    """
+    return _build(source, attrs, data)

@@ -1,0 +1,272 @@
+"""Speed of the full chain against a straightforward scipy chain and against the physics.
+
+The scipy chain is the obvious way to write the same job:
+
+- echoes: per channel, ``scipy.signal.correlate`` with the pulse, ``scipy.signal.hilbert``
+  for the envelope, ``scipy.signal.find_peaks`` (height 5 sigma of the envelope noise,
+  distance one chip) and a parabolic fit of the peak;
+- locate: every combination of one echo per receiver solved by
+  ``scipy.optimize.least_squares``, kept when its residual passes the chi-square gate
+  echoloc uses, then taken greedily by residual.
+
+echoloc's chain runs as a stream (:class:`echoloc.stream.StreamProcessor`, the code
+``echoloc stream`` runs). Both are timed frame by frame on one core (the process
+is pinned to one CPU while timing, so FFT worker threads cannot borrow the other),
+and the peak of memory allocated while processing is measured with
+:mod:`tracemalloc` in a separate pass (tracing slows the code down).
+
+The physics: a frame cannot start before the echoes of the previous one have come
+back. For a range of ``range_m`` the longest path is ``2 * range_m`` (out and back),
+which takes ``2 * range_m / c``: 11.7 ms for 2 m at 343 m/s, at most 85 frames a
+second per transmitter.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import math
+import os
+import time
+import tracemalloc
+from collections.abc import Callable, Iterator
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import optimize, signal, stats
+
+from echoloc.evaluate import evaluate
+from echoloc.locate import FrameObjects, LocatedObject, model_paths_m
+from echoloc.pipeline import Chain, prepare, samples_echoes
+from echoloc.recording import Recording
+from echoloc.scene import RandomReflectors, Scene, default_scene
+from echoloc.stream import StreamProcessor, recording_frames
+
+#: Range whose echoes one frame must wait for (the report's working volume), m.
+PHYSICS_RANGE_M = 2.0
+
+
+def bench_scene(reflectors: int = 5) -> Scene:
+    """The default scene (the report's 4-receiver head), with ``reflectors`` random reflectors.
+
+    0 keeps its three balls. Random reflectors lie in the cubic metre in front, with
+    strengths 0.5..2, SNR 20 dB and 0.5 mm path jitter (``bench_pipeline.py``'s scene).
+    """
+    scene = default_scene()
+    if reflectors == 0:
+        return scene
+    return replace(
+        scene,
+        reflector_positions_m=np.zeros((0, 3)),
+        reflector_strengths=np.zeros(0),
+        random=RandomReflectors(count=(reflectors, reflectors), strength=(0.5, 2.0)),
+        snr_db=20.0,
+        path_jitter_m=0.5e-3,
+    )
+
+
+def baseline_echoes(chain: Chain, samples: NDArray[np.floating]) -> list[NDArray[np.float64]]:
+    """Paths (m) per receiver by correlate + hilbert + find_peaks + parabola."""
+    recording = chain.recording
+    pulse = np.asarray(recording.waveform)
+    fs = recording.sample_rate_hz
+    chip = round(4 / 50e3 * fs)
+    result = []
+    for channel in samples:
+        correlation = signal.correlate(channel, pulse, mode="full")[len(pulse) - 1 :]
+        envelope = np.abs(signal.hilbert(correlation))
+        noise = np.median(envelope) / np.sqrt(np.log(4))
+        peaks, _ = signal.find_peaks(envelope, height=5 * noise, distance=chip)
+        peaks = peaks[envelope[peaks] > 0.1 * envelope.max()]
+        a, b, c = envelope[peaks - 1], envelope[peaks], envelope[np.minimum(peaks + 1, len(envelope) - 1)]
+        offset = 0.5 * (a - c) / np.where(a - 2 * b + c < 0, a - 2 * b + c, -1.0)
+        result.append((peaks + offset) / fs * chain.speed_of_sound_m_s)
+    return result
+
+
+def baseline_locate(chain: Chain, index: int, paths: list[NDArray[np.float64]]) -> FrameObjects:
+    """Brute force: least_squares on every combination, chi-square gate, greedy by residual."""
+    recording = chain.recording
+    tx, rx = recording.transmitters_m[0], recording.receivers_m
+    sigma = chain.locate_options.path_sigma_m
+    gate = stats.chi2.ppf(chain.locate_options.gate_probability, 1)
+    found = []
+    for combo in itertools.product(*[range(len(p)) for p in paths]):
+        measured = np.array([paths[i][k] for i, k in enumerate(combo)])
+
+        def residual(p: NDArray[np.float64], measured: NDArray[np.float64] = measured) -> NDArray[np.float64]:
+            return (model_paths_m(tx, rx, p[None])[0] - measured) / sigma  # type: ignore[no-any-return]
+
+        fit = optimize.least_squares(residual, x0=np.array([0.0, 0.0, np.mean(measured) / 2]))
+        chi2 = float(np.sum(fit.fun**2))
+        if chi2 <= gate and fit.x[2] > 0:
+            found.append((chi2, combo, fit.x))
+    used: list[set[int]] = [set() for _ in paths]
+    objects = []
+    for chi2, combo, position in sorted(found, key=lambda f: f[0]):
+        if any(k in used[i] for i, k in enumerate(combo)):
+            continue
+        for i, k in enumerate(combo):
+            used[i].add(k)
+        receivers = tuple(range(len(paths)))
+        objects.append(LocatedObject(position, np.eye(3) * sigma**2, receivers, combo, chi2, 1.0))
+    return FrameObjects(index, 0.0, tuple(objects))
+
+
+@contextlib.contextmanager
+def one_core() -> Iterator[int | None]:
+    """Pin this process to one CPU (the first it may use) for the block; yields it (None: unsupported)."""
+    if not hasattr(os, "sched_getaffinity"):
+        yield None
+        return
+    before = os.sched_getaffinity(0)
+    cpu = min(before)
+    os.sched_setaffinity(0, {cpu})
+    try:
+        yield cpu
+    finally:
+        os.sched_setaffinity(0, before)
+
+
+def _frame_rate_hz(recording: Recording) -> float:
+    """Frames a second the recording was taken at: its frame_times, else back-to-back frames."""
+    times = recording.frame_times_s
+    if times is not None and len(times) > 1:
+        return float(1 / np.median(np.diff(times)))
+    return recording.sample_rate_hz / recording.n_samples
+
+
+def _figures(latencies_s: list[float], wall_s: float) -> dict[str, float]:
+    arr = np.asarray(latencies_s)
+    return {
+        "frames": len(arr),
+        "ms_per_frame": wall_s / len(arr) * 1e3,
+        "frames_per_s": len(arr) / wall_s,
+        "latency_p50_ms": float(np.percentile(arr, 50)) * 1e3,
+        "latency_p99_ms": float(np.percentile(arr, 99)) * 1e3,
+    }
+
+
+def _peak_mib(job: Callable[[], object]) -> float:
+    """Peak memory allocated while ``job`` runs, above what was allocated before, MiB."""
+    tracemalloc.start()
+    try:
+        tracemalloc.reset_peak()
+        base, _ = tracemalloc.get_traced_memory()
+        job()
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    return (peak - base) / 2**20
+
+
+def bench_chains(recording: Recording, *, baseline_frames: int = 2, warmup_frames: int = 5) -> dict[str, Any]:
+    """Time echoloc's streamed chain and the scipy chain on ``recording``; the figures as a dict."""
+    chain = prepare(recording)
+    n = recording.n_frames
+    few = min(baseline_frames, n)
+    # Compile the numba kernels and warm the caches before timing.
+    warm = StreamProcessor(chain)
+    for frame in itertools.islice(recording_frames(recording), warmup_frames):
+        warm.process(frame)
+
+    def ours() -> list[FrameObjects]:
+        processor = StreamProcessor(chain)
+        return [processor.process(frame).objects for frame in recording_frames(recording)]
+
+    def theirs() -> list[FrameObjects]:
+        return [baseline_locate(chain, i, baseline_echoes(chain, recording.frames[i])) for i in range(few)]
+
+    with one_core() as cpu:
+        processor = StreamProcessor(chain)
+        latencies: list[float] = []
+        found: list[FrameObjects] = []
+        start = time.perf_counter()
+        for frame in recording_frames(recording):
+            t0 = time.perf_counter()
+            found.append(processor.process(frame).objects)
+            latencies.append(time.perf_counter() - t0)
+        wall = time.perf_counter() - start
+        base_latencies: list[float] = []
+        base_found: list[FrameObjects] = []
+        base_start = time.perf_counter()
+        for i in range(few):
+            t0 = time.perf_counter()
+            base_found.append(baseline_locate(chain, i, baseline_echoes(chain, recording.frames[i])))
+            base_latencies.append(time.perf_counter() - t0)
+        base_wall = time.perf_counter() - base_start
+        # The echoes stage alone, both ways, on every frame (the scipy locate is the slow part).
+        stage_start = time.perf_counter()
+        for i in range(n):
+            samples_echoes(chain, recording.frames[i], i, 0.0)
+        echoes_s = (time.perf_counter() - stage_start) / n
+        stage_start = time.perf_counter()
+        for i in range(n):
+            baseline_echoes(chain, recording.frames[i])
+        base_echoes_s = (time.perf_counter() - stage_start) / n
+    echoloc_figures = _figures(latencies, wall)
+    echoloc_figures["peak_mib"] = _peak_mib(lambda: ours()[: min(n, 50)])
+    baseline_figures = _figures(base_latencies, base_wall)
+    baseline_figures["peak_mib"] = _peak_mib(theirs)
+    truth = recording.truth_positions_m
+    if truth is not None:
+        for figures, results in ((echoloc_figures, found), (baseline_figures, base_found)):
+            report = evaluate(results, truth)
+            figures["recall"] = float(report.recall)
+            figures["false_rate"] = float(report.false_rate)
+    c = chain.speed_of_sound_m_s
+    physics_fps = c / (2 * PHYSICS_RANGE_M)
+    try:
+        import resource
+
+        max_rss_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    except ImportError:  # not on this platform
+        max_rss_mib = math.nan
+    return {
+        "frames": n,
+        "receivers": recording.n_receivers,
+        "samples": recording.n_samples,
+        "objects": int(np.isfinite(truth[0, :, 0]).sum()) if truth is not None else None,
+        "cpu": cpu,
+        "speed_of_sound_m_s": c,
+        "physics_frames_per_s": physics_fps,
+        "recording_frames_per_s": _frame_rate_hz(recording),
+        "echoloc": echoloc_figures,
+        "scipy": baseline_figures,
+        "speedup": baseline_figures["ms_per_frame"] / echoloc_figures["ms_per_frame"],
+        "echoes_ms_per_frame": echoes_s * 1e3,
+        "scipy_echoes_ms_per_frame": base_echoes_s * 1e3,
+        "times_physics": echoloc_figures["frames_per_s"] / physics_fps,
+        "process_max_rss_mib": max_rss_mib,
+    }
+
+
+def format_bench(report: dict[str, Any]) -> str:
+    """The figures as a Markdown table and two lines of ratios."""
+    lines = [
+        f"Full chain (echoes + locate), {report['frames']} frames of {report['receivers']} receivers x "
+        f"{report['samples']} samples, {report['objects']} objects, one core (CPU {report['cpu']}):",
+        "",
+        "| chain | frames | ms/frame | frames/s | latency p50 ms | latency p99 ms | peak MiB | recall |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for name, label in (("echoloc", "echoloc (stream)"), ("scipy", "straightforward scipy")):
+        f = report[name]
+        recall = f"{f['recall']:.3f}" if "recall" in f else "-"
+        lines.append(
+            f"| {label} | {f['frames']} | {f['ms_per_frame']:.3f} | {f['frames_per_s']:.1f} | "
+            f"{f['latency_p50_ms']:.3f} | {f['latency_p99_ms']:.3f} | {f['peak_mib']:.2f} | {recall} |"
+        )
+    lines += [
+        "",
+        f"The echoes stage alone, every frame: echoloc {report['echoes_ms_per_frame']:.3f} ms, "
+        f"scipy (correlate + hilbert + find_peaks) {report['scipy_echoes_ms_per_frame']:.3f} ms a frame.",
+        "",
+        f"echoloc is {report['speedup']:.1f}x the scipy chain, and {report['times_physics']:.1f}x the "
+        f"{report['physics_frames_per_s']:.1f} frames/s that sound allows one transmitter for "
+        f"{PHYSICS_RANGE_M:g} m of range (c = {report['speed_of_sound_m_s']:.1f} m/s); "
+        f"this recording's frames come at {report['recording_frames_per_s']:.1f} frames/s.",
+    ]
+    return "\n".join(lines)

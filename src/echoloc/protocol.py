@@ -1,0 +1,488 @@
+"""The echoloc wire protocol: frames of samples over TCP or UDP (``docs/STREAM_PROTOCOL.md``).
+
+Every message is a fixed 52-byte little-endian header followed by a payload:
+
+- a **session** message (kind 1) carries the per-recording fields of the recording
+  contract (FORMATS.md: geometry, waveform, air state...) as UTF-8 JSON under the
+  contract's own names, so the receiver can prepare its chain;
+- a **frame** message (kind 2) carries one frame, n_channels x n_samples samples,
+  channel after channel, with its sequence number, start time and transmitter;
+- an **end** message (kind 3) says the sender is done (no payload).
+
+The header ends with a CRC-32 of the bytes before it, so a receiver that lost its
+place in a TCP byte stream finds the next message by its magic and CRC, and a
+corrupted UDP datagram is refused rather than misread. All functions here are pure:
+they turn values into bytes and bytes into values, and refuse a malformed message
+with a :class:`ProtocolError` of one line.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+import zlib
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from echoloc.errors import EchoLocError
+from echoloc.recording import Recording, contract_items, recording_from_items, validate_header
+
+MAGIC = b"ECHL"
+VERSION = 1
+HEADER = struct.Struct("<4sBBHIIddIHHBBHI")
+HEADER_CRC = struct.Struct("<I")
+HEADER_BYTES = HEADER.size + HEADER_CRC.size  # 52
+assert HEADER_BYTES == 52
+
+KIND_SESSION = 1
+KIND_FRAME = 2
+KIND_END = 3
+KINDS = {KIND_SESSION: "session", KIND_FRAME: "frame", KIND_END: "end"}
+
+FLAG_PAYLOAD_CRC = 0x0001
+
+#: Sample formats: code -> (name, NumPy dtype of one sample on the wire).
+SAMPLE_FORMATS: dict[int, tuple[str, np.dtype[Any]]] = {
+    1: ("int16", np.dtype("<i2")),
+    2: ("float32", np.dtype("<f4")),
+    3: ("float64", np.dtype("<f8")),
+    4: ("complex64", np.dtype("<c8")),
+}
+SAMPLE_FORMAT_CODES = {name: code for code, (name, _) in SAMPLE_FORMATS.items()}
+SIGNAL_KIND_CODES = {"rf": 0, "envelope": 1, "iq": 2}
+SIGNAL_KINDS = {code: name for name, code in SIGNAL_KIND_CODES.items()}
+
+#: Largest UDP payload over IPv4 (65535 - 8 UDP - 20 IP): one datagram is one message.
+MAX_UDP_BYTES = 65_507
+#: Largest payload accepted on TCP (a bound on what a bad peer can make us allocate).
+MAX_PAYLOAD_BYTES = 64 * 1024 * 1024
+
+
+class ProtocolError(EchoLocError):
+    """A message that breaks the wire protocol (counted as malformed by a receiver)."""
+
+
+@dataclass(frozen=True)
+class MessageHeader:
+    """The decoded 52-byte header of one message.
+
+    Attributes
+    ----------
+    kind
+        1 session, 2 frame, 3 end.
+    header_bytes, payload_bytes
+        Length of the header (52 in version 1; later versions may add fields before
+        the CRC) and of the payload that follows it.
+    sequence
+        Frame counter, uint32, +1 per frame sent, wrapping at 2**32.
+    frame_time_s
+        Start of the frame's emission on the sender's clock, s; NaN if unknown.
+    sample_rate_hz, n_channels, n_samples, sample_format, signal_kind
+        Layout of the frame's samples (for a session: of the frames that follow).
+    transmitter
+        Index into the session's transmitters fired in this frame.
+    payload_crc32
+        CRC-32 of the payload, or None when the sender did not compute one.
+    """
+
+    kind: int
+    header_bytes: int
+    payload_bytes: int
+    sequence: int
+    frame_time_s: float
+    sample_rate_hz: float
+    n_channels: int
+    n_samples: int
+    sample_format: int
+    signal_kind: str
+    transmitter: int = 0
+    payload_crc32: int | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class WireFrame:
+    """One frame as received: samples (n_channels, n_samples) and what the header says of them."""
+
+    sequence: int
+    frame_time_s: float
+    transmitter: int
+    sample_rate_hz: float
+    signal_kind: str
+    samples: NDArray[np.floating] | NDArray[np.complexfloating]
+
+
+def _pack(header: MessageHeader) -> bytes:
+    flags = 0 if header.payload_crc32 is None else FLAG_PAYLOAD_CRC
+    body = HEADER.pack(
+        MAGIC,
+        VERSION,
+        header.kind,
+        HEADER_BYTES,
+        header.payload_bytes,
+        header.sequence & 0xFFFFFFFF,
+        header.frame_time_s,
+        header.sample_rate_hz,
+        header.n_samples,
+        header.n_channels,
+        header.transmitter,
+        header.sample_format,
+        SIGNAL_KIND_CODES[header.signal_kind],
+        flags,
+        header.payload_crc32 or 0,
+    )
+    return body + HEADER_CRC.pack(zlib.crc32(body))
+
+
+def decode_header(data: bytes | bytearray | memoryview) -> MessageHeader:
+    """Decode and check the header at the start of ``data`` (at least 52 bytes).
+
+    Raises
+    ------
+    ProtocolError
+        Wrong magic, unknown version, bad CRC, an unknown kind, sample format or
+        signal kind, or impossible sizes.
+    """
+    if len(data) < HEADER_BYTES:
+        raise ProtocolError(f"message of {len(data)} bytes is shorter than the {HEADER_BYTES}-byte header")
+    view = memoryview(data)
+    fields = HEADER.unpack_from(view)
+    magic, version, kind, header_bytes = fields[:4]
+    if magic != MAGIC:
+        raise ProtocolError(f"bad magic {bytes(magic)!r}, expected {MAGIC!r}")
+    if version != VERSION:
+        raise ProtocolError(f"protocol version {version}, this receiver reads version {VERSION}")
+    if header_bytes < HEADER_BYTES or header_bytes > len(data):
+        raise ProtocolError(
+            f"header_bytes is {header_bytes}, expected {HEADER_BYTES} (or more, at most the data)"
+        )
+    (crc,) = HEADER_CRC.unpack_from(view, header_bytes - HEADER_CRC.size)
+    if crc != zlib.crc32(view[: header_bytes - HEADER_CRC.size]):
+        raise ProtocolError("header CRC-32 does not match (corrupted or misaligned message)")
+    (
+        _,
+        _,
+        _,
+        _,
+        payload_bytes,
+        sequence,
+        frame_time_s,
+        sample_rate_hz,
+        n_samples,
+        n_channels,
+        transmitter,
+        sample_format,
+        signal_code,
+        flags,
+        payload_crc,
+    ) = fields
+    if kind not in KINDS:
+        raise ProtocolError(f"unknown message kind {kind} (1 session, 2 frame, 3 end)")
+    if sample_format not in SAMPLE_FORMATS and kind == KIND_FRAME:
+        raise ProtocolError(
+            f"unknown sample format {sample_format} (1 int16, 2 float32, 3 float64, 4 complex64)"
+        )
+    if signal_code not in SIGNAL_KINDS:
+        raise ProtocolError(f"unknown signal kind {signal_code} (0 rf, 1 envelope, 2 iq)")
+    if payload_bytes > MAX_PAYLOAD_BYTES:
+        raise ProtocolError(f"payload of {payload_bytes} bytes is over the limit of {MAX_PAYLOAD_BYTES}")
+    if kind == KIND_FRAME:
+        if not (math.isfinite(sample_rate_hz) and sample_rate_hz > 0):
+            raise ProtocolError(f"frame {sequence}: sample_rate_hz is {sample_rate_hz}, expected > 0")
+        expected = n_channels * n_samples * SAMPLE_FORMATS[sample_format][1].itemsize
+        if payload_bytes != expected or expected == 0:
+            raise ProtocolError(
+                f"frame {sequence}: payload is {payload_bytes} bytes, {n_channels} channels x {n_samples} "
+                f"samples of {SAMPLE_FORMATS[sample_format][0]} need {expected} (and at least one)"
+            )
+    return MessageHeader(
+        kind=kind,
+        header_bytes=header_bytes,
+        payload_bytes=payload_bytes,
+        sequence=sequence,
+        frame_time_s=frame_time_s,
+        sample_rate_hz=sample_rate_hz,
+        n_channels=n_channels,
+        n_samples=n_samples,
+        sample_format=sample_format,
+        signal_kind=SIGNAL_KINDS[signal_code],
+        transmitter=transmitter,
+        payload_crc32=payload_crc if flags & FLAG_PAYLOAD_CRC else None,
+    )
+
+
+def _check_payload(header: MessageHeader, payload: bytes | bytearray | memoryview) -> None:
+    if len(payload) != header.payload_bytes:
+        raise ProtocolError(
+            f"{KINDS[header.kind]} {header.sequence}: payload is {len(payload)} bytes, "
+            f"the header says {header.payload_bytes}"
+        )
+    if header.payload_crc32 is not None and zlib.crc32(payload) != header.payload_crc32:
+        raise ProtocolError(f"{KINDS[header.kind]} {header.sequence}: payload CRC-32 does not match")
+
+
+# ----------------------------------------------------------------------------- frames
+
+
+def encode_frame(
+    samples: NDArray[Any],
+    *,
+    sequence: int,
+    sample_rate_hz: float,
+    frame_time_s: float = math.nan,
+    transmitter: int = 0,
+    signal_kind: str = "rf",
+    sample_format: str = "float32",
+    payload_crc: bool = True,
+) -> bytes:
+    """One frame message: header and ``samples`` (n_channels, n_samples), channel-major.
+
+    ``sample_format`` ``int16`` rounds and clips to -32768..32767 (for ADC counts);
+    ``complex64`` is required for ``iq`` data and refused for real data.
+    """
+    if sample_format not in SAMPLE_FORMAT_CODES:
+        raise ProtocolError(
+            f"unknown sample format {sample_format!r}, expected one of {sorted(SAMPLE_FORMAT_CODES)}"
+        )
+    if signal_kind not in SIGNAL_KIND_CODES:
+        raise ProtocolError(f"unknown signal kind {signal_kind!r}, expected rf, envelope or iq")
+    arr = np.asarray(samples)
+    if arr.ndim != 2 or arr.size == 0:
+        raise ProtocolError(f"samples have shape {arr.shape}, expected (n_channels, n_samples), not empty")
+    if (signal_kind == "iq") != (sample_format == "complex64"):
+        raise ProtocolError(f"signal kind {signal_kind} cannot be sent as {sample_format} (iq is complex64)")
+    code = SAMPLE_FORMAT_CODES[sample_format]
+    dtype = SAMPLE_FORMATS[code][1]
+    if sample_format == "int16":
+        wire = np.clip(np.rint(arr), -32768, 32767).astype(dtype)
+    else:
+        wire = np.ascontiguousarray(arr, dtype=dtype)
+    payload: bytes = wire.tobytes()
+    header = MessageHeader(
+        kind=KIND_FRAME,
+        header_bytes=HEADER_BYTES,
+        payload_bytes=len(payload),
+        sequence=sequence,
+        frame_time_s=float(frame_time_s),
+        sample_rate_hz=float(sample_rate_hz),
+        n_channels=int(arr.shape[0]),
+        n_samples=int(arr.shape[1]),
+        sample_format=code,
+        signal_kind=signal_kind,
+        transmitter=int(transmitter),
+        payload_crc32=zlib.crc32(payload) if payload_crc else None,
+    )
+    return _pack(header) + payload
+
+
+def decode_frame(header: MessageHeader, payload: bytes | bytearray | memoryview) -> WireFrame:
+    """The frame of a frame message; samples as float64 (complex128 for iq), a fresh array."""
+    if header.kind != KIND_FRAME:
+        raise ProtocolError(f"expected a frame message, got a {KINDS[header.kind]} message")
+    _check_payload(header, payload)
+    dtype = SAMPLE_FORMATS[header.sample_format][1]
+    if (header.signal_kind == "iq") != (dtype.kind == "c"):
+        raise ProtocolError(
+            f"frame {header.sequence}: signal kind {header.signal_kind} with sample format "
+            f"{SAMPLE_FORMATS[header.sample_format][0]}"
+        )
+    raw = np.frombuffer(payload, dtype=dtype).reshape(header.n_channels, header.n_samples)
+    samples: NDArray[np.floating] | NDArray[np.complexfloating] = (
+        raw.astype(np.complex128) if dtype.kind == "c" else raw.astype(np.float64)
+    )
+    if not np.isfinite(samples).all():
+        raise ProtocolError(f"frame {header.sequence}: NaN or infinite samples")
+    return WireFrame(
+        sequence=header.sequence,
+        frame_time_s=header.frame_time_s,
+        transmitter=header.transmitter,
+        sample_rate_hz=header.sample_rate_hz,
+        signal_kind=header.signal_kind,
+        samples=samples,
+    )
+
+
+# ----------------------------------------------------------------------------- session
+
+
+def _json_array(value: NDArray[Any]) -> Any:
+    arr = np.asarray(value)
+    if arr.dtype.kind == "c":
+        return {"real": arr.real.tolist(), "imag": arr.imag.tolist()}
+    return arr.tolist()
+
+
+def session_record(header: Recording) -> dict[str, Any]:
+    """The JSON object of a session message: FORMATS.md's attributes and datasets by name.
+
+    Per-frame fields (``frames``, ``frame_times``, ``frame_transmitter``, truth,
+    poses) are not part of a session; a per-frame ``background`` is refused.
+    """
+    attrs, data = contract_items(header)
+    record: dict[str, Any] = dict(attrs)
+    for name in ("frames", "frame_times", "frame_transmitter", "truth_positions", "sensor_poses"):
+        data.pop(name, None)
+    if "background" in data and data["background"].ndim == 3:
+        raise ProtocolError(
+            f"{header.source}: a background per frame cannot travel in a session (send one background)"
+        )
+    for name, arr in data.items():
+        record[name] = _json_array(arr)
+    return record
+
+
+def encode_session(header: Recording, *, sample_format: str = "float32") -> bytes:
+    """A session message for ``header`` (a recording or header; only per-recording fields travel).
+
+    The header's n_channels, n_samples, sample rate, signal kind and sample format
+    announce the frames that follow.
+    """
+    record = session_record(header)
+    payload = json.dumps(record, separators=(",", ":"), allow_nan=False).encode()
+    n_rx, n_samples = (int(d) for d in np.shape(header.frames)[1:])
+    msg = MessageHeader(
+        kind=KIND_SESSION,
+        header_bytes=HEADER_BYTES,
+        payload_bytes=len(payload),
+        sequence=0,
+        frame_time_s=math.nan,
+        sample_rate_hz=float(header.sample_rate_hz),
+        n_channels=n_rx,
+        n_samples=n_samples,
+        sample_format=SAMPLE_FORMAT_CODES[sample_format],
+        signal_kind=header.signal_kind,
+        payload_crc32=zlib.crc32(payload),
+    )
+    return _pack(msg) + payload
+
+
+def _from_json(value: Any) -> NDArray[Any]:
+    if isinstance(value, dict):
+        if set(value) != {"real", "imag"}:
+            raise ProtocolError(f"session: an array object must have real and imag, got {sorted(value)}")
+        return np.asarray(value["real"], dtype=np.float64) + 1j * np.asarray(value["imag"], dtype=np.float64)
+    arr = np.asarray(value)
+    if arr.dtype.kind not in "iuf":
+        raise ProtocolError(f"session: expected an array of numbers, got {str(value)[:40]}")
+    return arr.astype(np.int64) if arr.dtype.kind in "iu" and arr.ndim == 0 else arr.astype(np.float64)
+
+
+def decode_session(header: MessageHeader, payload: bytes | bytearray | memoryview, source: str) -> Recording:
+    """The header :class:`Recording` a session message carries, validated (no frames).
+
+    ``source`` (e.g. ``"tcp://127.0.0.1:7447"``) names it in messages.
+    """
+    if header.kind != KIND_SESSION:
+        raise ProtocolError(f"expected a session message, got a {KINDS[header.kind]} message")
+    _check_payload(header, payload)
+    try:
+        record = json.loads(bytes(payload).decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise ProtocolError(f"{source}: session payload is not UTF-8 JSON ({error})") from None
+    if not isinstance(record, dict):
+        raise ProtocolError(
+            f"{source}: session payload is a JSON {type(record).__name__}, expected an object"
+        )
+    attrs: dict[str, object] = {}
+    data: dict[str, NDArray[Any]] = {}
+    array_names = {
+        "transmitters",
+        "receivers",
+        "waveform",
+        "background",
+        "transmitter_axes",
+        "receiver_axes",
+        "receiver_gain",
+        "transmitter_waveforms",
+    }
+    for name, value in record.items():
+        if name in array_names:
+            data[name] = _from_json(value)
+        elif isinstance(value, str | int | float):
+            attrs[name] = value
+        # Anything else is a field of a later contract: ignored, as FORMATS.md asks.
+    dtype = np.complex128 if header.signal_kind == "iq" else np.float64
+    data["frames"] = np.zeros((0, header.n_channels, header.n_samples), dtype=dtype)
+    rec = recording_from_items(source, attrs, data)
+    if rec.signal_kind != header.signal_kind or rec.sample_rate_hz != header.sample_rate_hz:
+        raise ProtocolError(
+            f"{source}: session header says {header.signal_kind} at {header.sample_rate_hz:g} Hz, "
+            f"its payload {rec.signal_kind} at {rec.sample_rate_hz:g} Hz"
+        )
+    return validate_header(rec)
+
+
+def encode_end(sequence: int = 0) -> bytes:
+    """The end message: the sender has sent its last frame (``sequence``: the next it would send)."""
+    return _pack(
+        MessageHeader(
+            kind=KIND_END,
+            header_bytes=HEADER_BYTES,
+            payload_bytes=0,
+            sequence=sequence,
+            frame_time_s=math.nan,
+            sample_rate_hz=0.0,
+            n_channels=0,
+            n_samples=0,
+            sample_format=0,
+            signal_kind="rf",
+        )
+    )
+
+
+# ----------------------------------------------------------------------------- byte streams
+
+
+def split_messages(
+    buffer: bytearray,
+) -> tuple[list[tuple[MessageHeader, bytes]], int, list[ProtocolError]]:
+    """Complete messages at the front of a TCP byte ``buffer``; consumes them from it.
+
+    Returns the messages (header and payload), the number of bytes skipped to
+    resynchronise after garbage, and the errors met (one per bad header). An
+    incomplete message is left in ``buffer`` for the next read.
+    """
+    messages: list[tuple[MessageHeader, bytes]] = []
+    errors: list[ProtocolError] = []
+    skipped = 0
+    pos = 0
+    while True:
+        found = buffer.find(MAGIC, pos)
+        if found < 0:
+            # Keep a tail that might be the start of a magic.
+            keep = max(pos, len(buffer) - (len(MAGIC) - 1))
+            skipped += keep - pos
+            pos = keep
+            break
+        if found > pos:
+            skipped += found - pos
+            pos = found
+        if len(buffer) - pos < HEADER_BYTES:
+            break
+        try:
+            header = decode_header(
+                bytes(buffer[pos : pos + max(HEADER_BYTES, _peek_header_bytes(buffer, pos))])
+            )
+        except ProtocolError as error:
+            if "header_bytes" in str(error) and _peek_header_bytes(buffer, pos) > len(buffer) - pos:
+                break  # a longer header of a later version still arriving
+            errors.append(error)
+            pos += 1
+            skipped += 1
+            continue
+        end = pos + header.header_bytes + header.payload_bytes
+        if end > len(buffer):
+            break
+        messages.append((header, bytes(buffer[pos + header.header_bytes : end])))
+        pos = end
+    del buffer[:pos]
+    return messages, skipped, errors
+
+
+def _peek_header_bytes(buffer: bytes | bytearray, pos: int) -> int:
+    if len(buffer) - pos < 8:
+        return HEADER_BYTES
+    return int(struct.unpack_from("<H", buffer, pos + 6)[0])

@@ -1,0 +1,297 @@
+"""The streaming processor and its sockets: same results as the batch chain, and every frame accounted for."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from echoloc.errors import EchoLocError
+from echoloc.output import echoes_record, objects_record
+from echoloc.pipeline import prepare, run
+from echoloc.protocol import encode_frame, encode_session
+from echoloc.scene import default_scene
+from echoloc.scenefile import load_scene
+from echoloc.simulate import simulate
+from echoloc.stream import (
+    FrameQueue,
+    LatencyHistogram,
+    SequenceTracker,
+    StreamFrame,
+    StreamProcessor,
+    recording_frames,
+    stream_recording,
+)
+from echoloc.transport import EndEvent, Endpoint, Listener, SessionEvent, parse_endpoint, send_recording
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+
+@pytest.fixture(scope="module")
+def recording():
+    return simulate(default_scene(), 12)
+
+
+@pytest.fixture(scope="module")
+def two_tx():
+    return simulate(load_scene(EXAMPLES / "two-transmitters.toml"), 6)
+
+
+def _records(pairs):
+    return [(echoes_record(e), objects_record(o)) for e, o in pairs]
+
+
+@pytest.mark.parametrize("batch_frames", [1, 5])
+def test_streaming_equals_batch_processing(recording, batch_frames):
+    chain = prepare(recording)
+    batch = _records(run(chain))
+    streamed = _records((r.echoes, r.objects) for r in stream_recording(chain, batch_frames=batch_frames))
+    assert streamed == batch
+    # Not vacuous: the three balls are found in every frame.
+    assert all(len(o["objects"]) == 3 for _, o in batch)
+
+
+def test_streaming_equals_batch_with_transmitters_fired_in_turn(two_tx):
+    assert two_tx.frame_transmitter is not None
+    assert len(set(two_tx.frame_transmitter.tolist())) == 2
+    chain = prepare(two_tx)
+    assert _records((r.echoes, r.objects) for r in stream_recording(chain)) == _records(run(chain))
+
+
+def test_a_session_header_streams_what_the_recording_gives(recording):
+    """The network path: a chain prepared from the session (no frames) gives the same objects."""
+    from echoloc.protocol import decode_header, decode_session
+
+    message = encode_session(recording)
+    header = decode_session(decode_header(message), message[52:], "test")
+    processor = StreamProcessor(prepare(header))
+    streamed = [objects_record(processor.process(f).objects) for f in recording_frames(recording)]
+    assert streamed == [objects_record(o) for _, o in run(prepare(recording))]
+
+
+def test_latency_histogram_quantiles_within_half_a_percent():
+    rng = np.random.default_rng(3)
+    values = rng.lognormal(mean=np.log(2e-3), sigma=0.6, size=20_000)
+    hist = LatencyHistogram()
+    for v in values:
+        hist.add(float(v))
+    for q in (0.5, 0.9, 0.99):
+        exact = np.quantile(values, q, method="inverted_cdf")
+        assert hist.quantile(q) == pytest.approx(exact, rel=0.006)
+    assert hist.max_s == values.max()
+    assert hist.count == len(values)
+    # Constant memory: the counters do not grow with the number of values.
+    assert hist._counts.size < 2500
+    hist.reset()
+    assert np.isnan(hist.quantile(0.5))
+
+
+def test_sequence_tracker_counts_gaps_wraps_and_disorder():
+    tracker = SequenceTracker()
+    numbers = [tracker.observe(s) for s in (2**32 - 2, 2**32 - 1, 0, 3, 2, 4)]
+    # Wrapping 2**32-1 -> 0 is not a gap; 0 -> 3 loses 1 and 2; 2 then arrives late.
+    assert numbers == [2**32 - 2, 2**32 - 1, 2**32, 2**32 + 3, None, 2**32 + 4]
+    assert tracker.lost == 2
+    assert tracker.out_of_order == 1
+
+
+def test_queue_drops_oldest_frames_counts_them_and_keeps_sessions():
+    queue = FrameQueue(3)
+    frames = [StreamFrame(k, np.zeros((1, 1)), 0.0) for k in range(5)]
+    queue.put(frames[0])
+    queue.put(SessionEvent(None))  # type: ignore[arg-type]
+    for f in frames[1:]:
+        queue.put(f)
+    assert queue.dropped == 2
+    assert len(queue) == 3
+    items = [queue.get(0.01) for _ in range(4)]
+    assert isinstance(items[0], SessionEvent)
+    assert [i.index for i in items[1:]] == [2, 3, 4]
+    assert queue.get(0.01) is None
+
+
+def test_blocking_queue_waits_instead_of_dropping():
+    queue = FrameQueue(1, block=True)
+    queue.put(StreamFrame(0, np.zeros((1, 1)), 0.0))
+    done = threading.Event()
+
+    def producer():
+        queue.put(StreamFrame(1, np.zeros((1, 1)), 0.0))
+        done.set()
+
+    thread = threading.Thread(target=producer)
+    thread.start()
+    assert not done.wait(0.2)  # blocked: the queue is full
+    assert queue.get(0.1).index == 0
+    assert done.wait(2.0)
+    thread.join()
+    assert queue.dropped == 0
+
+
+def test_parse_endpoint_defaults_to_loopback():
+    assert parse_endpoint("7447") == Endpoint("127.0.0.1", 7447, "tcp")
+    assert parse_endpoint("udp://0.0.0.0:9") == Endpoint("0.0.0.0", 9, "udp")
+    with pytest.raises(EchoLocError, match="not a number"):
+        parse_endpoint("host:abc")
+
+
+def _drain(listener, n_frames, timeout_s=20.0):
+    """Items off the listener's queue until n_frames frames or an end arrived."""
+    items = []
+    deadline = time.monotonic() + timeout_s
+    frames = 0
+    while time.monotonic() < deadline and frames < n_frames:
+        item = listener.queue.get(0.1)
+        if item is None:
+            continue
+        if isinstance(item, EndEvent):
+            break
+        items.append(item)
+        frames += isinstance(item, StreamFrame)
+    return items
+
+
+@pytest.mark.parametrize("transport", ["tcp", "udp"])
+def test_loopback_stream_gives_the_batch_results(recording, transport):
+    with Listener(Endpoint("127.0.0.1", 0, transport), FrameQueue(64, block=True)) as listener:
+        sender = threading.Thread(
+            target=send_recording,
+            args=(recording, listener.address),
+            kwargs={"speed": 0, "sample_format": "float64" if transport == "tcp" else "float32"},
+        )
+        sender.start()
+        items = _drain(listener, recording.n_frames)
+        sender.join(10)
+        counters = listener.counters()
+    assert isinstance(items[0], SessionEvent)
+    processor = StreamProcessor(prepare(items[0].header))
+    got = [objects_record(processor.process(f).objects) for f in items[1:]]
+    assert counters["received"] == recording.n_frames
+    assert counters["lost"] == counters["malformed"] == counters["dropped"] == 0
+    want = [objects_record(o) for _, o in run(prepare(recording))]
+    if transport == "tcp":  # float64 on the wire: bit for bit
+        assert got == want
+    else:  # float32 on the wire (one datagram a frame): the same objects within 10 µm
+        for g, w in zip(got, want, strict=True):
+            assert len(g["objects"]) == len(w["objects"]) == 3
+            for a, b in zip(g["objects"], w["objects"], strict=True):
+                np.testing.assert_allclose(a["position_m"], b["position_m"], atol=1e-5)
+
+
+def test_udp_losses_garbage_and_misfits_are_counted_never_silent(recording):
+    with Listener(Endpoint("127.0.0.1", 0, "udp"), FrameQueue(64)) as listener:
+        out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        address = ("127.0.0.1", listener.address.port)
+        frame = recording.frames[0]
+        send = lambda data: out.sendto(data, address)  # noqa: E731
+        send(encode_frame(frame, sequence=0, sample_rate_hz=2e5))  # before any session: rejected
+        send(encode_session(recording))
+        for seq in (0, 1, 4, 5):  # 2 and 3 lost on the way
+            send(encode_frame(frame, sequence=seq, sample_rate_hz=2e5))
+        send(b"not a message at all, only noise on the port")
+        send(encode_frame(frame[:3], sequence=6, sample_rate_hz=2e5))  # 3 channels: rejected
+        send(encode_frame(frame, sequence=3, sample_rate_hz=2e5))  # late: out of order
+        truncated = encode_frame(frame, sequence=7, sample_rate_hz=2e5)[:-10]
+        send(truncated)
+        out.close()
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and listener.malformed < 2:
+            time.sleep(0.02)
+        time.sleep(0.1)
+        counters = listener.counters()
+        messages = list(listener.errors())
+    assert counters == {
+        "received": 4,
+        "lost": 2,
+        "dropped": 0,
+        "out_of_order": 1,
+        "malformed": 2,
+        "rejected": 2,
+    }
+    assert any("before any session" in m for m in messages)
+    assert any("3 channels" in m for m in messages)
+    assert all("\n" not in m for m in messages)
+
+
+def test_processor_counts_late_frames_and_refuses_misfits(recording):
+    processor = StreamProcessor(prepare(recording), deadline_s=0.05)
+    old = StreamFrame(0, recording.frames[0], 0.0, 0, time.monotonic() - 1.0)
+    result = processor.process(old)
+    assert result.late
+    assert result.latency_s >= 1.0
+    assert processor.stats().late == 1
+    with pytest.raises(EchoLocError, match="3 channels"):
+        processor.process(StreamFrame(1, recording.frames[0][:3], 0.0))
+
+
+def test_a_sender_written_from_the_protocol_page_alone_is_located_right():
+    """examples/minimal_sender.py uses only the standard library and docs/STREAM_PROTOCOL.md."""
+    import subprocess
+    import sys
+
+    script = EXAMPLES / "minimal_sender.py"
+    assert "echoloc" not in {
+        line.split()[1].split(".")[0]
+        for line in script.read_text().splitlines()
+        if line.startswith("import ")
+    }
+    reflector = (0.05, -0.03, 0.6)
+    with Listener(Endpoint("127.0.0.1", 0, "tcp"), FrameQueue(16)) as listener:
+        subprocess.run(
+            [
+                sys.executable,
+                str(script),
+                *("--to", f"127.0.0.1:{listener.address.port}", "--frames", "3", "--rate", "200"),
+                *("--reflector", *map(str, reflector)),
+            ],
+            check=True,
+            timeout=60,
+        )
+        items = _drain(listener, 3)
+        counters = listener.counters()
+    assert counters["malformed"] == counters["rejected"] == 0
+    session, *frames = items
+    assert isinstance(session, SessionEvent)
+    assert len(frames) == 3
+    processor = StreamProcessor(prepare(session.header))
+    for frame in frames:
+        (obj,) = processor.process(frame).objects.objects
+        # int16 samples, noise 1 % of full scale: within a millimetre.
+        np.testing.assert_allclose(obj.position_m, reflector, atol=1e-3)
+
+
+def test_session_of_two_transmitters_combines_frames_as_the_batch_chain(two_tx):
+    """Over the wire the frames name their transmitter; the header alone must combine them."""
+    from echoloc.protocol import decode_header, decode_session
+
+    message = encode_session(two_tx)
+    header = decode_session(decode_header(message), message[52:], "test")
+    assert header.frame_transmitter is None
+    processor = StreamProcessor(prepare(header))
+    streamed = [objects_record(processor.process(f).objects) for f in recording_frames(two_tx)]
+    batch = [objects_record(o) for _, o in run(prepare(two_tx))]
+    assert streamed == batch
+    # Combined: after the first frame, objects are supported by both transmitters' channels.
+    assert all(o["channels"] == 8 for line in batch[1:] for o in line["objects"])
+
+
+def test_geometry_file_replaces_the_session_message(recording):
+    with Listener(Endpoint("127.0.0.1", 0, "udp"), FrameQueue(8), geometry=recording) as listener:
+        out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        for seq in range(3):  # frames only, as a firmware without a session would send
+            out.sendto(
+                encode_frame(
+                    recording.frames[seq], sequence=seq, sample_rate_hz=2e5, frame_time_s=seq * 0.01
+                ),
+                ("127.0.0.1", listener.address.port),
+            )
+        out.close()
+        items = _drain(listener, 3, timeout_s=5)
+    assert isinstance(items[0], SessionEvent)
+    assert items[0].header.n_frames == 0
+    assert [f.index for f in items[1:]] == [0, 1, 2]
+    assert listener.counters()["rejected"] == 0

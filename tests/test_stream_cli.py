@@ -1,0 +1,298 @@
+"""`echoloc send`, `stream` and `record` as a user runs them: separate processes on loopback."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from echoloc.recording import read_recording, write_recording
+from echoloc.scene import default_scene
+from echoloc.simulate import simulate
+from echoloc.transport import Endpoint, send_recording
+
+ECHOLOC = [str(Path(sys.executable).with_name("echoloc"))]
+TIMEOUT_S = 60
+
+
+@pytest.fixture(scope="module")
+def recording_path(tmp_path_factory):
+    path = tmp_path_factory.mktemp("stream") / "demo.h5"
+    write_recording(simulate(default_scene(), 15), path)
+    return path
+
+
+class Proc:
+    """A command running in the background whose stderr lines are collected as they come."""
+
+    def __init__(self, *args: object) -> None:
+        self.popen = subprocess.Popen(
+            [*ECHOLOC, *map(str, args)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        self.lines: list[str] = []
+        self._stdout: list[str] = []
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+        self._out_reader = threading.Thread(target=self._read_stdout, daemon=True)
+        self._out_reader.start()
+
+    def _read(self) -> None:
+        assert self.popen.stderr is not None
+        for line in self.popen.stderr:
+            self.lines.append(line.rstrip("\n"))
+
+    def _read_stdout(self) -> None:
+        assert self.popen.stdout is not None
+        self._stdout.append(self.popen.stdout.read())
+
+    def wait_for(self, pattern: str, timeout_s: float = TIMEOUT_S) -> re.Match[str]:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            for line in list(self.lines):
+                found = re.search(pattern, line)
+                if found:
+                    return found
+            if self.popen.poll() is not None and not self._reader.is_alive():
+                break
+            time.sleep(0.02)
+        self.kill()
+        raise AssertionError(f"no line matching {pattern!r} in {self.lines}")
+
+    def port(self) -> int:
+        return int(self.wait_for(r"listening on \w+://127\.0\.0\.1:(\d+)").group(1))
+
+    def finish(self, timeout_s: float = TIMEOUT_S) -> tuple[int, str]:
+        try:
+            self.popen.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            self.kill()
+            raise
+        self.kill()  # waits for the readers, closes the pipes
+        return self.popen.returncode, "".join(self._stdout)
+
+    def kill(self) -> None:
+        """Kill it if still running, and close its pipes."""
+        if self.popen.poll() is None:
+            self.popen.kill()
+        self.popen.wait(10)
+        self._reader.join(5)
+        self._out_reader.join(5)
+        for pipe in (self.popen.stdout, self.popen.stderr):
+            if pipe is not None:
+                pipe.close()
+
+
+def test_stream_prints_what_locate_prints_and_counts_nothing_lost(recording_path):
+    stream = Proc("stream", "--listen", "127.0.0.1:0", "--once", "--json")
+    port = stream.port()
+    sent = subprocess.run(
+        [*ECHOLOC, "send", str(recording_path), "--to", f"127.0.0.1:{port}", "--speed", "0"],
+        capture_output=True,
+        text=True,
+        timeout=TIMEOUT_S,
+        check=False,
+    )
+    assert sent.returncode == 0, sent.stderr
+    assert "sent 15 frames" in sent.stderr
+    code, stdout = stream.finish()
+    assert code == 0, stream.lines
+    located = subprocess.run(
+        [*ECHOLOC, "locate", str(recording_path), "--json"],
+        capture_output=True,
+        text=True,
+        timeout=TIMEOUT_S,
+        check=True,
+    )
+    assert stdout == located.stdout
+    assert len(stdout.splitlines()) == 15
+    summary = stream.lines[-1]
+    assert "received 15, processed 15, lost 0, dropped 0" in summary
+    assert "malformed 0, rejected 0" in summary
+
+
+def test_stream_reports_counts_on_sigint(recording_path):
+    stream = Proc("stream", "--listen", "127.0.0.1:0", "--udp")
+    port = stream.port()
+    send_recording(read_recording(recording_path), Endpoint("127.0.0.1", port, "udp"), speed=0, end=False)
+    stream.wait_for(r"session: 4 receivers")
+    time.sleep(0.5)
+    stream.popen.send_signal(signal.SIGINT)
+    code, _ = stream.finish()
+    assert code == 0
+    found = re.search(r"received (\d+), processed (\d+), lost (\d+), dropped (\d+)", stream.lines[-1])
+    assert found is not None, stream.lines
+    received, processed, lost, dropped = map(int, found.groups())
+    # Every one of the 15 frames sent is accounted for: processed, lost or dropped.
+    assert received + lost == 15
+    assert processed + dropped == received
+    assert stream.lines[-1].endswith("(interrupted)")
+
+
+def test_send_to_nothing_is_one_line_and_exit_2(recording_path):
+    sent = subprocess.run(
+        [*ECHOLOC, "send", str(recording_path), "--to", "127.0.0.1:9", "--connect-timeout", "0.2"],
+        capture_output=True,
+        text=True,
+        timeout=TIMEOUT_S,
+        check=False,
+    )
+    assert sent.returncode == 2
+    assert len(sent.stderr.strip().splitlines()) == 1
+    assert "cannot connect" in sent.stderr
+
+
+def test_record_then_read_back_equals_what_was_sent(tmp_path, recording_path):
+    out = tmp_path / "rec.h5"
+    record = Proc("record", out, "--listen", "127.0.0.1:0", "--once", "--batch-frames", "4")
+    port = record.port()
+    source = read_recording(recording_path)
+    send_recording(source, Endpoint("127.0.0.1", port), speed=0, sample_format="float32")
+    code, _ = record.finish()
+    assert code == 0, record.lines
+    assert "15 frames in 4 batches" in record.lines[-1]
+    back = read_recording(out)
+    np.testing.assert_array_equal(back.frames, source.frames.astype(np.float32))
+    np.testing.assert_array_equal(back.receivers_m, source.receivers_m)
+    np.testing.assert_array_equal(back.waveform, source.waveform)
+    np.testing.assert_allclose(back.frame_times_s, np.arange(15) * 0.01)
+
+
+def test_record_killed_with_sigkill_keeps_every_flushed_batch(tmp_path, recording_path):
+    out = tmp_path / "killed.h5"
+    record = Proc("record", out, "--listen", "127.0.0.1:0", "--batch-frames", "5", "--verbose")
+    port = record.port()
+    source = read_recording(recording_path)
+    stop = threading.Event()
+    sender = threading.Thread(
+        target=lambda: _send_until_stopped(source, port, stop),
+        daemon=True,
+    )
+    sender.start()
+    try:
+        # Wait for a few batches on disk, then kill mid-stream: no chance to close the file.
+        record.wait_for(r"(\d+) frames written")
+        written = int(record.wait_for(r"(?:[3-9]\d|\d{3,}) frames written").group(0).split()[0])
+        time.sleep(0.05)  # inside the next batch
+        os.kill(record.popen.pid, signal.SIGKILL)
+        record.popen.wait(10)
+    finally:
+        stop.set()
+        sender.join(10)
+        record.kill()
+    assert record.popen.returncode == -signal.SIGKILL
+    with h5py.File(out, "r") as f:  # the file opens ...
+        assert f["frames"].shape[0] >= written
+    back = read_recording(out)  # ... and passes the contract's every check
+    reported = [int(m.group(1)) for line in record.lines if (m := re.search(r"(\d+) frames written", line))]
+    # At most the batch being written is lost: everything reported flushed is there.
+    assert back.n_frames >= reported[-1]
+    assert back.n_frames % 5 == 0
+    n = source.n_frames
+    expected = np.stack([source.frames[k % n] for k in range(back.n_frames)]).astype(np.float32)
+    np.testing.assert_array_equal(back.frames, expected)
+    # Frame times run on across the loops at the recording's own step (10 ms).
+    np.testing.assert_allclose(np.diff(back.frame_times_s), 0.01, atol=1e-9)
+
+
+def _send_until_stopped(source, port: int, stop: threading.Event) -> None:
+    from echoloc.errors import EchoLocError
+
+    with contextlib.suppress(EchoLocError):  # the recorder was killed: the connection breaks
+        send_recording(source, Endpoint("127.0.0.1", port), rate_hz=400.0, loops=0, stop=stop, end=False)
+
+
+def test_stream_record_writes_the_processed_frames(tmp_path, recording_path):
+    out = tmp_path / "both.h5"
+    stream = Proc("stream", "--listen", "127.0.0.1:0", "--once", "--json", "--record", out)
+    port = stream.port()
+    send_recording(read_recording(recording_path), Endpoint("127.0.0.1", port), speed=0)
+    code, stdout = stream.finish()
+    assert code == 0, stream.lines
+    assert [json.loads(line)["frame"] for line in stdout.splitlines()] == list(range(15))
+    assert read_recording(out).n_frames == 15
+    assert any("recorded 15 frames" in line for line in stream.lines)
+
+
+@pytest.mark.parametrize("command", ["send", "stream", "record", "bench"])
+def test_help_of_the_real_time_commands(command):
+    from click.testing import CliRunner
+
+    from echoloc.cli import cli
+
+    result = CliRunner().invoke(cli, [command, "--help"])
+    assert result.exit_code == 0
+    assert f"Usage: cli {command}" in result.output or f"Usage: echoloc {command}" in result.output
+    if command in ("stream", "record"):
+        assert "127.0.0.1:7447" in result.output  # loopback unless told otherwise
+
+
+def test_bench_reports_both_chains_and_the_physics():
+    done = subprocess.run(
+        [*ECHOLOC, "bench", "--reflectors", "0", "--frames", "4", "--baseline-frames", "1", "--json"],
+        capture_output=True,
+        text=True,
+        timeout=TIMEOUT_S,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout)
+    assert report["objects"] == 3
+    assert report["echoloc"]["recall"] == 1.0
+    assert report["speedup"] > 1  # the brute-force locate of the scipy chain takes seconds
+    assert report["physics_frames_per_s"] == pytest.approx(85.8, abs=0.1)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["record", "x.npz"], "recorded to HDF5"),
+        (["record", "/no/such/dir/x.h5"], "does not exist"),
+        (["stream", "--record", "x.npz"], "recorded to HDF5"),
+        (["stream", "--listen", "127.0.0.1:abc"], "port 'abc' is not a number"),
+        (["record", "x.h5", "--udp", "--listen", "127.0.0.1:99999"], "outside 0..65535"),
+        (["send", "/no/such.h5"], "no such file"),
+        (["send", "x.h5", "--rate", "0"], None),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(capsys, tmp_path, recording_path, args, message):
+    from echoloc import cli
+
+    args = [str(recording_path) if a == "x.h5" and args[0] == "send" else a for a in args]
+    with pytest.raises(SystemExit) as info:
+        cli.main(args)
+    _, err = capsys.readouterr()
+    assert info.value.code == 2
+    assert len(err.strip().splitlines()) == 1
+    assert err.startswith("echoloc: error: ")
+    if message is not None:
+        assert message in err
+
+
+def test_a_busy_port_is_one_line_and_exit_2(capsys):
+    import socket
+
+    from echoloc import cli
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen(1)
+        port = busy.getsockname()[1]
+        with pytest.raises(SystemExit) as info:
+            cli.main(["record", "out.h5", "--listen", f"127.0.0.1:{port}"])
+    _, err = capsys.readouterr()
+    assert info.value.code == 2
+    assert f"cannot listen on tcp://127.0.0.1:{port}" in err
