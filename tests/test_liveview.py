@@ -174,3 +174,37 @@ def test_envelope_trace_pools_the_analytic_magnitude():
     assert np.argmax(pooled[0]) in (39, 40)  # the window's peak, sample 400
     np.testing.assert_allclose(pooled[0], window.reshape(100, 10).max(axis=1), atol=0.02)
     np.testing.assert_allclose(pooled[1], 2 * pooled[0])
+
+
+def test_a_live_floor_plan_arrives_placed_on_the_sensors_horizontal_plane(results):
+    from scipy.spatial.transform import Rotation
+
+    from echoloc.map_export import floor_plan_cells, floor_plan_pose
+    from echoloc.mapping import GridSpec, MapAccumulator
+
+    recording, processed = results
+    spec = GridSpec.floor_plan((-0.5, 0.5), (0.2, 1.0), 0.02)
+    mapper = MapAccumulator(spec, recording)
+    for result, _ in processed:
+        mapper.add_frame(result.echoes, [0, 0, 0, 0, 0, 0, 1.0], objects=result.objects)
+    grid = mapper.grid()
+    cells = floor_plan_cells(grid)
+    origin, orientation = floor_plan_pose(spec)
+
+    with LiveView(port=0) as view:
+
+        def publish():
+            for _ in range(40):
+                view.publish_map(cells, spec.cell_m, origin, orientation)
+                time.sleep(0.05)
+
+        got = asyncio.run(_client(view.port, publish, {"/echoloc/map"}))
+    channel, _, payload = got["/echoloc/map"]
+    message = _protobuf_class(channel).FromString(payload)
+    decoded = np.frombuffer(message.data, "<f4").reshape(-1, message.column_count)
+    np.testing.assert_allclose(decoded, cells, atol=1e-6)
+    assert np.any(decoded > 0.5)  # the balls of the default scene are on the map
+    q = message.pose.orientation
+    turn = Rotation.from_quat([q.x, q.y, q.z, q.w])
+    # Grid columns run along the sensor's x, rows along its z (ahead), the grid's normal up (-y).
+    np.testing.assert_allclose(turn.apply([[1, 0, 0], [0, 1, 0]]), [[1, 0, 0], [0, 0, 1]], atol=1e-9)

@@ -124,6 +124,24 @@ def test_stream_prints_what_locate_prints_and_counts_nothing_lost(recording_path
     assert "malformed 0, rejected 0" in summary
 
 
+def test_stream_with_the_live_view_and_its_map_changes_nothing_it_prints(recording_path):
+    stream = Proc("stream", "--listen", "127.0.0.1:0", "--once", "--json", "--view", "--view-port", "0")
+    port = stream.port()
+    stream.wait_for(r"live view on ws://127\.0\.0\.1:\d+")
+    sent = subprocess.run(
+        [*ECHOLOC, "send", str(recording_path), "--to", f"127.0.0.1:{port}", "--speed", "1"],
+        capture_output=True,
+        text=True,
+        timeout=TIMEOUT_S,
+        check=False,
+    )
+    assert sent.returncode == 0, sent.stderr
+    code, stdout = stream.finish()
+    assert code == 0, stream.lines
+    assert len(stdout.splitlines()) == 15
+    assert "received 15, processed 15, lost 0, dropped 0" in stream.lines[-1]
+
+
 def test_stream_reports_counts_on_sigint(recording_path):
     stream = Proc("stream", "--listen", "127.0.0.1:0", "--udp")
     port = stream.port()

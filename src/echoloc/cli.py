@@ -1899,6 +1899,17 @@ def stream_command(
         raise session.record_error
 
 
+_IDENTITY_POSE = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
+
+
+def _live_mapper(header: Recording, chain: Chain) -> Any:
+    """A floor plan at 2 cm around a sensor that does not move (live frames carry no pose)."""
+    from echoloc.mapping import MapAccumulator, default_floor_plan
+
+    spec = default_floor_plan(header, _IDENTITY_POSE[None, :], 0.02, chain.speed_of_sound_m_s)
+    return MapAccumulator(spec, header, blind_path_m=chain.echo_options.blanking_s * chain.speed_of_sound_m_s)
+
+
 class _LiveStream:
     """What `echoloc stream` does with each session and frame off the listener's queue."""
 
@@ -1921,6 +1932,8 @@ class _LiveStream:
         self.recorder: Any = None
         self.header: Recording | None = None
         self.view: Any = None
+        self.mapper: Any = None
+        self._last_map = 0.0
         self.live: Any = None
         self.record_error: BaseException | None = None
         self._last_status = time.monotonic()  # the first status line comes after STATUS_EVERY_S
@@ -1940,6 +1953,7 @@ class _LiveStream:
             self.processor.warm_up()
             if self.view is not None:
                 self.view.set_session(header)
+                self.mapper = _live_mapper(header, chain)
             if self.recorder is not None and self.header is not None:
                 self._stop_recording("the sender started a different session")
             if self.record_path is not None and self.recorder is None and self.header is None:
@@ -1956,9 +1970,10 @@ class _LiveStream:
             self.recorder.add(item)
         if self.as_json:
             click.echo(json_line(objects_record(result.objects)))
+        now = item.arrival_s
         if self.view is not None:
             self.view.publish(result, item.samples, self.stats())
-        now = item.arrival_s
+            self._map(result, now)
         if self.live is not None:
             if now - self._last_table > 0.2:
                 self._last_table = now
@@ -1966,6 +1981,21 @@ class _LiveStream:
         elif now - self._last_status > self.STATUS_EVERY_S:
             self._last_status = now
             self._say(self.stats().summary())
+
+    def _map(self, result: Any, now: float) -> None:
+        """Add the frame to the live floor plan (the sensor frame's x-z plane); publish it twice a second."""
+        from echoloc.map_export import floor_plan_cells, floor_plan_pose
+
+        if self.mapper is None:
+            return
+        self.mapper.add_frame(
+            result.echoes, _IDENTITY_POSE, transmitter=result.transmitter, objects=result.objects
+        )
+        if now - self._last_map >= 0.5:
+            self._last_map = now
+            grid = self.mapper.grid()
+            origin, orientation = floor_plan_pose(grid.spec)
+            self.view.publish_map(floor_plan_cells(grid), grid.spec.cell_m, origin, orientation)
 
     def _say(self, text: str) -> None:
         (self.live.console if self.live is not None else stderr).print(

@@ -197,12 +197,14 @@ class LiveView:
         occupancy: NDArray[np.floating],
         cell_size_m: float,
         origin_m: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        orientation_xyzw: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0),
     ) -> None:
         """Publish an occupancy grid (rows along y, columns along x, values 0..1) as ``foxglove.Grid``.
 
         The hook for a mapper (an occupancy grid of the sensor's surroundings): the
-        grid lies in the plane z = ``origin_m[2]`` of the sensor frame, its cell
-        (0, 0) at ``origin_m``; values are sent as float32 ``occupancy``.
+        grid lies in its own x-y plane, placed in the sensor frame by ``origin_m`` (its
+        cell (0, 0)) and ``orientation_xyzw``; values are sent as float32
+        ``occupancy`` (-1 where unknown).
         """
         grid = np.ascontiguousarray(occupancy, dtype=np.float32)
         if grid.ndim != 2 or grid.size == 0:
@@ -214,7 +216,13 @@ class LiveView:
                 timestamp=_timestamp(now),
                 frame_id=SENSOR_FRAME_ID,
                 pose=Pose(
-                    position=Vector3(x=origin_m[0], y=origin_m[1], z=origin_m[2]), orientation=_IDENTITY
+                    position=Vector3(x=origin_m[0], y=origin_m[1], z=origin_m[2]),
+                    orientation=Quaternion(
+                        x=orientation_xyzw[0],
+                        y=orientation_xyzw[1],
+                        z=orientation_xyzw[2],
+                        w=orientation_xyzw[3],
+                    ),
                 ),
                 column_count=columns,
                 cell_size=foxglove.messages.Vector2(x=cell_size_m, y=cell_size_m),

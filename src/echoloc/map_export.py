@@ -185,6 +185,25 @@ def write_octomap(grid: OccupancyGrid, path: str | Path) -> Path:
 # --- MCAP ----------------------------------------------------------------------------------
 
 
+def floor_plan_pose(spec: GridSpec) -> tuple[tuple[float, float, float], tuple[float, float, float, float]]:
+    """Where a floor plan's plane lies in the map frame: cell (0, 0)'s corner and the rotation (x, y, z, w).
+
+    Grid x = map x, grid y = map z, grid normal = map -y (up): the plane through the
+    layer's centre height.
+    """
+    if not spec.is_floor_plan:
+        raise EchoLocError("a floor plan's pose is asked of a 3-D grid")
+    qx, qy, qz, qw = (float(v) for v in _matrix_quaternion(_FLOOR_PLAN_AXES))
+    x0, y0, z0 = (float(v) for v in spec.origin_m)
+    return (x0, y0 + spec.cell_m / 2, z0), (qx, qy, qz, qw)
+
+
+def floor_plan_cells(grid: OccupancyGrid) -> NDArray[np.float64]:
+    """A floor plan's occupancy as rows along map z and columns along map x; -1 where unknown."""
+    probability = grid.probability()[:, 0, :]
+    return np.asarray(np.where(grid.known()[:, 0, :], probability, -1.0).T)
+
+
 def occupancy_grid_message(grid: OccupancyGrid, stamp_s: float) -> dict[str, Any]:
     """A ``nav_msgs/msg/OccupancyGrid`` (as a dict) of a floor plan, in ``echoloc_map``.
 
@@ -196,8 +215,7 @@ def occupancy_grid_message(grid: OccupancyGrid, stamp_s: float) -> dict[str, Any
         raise EchoLocError("nav_msgs/OccupancyGrid holds a floor plan; this grid is 3-D")
     probability = grid.probability()[:, 0, :]
     cells = np.where(grid.known()[:, 0, :], np.rint(100 * probability), -1).astype(np.int8)
-    qx, qy, qz, qw = (float(v) for v in _matrix_quaternion(_FLOOR_PLAN_AXES))
-    x0, y0, z0 = (float(v) for v in spec.origin_m)
+    (x0, y0, z0), (qx, qy, qz, qw) = floor_plan_pose(spec)
     return {
         "header": {"stamp": ros_time(stamp_s), "frame_id": MAP_FRAME_ID},
         "info": {
@@ -206,8 +224,7 @@ def occupancy_grid_message(grid: OccupancyGrid, stamp_s: float) -> dict[str, Any
             "width": int(spec.shape[0]),
             "height": int(spec.shape[2]),
             "origin": {
-                # The grid's plane passes through the layer's centre height.
-                "position": {"x": x0, "y": y0 + spec.cell_m / 2, "z": z0},
+                "position": {"x": x0, "y": y0, "z": z0},
                 "orientation": {"x": qx, "y": qy, "z": qz, "w": qw},
             },
         },
