@@ -785,8 +785,8 @@ def map_command(
     from echoloc.map_plots import plot_grid
     from echoloc.mapping import (
         GridSpec,
-        MapAccumulator,
         SensorModel,
+        build_map,
         default_box,
         default_floor_plan,
         frame_poses,
@@ -822,25 +822,26 @@ def map_command(
                 (spec.origin_m[0], spec.upper_m[0]), (spec.origin_m[2], spec.upper_m[2]), cell_m, height_m
             )
     model = SensorModel(field_of_view_deg=processing.field_of_view_deg)
-    accumulator = MapAccumulator(spec, recording, model, blind_path_m=chain.echo_options.blanking_s * c)
     located: list[FrameObjects] = []
+
+    def results() -> Iterator[tuple[FrameEchoes, FrameObjects | None]]:
+        for echoes, objects in run(chain, frames):
+            located.append(objects)
+            yield echoes, objects if with_objects else None
+
     started = time.perf_counter()
     with _progress(len(frames), "mapping", True) as advance:
-        for echoes, objects in run(chain, frames):
-            transmitter = (
-                0 if recording.frame_transmitter is None else int(recording.frame_transmitter[echoes.frame])
-            )
-            accumulator.add_frame(
-                echoes,
-                poses[echoes.frame],
-                transmitter=transmitter,
-                objects=objects if with_objects else None,
-                usable_receivers=chain.usable_receivers,
-            )
-            located.append(objects)
-            advance(1)
+        grid = build_map(
+            recording,
+            results(),
+            spec,
+            model=model,
+            poses=poses,
+            blind_path_m=chain.echo_options.blanking_s * c,
+            usable_receivers=chain.usable_receivers,
+            progress=advance,
+        )
     elapsed = time.perf_counter() - started
-    grid = accumulator.grid()
     if suffix == ".png":
         written = plot_grid(grid, output_path, sensor_path_m=poses[list(frames), :3])
     elif suffix == ".npz":
