@@ -557,3 +557,219 @@ def batch_echoes(
             out_tof[ch, e] = tofs[e]
             out_amp[ch, e] = abs(amps[e])
         out_count[ch] = count
+
+
+# --- CLEAN (echoes._Clean) -----------------------------------------------------------
+#
+# The same arithmetic as _Clean's methods, on one channel's double-precision residual
+# (complex, modified in place); the components are arrays (delays, complex amplitudes) in
+# the order _Clean keeps them in its list, which decides the order of the refits.
+
+
+@njit(cache=True, inline="always")
+def _clean_shape(
+    table: Any, half: int, base0: int, row0: int, base1: int, row1: int, weight: float, s: int
+) -> complex:  # pragma: no cover - compiled
+    """_Clean._shape at sample ``s``: ``(1 - w) row0 + w row1``, row1 one lag later past a whole sample."""
+    width = 2 * half + 1
+    lag0 = s - base0 + half
+    lag1 = s - base1 + half
+    v0 = 0j
+    v1 = 0j
+    if lag0 >= 0 and lag0 < width:
+        v0 = table[row0, lag0]
+    if lag1 >= 0 and lag1 < width:
+        v1 = table[row1, lag1]
+    return (1 - weight) * v0 + weight * v1
+
+
+@njit(cache=True)
+def clean_subtract(
+    table: Any, u: int, half: int, values: Any, tof: float, scale: complex
+) -> None:  # pragma: no cover - compiled
+    """``values -= scale * R(s - tof)`` over the template's reach (_Clean._shape, then echoes._subtract)."""
+    b0, r0, b1, r1, w = _grid(u, tof)
+    start = b0 - half
+    lo = max(start, 0)
+    hi = min(start + 2 * half + 1, len(values))
+    for s in range(lo, hi):
+        values[s] -= scale * _clean_shape(table, half, b0, r0, b1, r1, w, s)
+
+
+@njit(cache=True)
+def clean_fit(
+    table: Any, u: int, half: int, rate: float, fit_half: int, values: Any, peak: int
+) -> tuple[float, complex]:  # pragma: no cover - compiled
+    """_Clean._fit: delay and complex amplitude of one echo whose envelope peaks at ``peak``."""
+    n = len(values)
+    lo, hi = max(peak - 1, 0), min(peak + 2, n)
+    offset = 0.0
+    if hi - lo == 3:
+        a, b, c = abs(values[lo]), abs(values[lo + 1]), abs(values[lo + 2])
+        denominator = a - 2 * b + c
+        if denominator < 0:
+            offset = min(max(0.5 * (a - c) / denominator, -0.5), 0.5)
+    coarse = peak + offset
+    period = math.pi / rate
+    weighted = 0.0
+    total = 0.0
+    for m in range(lo, hi):
+        value = values[m]
+        magnitude = abs(value)
+        estimate = m - math.atan2(value.imag, value.real) / rate
+        estimate += period * np.round((coarse - estimate) / period)
+        weighted += magnitude**2 * estimate
+        total += magnitude**2
+    tof = weighted / total if total > 0 else coarse
+    if abs(tof - coarse) > 1.5:
+        tof = coarse
+    b0, r0, b1, r1, w = _grid(u, tof)
+    centre = int(np.round(tof))
+    num = 0j
+    den = 0.0
+    for s in range(centre - fit_half, centre + fit_half + 1):
+        shape = _clean_shape(table, half, b0, r0, b1, r1, w, s)
+        den += shape.real * shape.real + shape.imag * shape.imag
+        if 0 <= s < n:
+            num += shape.conjugate() * values[s]
+    return tof, num / den
+
+
+@njit(cache=True)
+def clean_refit(
+    table: Any, u: int, half: int, rate: float, fit_half: int, residual: Any, tofs: Any, amps: Any, i: int
+) -> None:  # pragma: no cover - compiled
+    """_Clean._refit of component ``i``: put it back, fit it again alone, take it out again."""
+    n = len(residual)
+    clean_subtract(table, u, half, residual, tofs[i], -amps[i])
+    centre = int(np.round(tofs[i]))
+    lo = max(centre - fit_half, 0)
+    hi = min(centre + fit_half + 1, n)
+    peak = centre
+    if hi > lo:
+        peak = lo
+        best = abs(residual[lo])
+        for s in range(lo + 1, hi):
+            magnitude = abs(residual[s])
+            if magnitude > best:
+                best, peak = magnitude, s
+    tofs[i], amps[i] = clean_fit(table, u, half, rate, fit_half, residual, min(max(peak, 0), n - 1))
+    clean_subtract(table, u, half, residual, tofs[i], amps[i])
+
+
+@njit(cache=True)
+def clean_extract(
+    table: Any,
+    u: int,
+    half: int,
+    rate: float,
+    fit_half: int,
+    cluster_samples: float,
+    residual: Any,
+    tofs: Any,
+    amps: Any,
+    count: int,
+    threshold: float,
+    floor: float,
+    first: int,
+    max_echoes: int,
+    refine_passes: int,
+) -> int:  # pragma: no cover - compiled
+    """_Clean._extract: take echoes out of ``residual`` strongest first; the new number of components.
+
+    ``tofs``/``amps`` hold ``count`` components and room for ``max_echoes``;
+    ``threshold`` is the detection threshold on |c|^2 (threshold factor times the noise power).
+    """
+    n = len(residual)
+    strongest = 0.0
+    for i in range(count):
+        strongest = max(strongest, abs(amps[i]))
+    cluster = np.zeros(max_echoes + 1, dtype=np.int64)
+    while count < max_echoes:
+        # The strongest sample (its power: the square root is taken once, at the peak).
+        peak = 0
+        top = 0.0
+        for s in range(max(first, 0), n):
+            value = residual[s]
+            power = value.real * value.real + value.imag * value.imag
+            if power > top:
+                top, peak = power, s
+        height = abs(residual[peak]) if top > 0 else 0.0
+        if height**2 < threshold or height < floor * strongest:
+            break
+        tof, amp = clean_fit(table, u, half, rate, fit_half, residual, peak)
+        clean_subtract(table, u, half, residual, tof, amp)
+        size = 0
+        for i in range(count):
+            if abs(tofs[i] - tof) < cluster_samples:
+                cluster[size] = i
+                size += 1
+        tofs[count], amps[count] = tof, amp
+        cluster[size] = count
+        count += 1
+        if size:
+            for _ in range(refine_passes):
+                for j in range(size + 1):
+                    clean_refit(table, u, half, rate, fit_half, residual, tofs, amps, cluster[j])
+        strongest = max(strongest, abs(amps[count - 1]))
+    return count
+
+
+@njit(cache=True)
+def clean_fit_models(
+    table: Any,
+    u: int,
+    half: int,
+    fit_half: int,
+    restored: Any,
+    lo: int,
+    hi: int,
+    fit_tof: Any,
+    fit_amp: Any,
+    active: Any,
+    complex_iterations: int,
+    real_iterations: int,
+    cost: Any,
+) -> None:  # pragma: no cover - compiled
+    """_Clean._try_models' fits: each row's active echoes fitted jointly (complex amplitudes,
+    then real ones) over its own span on ``restored``, in place, and its cost over lo..hi."""
+    n_rows, k = fit_tof.shape
+    for row in range(n_rows):
+        cost[row] = np.inf
+        size = 0
+        for slot in range(k):
+            if active[row, slot]:
+                size += 1
+        if size == 0:
+            continue
+        t = np.zeros(size)
+        a = np.zeros(size, dtype=np.complex128)
+        m = 0
+        for slot in range(k):
+            if active[row, slot]:
+                t[m], a[m] = fit_tof[row, slot], fit_amp[row, slot]
+                m += 1
+        first = min(max(math.floor(t.min()) - fit_half, lo), hi - 2)
+        last = max(min(math.ceil(t.max()) + fit_half + 1, hi), first + 2)
+        data = np.zeros((last - first, 2))
+        for j in range(last - first):
+            data[j, 0] = restored[first + j].real
+            data[j, 1] = restored[first + j].imag
+        valid = np.ones(last - first, dtype=np.bool_)
+        joint_fit(table, u, half, data, first, valid, t, a, False, complex_iterations, True)
+        for i in range(size):
+            a[i] = abs(a[i]) if a[i].real >= 0 else -abs(a[i])
+        joint_fit(table, u, half, data, first, valid, t, a, True, real_iterations, True)
+        grid_b = np.zeros((size, 4), dtype=np.int64)
+        grid_w = np.zeros(size)
+        _prepare(u, t, grid_b, grid_w)
+        total = 0.0
+        for s in range(lo, hi):
+            r = restored[s] - _model(table, half, grid_b, grid_w, a, size, s, 0, 0)
+            total += r.real * r.real + r.imag * r.imag
+        cost[row] = total
+        m = 0
+        for slot in range(k):
+            if active[row, slot]:
+                fit_tof[row, slot], fit_amp[row, slot] = t[m], a[m]
+                m += 1

@@ -273,11 +273,18 @@ class _Component:
 
 
 class _Clean:
-    """CLEAN extraction and refinement on one channel's analytic correlation."""
+    """CLEAN extraction and refinement on one channel's analytic correlation.
 
-    def __init__(self, mf: MatchedFilter, options: EchoOptions):
+    With ``compiled`` (the default) the extraction loop (:meth:`_extract`: peak search,
+    fits, subtraction, successive refinement) and the fits of the candidate models
+    (:meth:`_try_models`) run as compiled loops (:mod:`echoloc._echoes_kernels`); without,
+    as the Python statements below, which the tests hold the compiled loops to.
+    """
+
+    def __init__(self, mf: MatchedFilter, options: EchoOptions, compiled: bool = True):
         self.mf = mf
         self.options = options
+        self.compiled = compiled
         self.table = mf.acf_table
         self.half = mf.half_width
         self.fit_half = max(1, round(mf.mainlobe_samples / 2))
@@ -443,9 +450,11 @@ class _Clean:
         """Take echoes out of ``residual`` strongest first while above the threshold; how many."""
         threshold = 10 ** (self.options.threshold_db / 10)
         floor = 10 ** (-self.options.dynamic_range_db / 20)
+        first = math.ceil(self.options.blanking_s * self.mf.sample_rate_hz)
+        if self.compiled:
+            return self._extract_compiled(residual, components, threshold * power, floor, first)
         strongest = max((abs(c.amplitude) for c in components), default=0.0)
         added = 0
-        first = math.ceil(self.options.blanking_s * self.mf.sample_rate_hz)
         while len(components) < self.options.max_echoes:
             magnitude = np.abs(residual)
             # Nothing is looked for inside the blanking interval (ring-down, direct coupling).
@@ -465,6 +474,47 @@ class _Clean:
             if cluster:
                 self._refit_together([*cluster, component], residual)
             strongest = max(strongest, abs(component.amplitude))
+        return added
+
+    def _extract_compiled(
+        self,
+        residual: NDArray[np.complex128],
+        components: list[_Component],
+        threshold: float,
+        floor: float,
+        first: int,
+    ) -> int:
+        """:meth:`_extract` in compiled loops (:func:`echoloc._echoes_kernels.clean_extract`)."""
+        from echoloc import _echoes_kernels as kernels
+
+        capacity = max(self.options.max_echoes, len(components))
+        tofs = np.zeros(capacity)
+        amplitudes = np.zeros(capacity, dtype=complex)
+        for i, c in enumerate(components):
+            tofs[i], amplitudes[i] = c.tof_samples, c.amplitude
+        count = kernels.clean_extract(
+            self.table,
+            self.mf.oversample,
+            self.half,
+            self.mf.phase_rate_rad_per_sample,
+            self.fit_half,
+            self.cluster_samples,
+            residual,
+            tofs,
+            amplitudes,
+            len(components),
+            threshold,
+            floor,
+            first,
+            self.options.max_echoes,
+            self.options.refine_passes,
+        )
+        for i, c in enumerate(components):  # refits move earlier components, as _refit does
+            c.tof_samples, c.amplitude = float(tofs[i]), complex(amplitudes[i])
+        added = count - len(components)
+        components.extend(
+            _Component(float(tofs[i]), complex(amplitudes[i])) for i in range(len(components), count)
+        )
         return added
 
     def _refit_together(self, cluster: list[_Component], residual: NDArray[np.complex128]) -> None:
@@ -623,7 +673,23 @@ class _Clean:
         fit_amplitude = start_amplitude.copy()
         cost = np.full(n_rows, np.inf)
         stretch = np.arange(lo, hi)
-        for row in range(n_rows):
+        if self.compiled:
+            kernels.clean_fit_models(
+                self.mf.acf_table,
+                self.mf.oversample,
+                self.half,
+                self.fit_half,
+                restored,
+                lo,
+                hi,
+                fit_tof,
+                fit_amplitude,
+                active,
+                _CLEAN_COMPLEX_ITERATIONS,
+                _CLEAN_REAL_ITERATIONS,
+                cost,
+            )
+        for row in range(0 if self.compiled else n_rows):
             members = np.flatnonzero(active[row])
             if len(members) == 0:
                 continue
