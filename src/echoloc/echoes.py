@@ -221,6 +221,16 @@ class MatchedFilter:
             left -= 1
         return float(right - left + 1)
 
+    @cached_property
+    def acf_energy(self) -> float:
+        """Energy of the analytic autocorrelation over its lags, ``sum |R(m)|^2``."""
+        return float(np.sum(np.abs(self.autocorrelation) ** 2))
+
+    @cached_property
+    def sidelobe_envelope(self) -> NDArray[np.float64]:
+        """:func:`_sidelobe_envelope`, computed once."""
+        return _sidelobe_envelope(self)
+
     def correlate(self, frames: NDArray[np.floating]) -> NDArray[np.complex128]:
         """Analytic correlation of frames (..., n_samples) with the template.
 
@@ -579,7 +589,7 @@ class _Clean:
         base_cost = self._window_cost(residual, lo, hi)
         # Noise alone leaves about `power` per sample: a model that explains its stretch
         # needs no second look.
-        echo_energy = abs(group[0].amplitude) ** 2 * float(np.sum(np.abs(self.mf.autocorrelation) ** 2))
+        echo_energy = abs(group[0].amplitude) ** 2 * self.mf.acf_energy
         if base_cost < 3.0 * power * (hi - lo) or base_cost < 0.003 * echo_energy:
             # Nothing but noise left, or less than 0.3 % of the echo's energy: a strong echo's
             # tiny misfit, not a second echo merged into it.
@@ -648,7 +658,7 @@ class _Clean:
         if not candidates or hi - lo < 2:
             return group
         threshold = 10 ** (self.options.threshold_db / 10) * power
-        penalty = 0.5 * threshold * float(np.sum(np.abs(self.mf.autocorrelation) ** 2))
+        penalty = 0.5 * threshold * self.mf.acf_energy
         restored = residual.copy()
         for member in group:  # the data: the residual with the group put back
             shape, start = self._shape(member.tof_samples)
@@ -827,19 +837,20 @@ def matched_filter_batch(
     frames = np.asarray(frames)
     n_frames, n_rx, _ = frames.shape
     correlation = mf.correlate_single(frames).reshape(n_frames * n_rx, -1)
-    fast = _compiled_echoes(correlation, mf, options)
-    clean = _Clean(mf, options)
-    channels = []
-    for index, found in enumerate(fast):
-        if found is None:
-            components, power = clean.run(mf.correlate(frames.reshape(n_frames * n_rx, -1)[index]))
-            tof = np.array([c.tof_samples for c in components])
-            amplitude = np.array([abs(c.amplitude) for c in components])
-        else:
-            tof, amplitude, power = found
-        snr_db = 10 * np.log10(np.maximum(amplitude**2, 1e-300) / power)
-        channels.append(finish_channel(tof / mf.sample_rate_hz + mf.arrival_s, amplitude, snr_db, options))
-    return [channels[i * n_rx : (i + 1) * n_rx] for i in range(n_frames)]
+    channels = _finish_batch(_compiled_batch(correlation, mf, options), mf, options)
+    if any(c is None for c in channels):
+        clean = _Clean(mf, options)
+        rows = frames.reshape(n_frames * n_rx, -1)
+        for index, found in enumerate(channels):
+            if found is None:
+                components, power = clean.run(mf.correlate(rows[index]))
+                tof = np.array([c.tof_samples for c in components])
+                amplitude = np.array([abs(c.amplitude) for c in components])
+                snr_db = 10 * np.log10(np.maximum(amplitude**2, 1e-300) / power)
+                tof_s = tof / mf.sample_rate_hz + mf.arrival_s
+                channels[index] = finish_channel(tof_s, amplitude, snr_db, options)
+    done = [c for c in channels if c is not None]
+    return [done[i * n_rx : (i + 1) * n_rx] for i in range(n_frames)]
 
 
 _FastResult = tuple[NDArray[np.float64], NDArray[np.float64], float]
@@ -1034,6 +1045,33 @@ def _compiled_echoes(
     The same candidates, fits and checks; only the noise power comes from every
     ``noise_step``-th sample (1: all of them, as :func:`_isolated_echoes`).
     """
+    out = _compiled_batch(correlation, mf, options, noise_step)
+    return [
+        (out.tof[c, : out.count[c]].copy(), out.amplitude[c, : out.count[c]].copy(), float(out.power[c]))
+        if out.ok[c]
+        else None
+        for c in range(len(out.count))
+    ]
+
+
+@dataclass(frozen=True, eq=False)
+class _BatchOutput:
+    """What the compiled batch path returns for every channel: echoes in the first ``count`` slots."""
+
+    tof: NDArray[np.float64]  # samples (n_channels, slots)
+    amplitude: NDArray[np.float64]  # magnitudes (n_channels, slots)
+    count: NDArray[np.int64]
+    power: NDArray[np.float64]  # noise power of each channel's correlation
+    ok: NDArray[np.bool_]  # False: the channel goes to CLEAN
+
+
+def _compiled_batch(
+    correlation: NDArray[np.complexfloating[Any, Any]],
+    mf: MatchedFilter,
+    options: EchoOptions,
+    noise_step: int = _NOISE_STEP,
+) -> _BatchOutput:
+    """Run the compiled batch path (:func:`echoloc._echoes_kernels.batch_echoes`) on every channel."""
     from echoloc import _echoes_kernels as kernels  # numba: imported (and compiled) on first use
 
     n_ch = correlation.shape[0]
@@ -1049,9 +1087,9 @@ def _compiled_echoes(
         mf.oversample,
         mf.half_width,
         mf.phase_rate_rad_per_sample,
-        _sidelobe_envelope(mf),
+        mf.sidelobe_envelope,
         mf.mainlobe_samples,
-        float(np.sum(np.abs(mf.autocorrelation) ** 2)),
+        mf.acf_energy,
         10 ** (options.threshold_db / 10),
         10 ** (-options.dynamic_range_db / 10),
         max(math.ceil(options.blanking_s * mf.sample_rate_hz), 1),
@@ -1066,11 +1104,32 @@ def _compiled_echoes(
         out_power,
         out_status,
     )
+    return _BatchOutput(out_tof, out_amplitude, out_count, out_power, out_status == kernels.OK)
+
+
+def _finish_batch(out: _BatchOutput, mf: MatchedFilter, options: EchoOptions) -> list[ChannelEchoes | None]:
+    """:func:`finish_channel` of every channel the batch path fitted, in array operations on all
+    of them at once (the same elementwise formulas); None for the channels it hands to CLEAN."""
+    slots = np.arange(out.tof.shape[1]) < out.count[:, None]
+    tof_s = out.tof / mf.sample_rate_hz + mf.arrival_s
+    snr_db = 10 * np.log10(np.maximum(out.amplitude**2, 1e-300) / out.power[:, None])
+    strongest = np.max(np.where(slots, out.amplitude, 0.0), axis=1, initial=0.0)
+    floor = strongest * 10 ** (-options.dynamic_range_db / 20)
+    keep = (
+        slots
+        & (tof_s >= options.blanking_s)
+        & (snr_db >= options.threshold_db)
+        & (out.amplitude >= floor[:, None])
+        & np.isfinite(tof_s)
+    )
+    order = np.argsort(np.where(keep, tof_s, np.inf), axis=1, kind="stable")
+    kept = np.sum(keep, axis=1)
+    tof_s, amplitude, snr_db = (np.take_along_axis(a, order, axis=1) for a in (tof_s, out.amplitude, snr_db))
     return [
-        (out_tof[c, : out_count[c]].copy(), out_amplitude[c, : out_count[c]].copy(), float(out_power[c]))
-        if out_status[c] == kernels.OK
+        ChannelEchoes(tof_s[c, : kept[c]], amplitude[c, : kept[c]], snr_db[c, : kept[c]])
+        if out.ok[c]
         else None
-        for c in range(n_ch)
+        for c in range(len(kept))
     ]
 
 
@@ -1189,7 +1248,7 @@ def _isolated_echoes(
     model = _model_at(mf, ach, tof, amplitude, ach, around)
     left = np.where(inside, correlation[ach[:, None], around].astype(complex) - model, 0)
     cost = np.sum(left.real**2 + left.imag**2, axis=1)
-    acf_energy = float(np.sum(np.abs(mf.autocorrelation) ** 2))
+    acf_energy = mf.acf_energy
     unexplained = (cost >= 3.0 * power[ach] * np.sum(inside, axis=1)) & (
         cost >= 0.003 * np.abs(amplitude) ** 2 * acf_energy
     )
