@@ -241,33 +241,18 @@ def joint_fit(
     cost = _evaluate(table, u, half, data, lo, valid, tofs, amps, shapes, slopes, residual)
     damping = 1e-3
     jac = np.zeros((p, w, 2))
-    normal = np.zeros((p, p))
+    undamped = np.zeros((p, p))
     gradient = np.zeros(p)
     new_tofs = np.zeros(k)
     new_amps = np.zeros(k, dtype=np.complex128)
+    stale = True  # the normal equations at the current point are to be computed
     for _ in range(iterations):
-        for m in range(k):
-            ar, ai = amps[m].real, amps[m].imag
-            for j in range(w):
-                sr, si = slopes[m, j, 0], slopes[m, j, 1]
-                jac[m, j, 0] = ar * sr - ai * si
-                jac[m, j, 1] = ar * si + ai * sr
-                jac[k + m, j, 0] = shapes[m, j, 0]
-                jac[k + m, j, 1] = shapes[m, j, 1]
-                if not real:
-                    jac[2 * k + m, j, 0] = -shapes[m, j, 1]
-                    jac[2 * k + m, j, 1] = shapes[m, j, 0]
-        for a in range(p):
-            for b in range(a, p):
-                acc = 0.0
-                for j in range(w):
-                    acc += jac[a, j, 0] * jac[b, j, 0] + jac[a, j, 1] * jac[b, j, 1]
-                normal[a, b] = acc
-                normal[b, a] = acc
-            acc = 0.0
-            for j in range(w):
-                acc += jac[a, j, 0] * residual[j, 0] + jac[a, j, 1] * residual[j, 1]
-            gradient[a] = acc
+        if stale:
+            _normal_equations(shapes, slopes, residual, amps, real, jac, undamped, gradient)
+            stale = False
+        # A rejected step leaves the point, so its normal equations, as they were: only the
+        # damping changes.
+        normal = undamped.copy()
         for a in range(p):
             d = normal[a, a]
             normal[a, a] = d + damping * d + (1.0 if d == 0 else 0.0)
@@ -290,6 +275,7 @@ def joint_fit(
             slopes[:] = trial_slopes
             residual[:] = trial_residual
             cost = trial
+            stale = True
             damping /= 4
             if converge and moved < 1e-6:
                 break
@@ -298,6 +284,38 @@ def joint_fit(
             if converge and damping > 1e8:
                 break
     return cost
+
+
+@njit(cache=True)
+def _normal_equations(
+    shapes: Any, slopes: Any, residual: Any, amps: Any, real: bool, jac: Any, normal: Any, gradient: Any
+) -> None:  # pragma: no cover - compiled
+    """Jacobian (d model / d parameter: delays, real parts, imaginary parts unless ``real``),
+    the undamped normal matrix ``J^T J`` and the gradient ``J^T residual`` of :func:`joint_fit`."""
+    k, w = shapes.shape[0], shapes.shape[1]
+    p = normal.shape[0]
+    for m in range(k):
+        ar, ai = amps[m].real, amps[m].imag
+        for j in range(w):
+            sr, si = slopes[m, j, 0], slopes[m, j, 1]
+            jac[m, j, 0] = ar * sr - ai * si
+            jac[m, j, 1] = ar * si + ai * sr
+            jac[k + m, j, 0] = shapes[m, j, 0]
+            jac[k + m, j, 1] = shapes[m, j, 1]
+            if not real:
+                jac[2 * k + m, j, 0] = -shapes[m, j, 1]
+                jac[2 * k + m, j, 1] = shapes[m, j, 0]
+    for a in range(p):
+        for b in range(a, p):
+            acc = 0.0
+            for j in range(w):
+                acc += jac[a, j, 0] * jac[b, j, 0] + jac[a, j, 1] * jac[b, j, 1]
+            normal[a, b] = acc
+            normal[b, a] = acc
+        acc = 0.0
+        for j in range(w):
+            acc += jac[a, j, 0] * residual[j, 0] + jac[a, j, 1] * residual[j, 1]
+        gradient[a] = acc
 
 
 @njit(cache=True)
