@@ -152,3 +152,24 @@ def test_compiled_clean_extraction_matches_on_a_crowded_channel() -> None:
     b, _ = _Clean(MF, options, compiled=False).run(correlation)
     assert len(a) == len(b) >= 5
     assert [c.tof_samples for c in a] == pytest.approx([c.tof_samples for c in b], abs=1e-8)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 7, 600, 601])
+def test_compiled_median_is_numpy_s_median(n: int) -> None:
+    """The batch path's branch-free quickselect gives numpy's median exactly: on noise powers,
+    with ties, sorted, reversed and organ-pipe orders (where a naive pivot degrades)."""
+    from echoloc._echoes_kernels import _median
+
+    rng = np.random.default_rng(n)
+    noise = rng.exponential(size=n)
+    half = np.sort(noise[: n // 2])
+    cases = [
+        noise,
+        np.round(noise, 1),
+        np.sort(noise),
+        np.sort(noise)[::-1],
+        np.concatenate([half, half[::-1]]),
+    ]
+    for values in cases:
+        if len(values):
+            assert _median(np.ascontiguousarray(values)) == np.median(values)
