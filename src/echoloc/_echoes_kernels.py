@@ -245,12 +245,20 @@ def joint_fit(
     real: bool,
     iterations: int,
     converge: bool = False,
+    rotation: float = 0.0,
 ) -> float:  # pragma: no cover - compiled
     """Levenberg-Marquardt of sum_k a_k R(s - tau_k) to data (w, 2), in place; the final cost.
 
     As echoes._joint_fit_batch does for one row: ``iterations`` steps, or with
     ``converge`` at most that many, stopping once a step moves no delay by more than
     1e-6 samples or the damping has grown past 1e8 (no step lowers the cost).
+
+    With complex amplitudes and a ``rotation`` (the carrier's rate, rad/sample), the
+    amplitudes are stepped in the frame that turns with the carrier, ``b_k = a_k
+    exp(-i rotation tau_k)``: ``b_k R(s - tau_k) exp(i rotation tau_k)`` is the envelope
+    moving with the delay, where ``a_k R(s - tau_k)`` turns its phase with it, so that a
+    step in a delay linearised at fixed ``a_k`` is good only for a small fraction of a
+    carrier cycle and the fit crawls. The same cost, the same minima; fewer steps.
     """
     k = len(tofs)
     w = data.shape[0]
@@ -275,6 +283,10 @@ def joint_fit(
     for _ in range(iterations):
         if stale:
             _normal_equations(shapes, slopes, residual, amps, real, jac, undamped, gradient)
+            if rotation != 0.0 and not real:
+                _rotate_normal_equations(
+                    shapes, slopes, residual, tofs, amps, rotation, jac, undamped, gradient
+                )
             stale = False
         # A rejected step leaves the point, so its normal equations, as they were: only the
         # damping changes.
@@ -286,6 +298,14 @@ def joint_fit(
         _solve_in_place(normal, rhs, step)
         for m in range(k):
             new_tofs[m] = tofs[m] + min(max(step[m], -2.0), 2.0)
+            if rotation != 0.0 and not real:
+                # b + db at the new delay: a_new = (a + db exp(i r tau)) exp(i r (tau_new - tau)).
+                turn = complex(math.cos(rotation * tofs[m]), math.sin(rotation * tofs[m]))
+                moved = new_tofs[m] - tofs[m]
+                new_amps[m] = (amps[m] + complex(step[k + m], step[2 * k + m]) * turn) * complex(
+                    math.cos(rotation * moved), math.sin(rotation * moved)
+                )
+                continue
             new_amps[m] = amps[m] + step[k + m]
             if not real:
                 new_amps[m] += 1j * step[2 * k + m]
@@ -332,6 +352,52 @@ def _normal_equations(
             if not real:
                 jac[2 * k + m, j, 0] = -shapes[m, j, 1]
                 jac[2 * k + m, j, 1] = shapes[m, j, 0]
+    for a in range(p):
+        for b in range(a, p):
+            acc = 0.0
+            for j in range(w):
+                acc += jac[a, j, 0] * jac[b, j, 0] + jac[a, j, 1] * jac[b, j, 1]
+            normal[a, b] = acc
+            normal[b, a] = acc
+        acc = 0.0
+        for j in range(w):
+            acc += jac[a, j, 0] * residual[j, 0] + jac[a, j, 1] * residual[j, 1]
+        gradient[a] = acc
+
+
+@njit(cache=True)
+def _rotate_normal_equations(
+    shapes: Any,
+    slopes: Any,
+    residual: Any,
+    tofs: Any,
+    amps: Any,
+    rotation: float,
+    jac: Any,
+    normal: Any,
+    gradient: Any,
+) -> None:  # pragma: no cover - compiled
+    """:func:`_normal_equations` for complex amplitudes stepped in the frame turning with the carrier.
+
+    d model / d tau_k = a_k (R' + i rotation R) (R' the slope in the delay), d model /
+    d Re b_k = exp(i rotation tau_k) R, d model / d Im b_k = i exp(i rotation tau_k) R.
+    """
+    k, w = shapes.shape[0], shapes.shape[1]
+    p = normal.shape[0]
+    for m in range(k):
+        ar, ai = amps[m].real, amps[m].imag
+        c, sn = math.cos(rotation * tofs[m]), math.sin(rotation * tofs[m])
+        for j in range(w):
+            xr, xi = shapes[m, j, 0], shapes[m, j, 1]
+            dr = slopes[m, j, 0] - rotation * xi
+            di = slopes[m, j, 1] + rotation * xr
+            jac[m, j, 0] = ar * dr - ai * di
+            jac[m, j, 1] = ar * di + ai * dr
+            er, ei = c * xr - sn * xi, c * xi + sn * xr
+            jac[k + m, j, 0] = er
+            jac[k + m, j, 1] = ei
+            jac[2 * k + m, j, 0] = -ei
+            jac[2 * k + m, j, 1] = er
     for a in range(p):
         for b in range(a, p):
             acc = 0.0
@@ -782,6 +848,7 @@ def clean_fit_models(
     active: Any,
     complex_iterations: int,
     real_iterations: int,
+    rotation: float,
     cost: Any,
 ) -> None:  # pragma: no cover - compiled
     """_Clean._try_models' fits: each row's active echoes fitted jointly (complex amplitudes,
@@ -809,7 +876,7 @@ def clean_fit_models(
             data[j, 0] = restored[first + j].real
             data[j, 1] = restored[first + j].imag
         valid = np.ones(last - first, dtype=np.bool_)
-        joint_fit(table, u, half, data, first, valid, t, a, False, complex_iterations, True)
+        joint_fit(table, u, half, data, first, valid, t, a, False, complex_iterations, True, rotation)
         for i in range(size):
             a[i] = abs(a[i]) if a[i].real >= 0 else -abs(a[i])
         joint_fit(table, u, half, data, first, valid, t, a, True, real_iterations, True)

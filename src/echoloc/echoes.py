@@ -385,6 +385,7 @@ class _Clean:
             shape, start = self._shape(member.tof_samples)
             _subtract(residual, shape, start, -member.amplitude)
         threshold = 10 ** (self.options.threshold_db / 10) * power
+        rate = self.mf.phase_rate_rad_per_sample  # complex amplitudes are stepped turning with the carrier
         members = sorted(cluster, key=lambda c: c.tof_samples)
         for _ in range(len(cluster)):
             lo = max(math.floor(members[0].tof_samples) - self.fit_half, 0)
@@ -397,7 +398,7 @@ class _Clean:
             amplitudes = np.array([m.amplitude for m in members], dtype=complex)
             valid = np.ones(hi - lo, dtype=bool)
             args = (self.mf.acf_table, self.mf.oversample, self.mf.half_width, data, lo, valid)
-            kernels.joint_fit(*args, tofs, amplitudes, False, _CLEAN_COMPLEX_ITERATIONS, True)
+            kernels.joint_fit(*args, tofs, amplitudes, False, _CLEAN_COMPLEX_ITERATIONS, True, rate)
             amplitudes = np.where(amplitudes.real >= 0, np.abs(amplitudes), -np.abs(amplitudes)) + 0j
             kernels.joint_fit(*args, tofs, amplitudes, True, _CLEAN_REAL_ITERATIONS, True)
             if not (np.all(np.isfinite(tofs)) and np.all(np.abs(tofs - (lo + hi) / 2) < hi - lo)):
@@ -682,6 +683,7 @@ class _Clean:
         fit_tof = start_tof.copy()
         fit_amplitude = start_amplitude.copy()
         cost = np.full(n_rows, np.inf)
+        rate = self.mf.phase_rate_rad_per_sample  # complex amplitudes are stepped turning with the carrier
         stretch = np.arange(lo, hi)
         if self.compiled:
             kernels.clean_fit_models(
@@ -697,6 +699,7 @@ class _Clean:
                 active,
                 _CLEAN_COMPLEX_ITERATIONS,
                 _CLEAN_REAL_ITERATIONS,
+                rate,
                 cost,
             )
         for row in range(0 if self.compiled else n_rows):
@@ -711,7 +714,7 @@ class _Clean:
             )
             valid = np.ones(last - first, dtype=bool)
             args = (self.mf.acf_table, self.mf.oversample, self.mf.half_width, data, first, valid, t)
-            kernels.joint_fit(*args, a, False, _CLEAN_COMPLEX_ITERATIONS, True)
+            kernels.joint_fit(*args, a, False, _CLEAN_COMPLEX_ITERATIONS, True, rate)
             a = np.where(a.real >= 0, np.abs(a), -np.abs(a)) + 0j
             kernels.joint_fit(*args, a, True, _CLEAN_REAL_ITERATIONS, True)
             model = np.sum(
