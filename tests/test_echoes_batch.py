@@ -173,3 +173,30 @@ def test_compiled_median_is_numpy_s_median(n: int) -> None:
     for values in cases:
         if len(values):
             assert _median(np.ascontiguousarray(values)) == np.median(values)
+
+
+@pytest.mark.parametrize("options", [EchoOptions(), EchoOptions(blanking_s=2.5e-3, dynamic_range_db=20.0)])
+def test_compiled_finish_is_finish_channel(options: EchoOptions) -> None:
+    """The batch path's compiled finishing (seconds, output SNR, blanking, threshold, dynamic range,
+    ascending delay) gives finish_channel's echoes for every channel it fitted (fitted with the
+    default options, so that stricter ones have echoes to drop)."""
+    from echoloc.echoes import _compiled_batch, _finish_batch, finish_channel
+
+    frames = scene_frames(7)
+    correlation = MF.correlate_single(frames).reshape(-1, N_SAMPLES)
+    out = _compiled_batch(correlation, MF, EchoOptions())
+    finished = _finish_batch(out, MF, options)
+    assert sum(f is not None for f in finished) >= len(finished) // 2
+    dropped = 0
+    for c, channel in enumerate(finished):
+        if channel is None:
+            continue
+        tof, amplitude = out.tof[c, : out.count[c]], out.amplitude[c, : out.count[c]]
+        snr_db = 10 * np.log10(np.maximum(amplitude**2, 1e-300) / out.power[c])
+        expected = finish_channel(tof / FS, amplitude, snr_db, options)
+        dropped += len(tof) - len(expected.tof_s)
+        np.testing.assert_array_equal(channel.tof_s, expected.tof_s)
+        np.testing.assert_array_equal(channel.amplitude, expected.amplitude)
+        np.testing.assert_allclose(channel.snr_db, expected.snr_db, rtol=1e-13)
+    if options.blanking_s:
+        assert dropped > 0  # the blanking and the dynamic range were exercised

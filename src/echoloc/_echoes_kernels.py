@@ -678,6 +678,54 @@ def batch_echoes(
         out_count[ch] = count
 
 
+@njit(cache=True)
+def finish_channels(
+    out_tof: Any,
+    out_amp: Any,
+    out_count: Any,
+    out_power: Any,
+    ok: Any,
+    sample_rate_hz: float,
+    arrival_s: float,
+    blanking_s: float,
+    threshold_db: float,
+    floor_ratio: float,
+    tof_s: Any,
+    amplitude: Any,
+    snr_db: Any,
+    kept: Any,
+) -> None:  # pragma: no cover - compiled
+    """echoes.finish_channel of every channel the batch path fitted: delays in seconds, output
+    SNR, blanked, sub-threshold and out-of-range echoes dropped, in ascending delay (stable)."""
+    for ch in range(len(out_count)):
+        kept[ch] = 0
+        if not ok[ch]:
+            continue
+        count = out_count[ch]
+        strongest = 0.0
+        for e in range(count):
+            strongest = max(strongest, out_amp[ch, e])
+        floor = strongest * floor_ratio
+        m = 0
+        for e in range(count):
+            t = out_tof[ch, e] / sample_rate_hz + arrival_s
+            a = out_amp[ch, e]
+            snr = 10 * np.log10(max(a * a, 1e-300) / out_power[ch])
+            if t >= blanking_s and snr >= threshold_db and a >= floor and np.isfinite(t):
+                # Insertion into the kept echoes, after any of equal delay (a stable sort).
+                i = m
+                while i > 0 and tof_s[ch, i - 1] > t:
+                    tof_s[ch, i] = tof_s[ch, i - 1]
+                    amplitude[ch, i] = amplitude[ch, i - 1]
+                    snr_db[ch, i] = snr_db[ch, i - 1]
+                    i -= 1
+                tof_s[ch, i] = t
+                amplitude[ch, i] = a
+                snr_db[ch, i] = snr
+                m += 1
+        kept[ch] = m
+
+
 # --- CLEAN (echoes._Clean) -----------------------------------------------------------
 #
 # The same arithmetic as _Clean's methods, on one channel's double-precision residual

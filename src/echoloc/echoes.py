@@ -1111,28 +1111,34 @@ def _compiled_batch(
 
 
 def _finish_batch(out: _BatchOutput, mf: MatchedFilter, options: EchoOptions) -> list[ChannelEchoes | None]:
-    """:func:`finish_channel` of every channel the batch path fitted, in array operations on all
-    of them at once (the same elementwise formulas); None for the channels it hands to CLEAN."""
-    slots = np.arange(out.tof.shape[1]) < out.count[:, None]
-    tof_s = out.tof / mf.sample_rate_hz + mf.arrival_s
-    snr_db = 10 * np.log10(np.maximum(out.amplitude**2, 1e-300) / out.power[:, None])
-    strongest = np.max(np.where(slots, out.amplitude, 0.0), axis=1, initial=0.0)
-    floor = strongest * 10 ** (-options.dynamic_range_db / 20)
-    keep = (
-        slots
-        & (tof_s >= options.blanking_s)
-        & (snr_db >= options.threshold_db)
-        & (out.amplitude >= floor[:, None])
-        & np.isfinite(tof_s)
+    """:func:`finish_channel` of every channel the batch path fitted, in compiled loops (the same
+    formulas; :func:`echoloc._echoes_kernels.finish_channels`); None for the channels it hands to CLEAN."""
+    from echoloc import _echoes_kernels as kernels
+
+    shape = out.tof.shape
+    tof_s, amplitude, snr_db = np.zeros(shape), np.zeros(shape), np.zeros(shape)
+    kept = np.zeros(shape[0], dtype=np.int64)
+    kernels.finish_channels(
+        out.tof,
+        out.amplitude,
+        out.count,
+        out.power,
+        out.ok,
+        mf.sample_rate_hz,
+        mf.arrival_s,
+        options.blanking_s,
+        options.threshold_db,
+        10 ** (-options.dynamic_range_db / 20),
+        tof_s,
+        amplitude,
+        snr_db,
+        kept,
     )
-    order = np.argsort(np.where(keep, tof_s, np.inf), axis=1, kind="stable")
-    kept = np.sum(keep, axis=1)
-    tof_s, amplitude, snr_db = (np.take_along_axis(a, order, axis=1) for a in (tof_s, out.amplitude, snr_db))
     return [
         ChannelEchoes(tof_s[c, : kept[c]], amplitude[c, : kept[c]], snr_db[c, : kept[c]])
         if out.ok[c]
         else None
-        for c in range(len(kept))
+        for c in range(shape[0])
     ]
 
 
