@@ -725,7 +725,12 @@ class _Clean:
         best, best_score = group, self._window_cost(residual, lo, hi) + penalty * len(group)
         if not self._plausible(group):
             best_score = math.inf  # any plausible candidate replaces it
+        scores = cost + penalty * np.sum(active, axis=1)
         for row in range(n_rows):
+            if not scores[row] < best_score - 1e-12:
+                # It could not replace the best so far, valid or not (nor can a NaN or
+                # infinite cost): the checks below are for the rows that would.
+                continue
             fitted = sorted(
                 (
                     _Component(float(fit_tof[row, slot]), complex(fit_amplitude[row, slot].real))
@@ -743,9 +748,7 @@ class _Clean:
                 or not self._plausible(fitted)
             ):
                 continue
-            score = float(cost[row]) + penalty * len(fitted)
-            if score < best_score - 1e-12:
-                best, best_score = fitted, score
+            best, best_score = fitted, float(scores[row])
         if best is not group:
             residual[:] = restored
             for member in best:
