@@ -754,13 +754,30 @@ def _clean_shape(
 def clean_subtract(
     table: Any, u: int, half: int, values: Any, tof: float, scale: complex
 ) -> None:  # pragma: no cover - compiled
-    """``values -= scale * R(s - tof)`` over the template's reach (_Clean._shape, then echoes._subtract)."""
+    """``values -= scale * R(s - tof)`` over the template's reach (_Clean._shape, then echoes._subtract).
+
+    The interpolation in real arithmetic, ``(1 - w) row0 + w row1`` part by part as numpy
+    multiplies a complex row by a real weight (a complex product would cost twice as much).
+    """
     b0, r0, b1, r1, w = _grid(u, tof)
     start = b0 - half
+    width = 2 * half + 1
+    shift = b1 - b0  # row1 is one lag later when the next shift starts the next whole sample
     lo = max(start, 0)
-    hi = min(start + 2 * half + 1, len(values))
+    hi = min(start + width, len(values))
     for s in range(lo, hi):
-        values[s] -= scale * _clean_shape(table, half, b0, r0, b1, r1, w, s)
+        lag = s - start
+        v0 = table[r0, lag]
+        re = (1 - w) * v0.real
+        im = (1 - w) * v0.imag
+        if lag - shift >= 0:
+            v1 = table[r1, lag - shift]
+            re += w * v1.real
+            im += w * v1.imag
+        else:
+            re += w * 0.0
+            im += w * 0.0
+        values[s] -= scale * complex(re, im)
 
 
 @njit(cache=True)
