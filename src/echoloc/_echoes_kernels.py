@@ -246,12 +246,13 @@ def joint_fit(
     iterations: int,
     converge: bool = False,
     rotation: float = 0.0,
+    tolerance: float = 1e-6,
 ) -> float:  # pragma: no cover - compiled
     """Levenberg-Marquardt of sum_k a_k R(s - tau_k) to data (w, 2), in place; the final cost.
 
     As echoes._joint_fit_batch does for one row: ``iterations`` steps, or with
     ``converge`` at most that many, stopping once a step moves no delay by more than
-    1e-6 samples or the damping has grown past 1e8 (no step lowers the cost).
+    ``tolerance`` samples or the damping has grown past 1e8 (no step lowers the cost).
 
     With complex amplitudes and a ``rotation`` (the carrier's rate, rad/sample), the
     amplitudes are stepped in the frame that turns with the carrier, ``b_k = a_k
@@ -324,7 +325,7 @@ def joint_fit(
             cost = trial
             stale = True
             damping /= 4
-            if converge and moved < 1e-6:
+            if converge and moved < tolerance:
                 break
         else:
             damping *= 8
@@ -914,6 +915,7 @@ def clean_fit_models(
     complex_iterations: int,
     real_iterations: int,
     rotation: float,
+    tolerance: float,
     cost: Any,
 ) -> None:  # pragma: no cover - compiled
     """_Clean._try_models' fits: each row's active echoes fitted jointly (complex amplitudes,
@@ -941,7 +943,9 @@ def clean_fit_models(
             data[j, 0] = restored[first + j].real
             data[j, 1] = restored[first + j].imag
         valid = np.ones(last - first, dtype=np.bool_)
-        joint_fit(table, u, half, data, first, valid, t, a, False, complex_iterations, True, rotation)
+        joint_fit(
+            table, u, half, data, first, valid, t, a, False, complex_iterations, True, rotation, tolerance
+        )
         for i in range(size):
             a[i] = abs(a[i]) if a[i].real >= 0 else -abs(a[i])
         joint_fit(table, u, half, data, first, valid, t, a, True, real_iterations, True)
