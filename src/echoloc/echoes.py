@@ -409,7 +409,8 @@ class _Clean:
                 _CLEAN_COMPLEX_TOLERANCE,
             )
             amplitudes = np.where(amplitudes.real >= 0, np.abs(amplitudes), -np.abs(amplitudes)) + 0j
-            kernels.joint_fit(*args, tofs, amplitudes, True, _CLEAN_REAL_ITERATIONS, True)
+            # Every argument given: numba's dispatcher takes a slow path (~60 us) for omitted defaults.
+            kernels.joint_fit(*args, tofs, amplitudes, True, _CLEAN_REAL_ITERATIONS, True, 0.0, 1e-6)
             if not (np.all(np.isfinite(tofs)) and np.all(np.abs(tofs - (lo + hi) / 2) < hi - lo)):
                 # A fit that ran away from its window keeps what successive refinement found.
                 break
@@ -728,7 +729,7 @@ class _Clean:
                 *args, a, False, _CLEAN_COMPLEX_ITERATIONS, True, rate, _CLEAN_COMPLEX_TOLERANCE
             )
             a = np.where(a.real >= 0, np.abs(a), -np.abs(a)) + 0j
-            kernels.joint_fit(*args, a, True, _CLEAN_REAL_ITERATIONS, True)
+            kernels.joint_fit(*args, a, True, _CLEAN_REAL_ITERATIONS, True, 0.0, 1e-6)
             model = np.sum(
                 a[:, None] * _shape_values(self.mf, t, np.broadcast_to(stretch, (len(t), hi - lo))), axis=0
             )
