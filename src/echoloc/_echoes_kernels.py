@@ -145,6 +145,12 @@ def _median(values: Any) -> float:  # pragma: no cover - compiled
 
 
 @njit(cache=True)
+def median(values: Any) -> float:  # pragma: no cover - compiled
+    """:func:`_median`, for CLEAN's noise power (callable from Python)."""
+    return _median(values)
+
+
+@njit(cache=True)
 def _solve(a: Any, b: Any) -> Any:  # pragma: no cover - compiled
     """x with a x = b (small): Gaussian elimination with partial pivoting; NaN if singular."""
     x = np.zeros(a.shape[0])

@@ -563,16 +563,26 @@ class _Clean:
         """
         residual = correlation.copy()
         components: list[_Component] = []
-        power = noise_power(residual)
+        power = self._noise_power(residual)
         self._extract(residual, components, power)
         # The first noise estimate includes the echoes' sidelobes; redo it on the residual.
-        power = noise_power(residual)
+        power = self._noise_power(residual)
         self._extract(residual, components, power)
         merged: list[_Component] = []
         for group in _clusters(self._merge_close(residual, components), self.cluster_samples):
             fitted = self._fit_cluster(residual, group, power) if len(group) > 1 else group
             merged.extend(self._choose_order(residual, fitted, power))
         return merged, power
+
+    def _noise_power(self, residual: NDArray[np.complex128]) -> float:
+        """:func:`noise_power`; compiled, with the batch path's median (exact, and free of the
+        mispredicted branches that make numpy's take 30 us on 2400 samples)."""
+        if not self.compiled or not len(residual):
+            return noise_power(residual)
+        from echoloc import _echoes_kernels as kernels
+
+        power = float(kernels.median(np.abs(residual) ** 2)) / _LN2
+        return power if power > 0 else float(np.finfo(float).tiny)
 
     def _window_cost(self, residual: NDArray[np.complex128], lo: int, hi: int) -> float:
         return float(np.sum(np.abs(residual[lo:hi]) ** 2))
