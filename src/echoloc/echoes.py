@@ -382,8 +382,7 @@ class _Clean:
         from echoloc import _echoes_kernels as kernels  # numba: imported (and compiled) on first use
 
         for member in cluster:
-            shape, start = self._shape(member.tof_samples)
-            _subtract(residual, shape, start, -member.amplitude)
+            self._take_out(residual, member.tof_samples, -member.amplitude)
         threshold = 10 ** (self.options.threshold_db / 10) * power
         rate = self.mf.phase_rate_rad_per_sample  # complex amplitudes are stepped turning with the carrier
         members = sorted(cluster, key=lambda c: c.tof_samples)
@@ -429,12 +428,41 @@ class _Clean:
                 break
             members = pruned
         for member in members:
-            shape, start = self._shape(member.tof_samples)
-            _subtract(residual, shape, start, member.amplitude)
+            self._take_out(residual, member.tof_samples, member.amplitude)
         return members
+
+    def _take_out(self, residual: NDArray[np.complex128], tof_samples: float, amplitude: complex) -> None:
+        """Subtract an echo's correlation model ``amplitude R(m - tof)`` from ``residual`` (compiled:
+        :func:`echoloc._echoes_kernels.clean_subtract`, the same values)."""
+        if self.compiled:
+            from echoloc import _echoes_kernels as kernels
+
+            kernels.clean_subtract(
+                self.table, self.mf.oversample, self.half, residual, tof_samples, amplitude
+            )
+            return
+        shape, start = self._shape(tof_samples)
+        _subtract(residual, shape, start, amplitude)
 
     def _refit(self, residual: NDArray[np.complex128], component: _Component) -> None:
         """Put the component back into the residual, fit it again alone, take it out again."""
+        if self.compiled:
+            from echoloc import _echoes_kernels as kernels
+
+            tofs, amplitudes = np.array([component.tof_samples]), np.array([component.amplitude])
+            kernels.clean_refit(
+                self.table,
+                self.mf.oversample,
+                self.half,
+                self.mf.phase_rate_rad_per_sample,
+                self.fit_half,
+                residual,
+                tofs,
+                amplitudes,
+                0,
+            )
+            component.tof_samples, component.amplitude = float(tofs[0]), complex(amplitudes[0])
+            return
         shape, start = self._shape(component.tof_samples)
         _subtract(residual, shape, start, -component.amplitude)
         centre = round(component.tof_samples)
@@ -457,8 +485,7 @@ class _Clean:
                 previous = merged[-1]
                 # Undo the split: put both back, fit one echo at the stronger peak.
                 for part in (previous, component):
-                    shape, start = self._shape(part.tof_samples)
-                    _subtract(residual, shape, start, -part.amplitude)
+                    self._take_out(residual, part.tof_samples, -part.amplitude)
                 if abs(component.amplitude) > abs(previous.amplitude):
                     previous.tof_samples = component.tof_samples
                 previous.amplitude = 0j
@@ -682,8 +709,7 @@ class _Clean:
         penalty = 0.5 * threshold * self.mf.acf_energy
         restored = residual.copy()
         for member in group:  # the data: the residual with the group put back
-            shape, start = self._shape(member.tof_samples)
-            _subtract(restored, shape, start, -member.amplitude)
+            self._take_out(restored, member.tof_samples, -member.amplitude)
         k = max(len(c) for c in candidates)
         n_rows = len(candidates)
         start_tof = np.full((n_rows, k), tofs[0])
@@ -775,8 +801,7 @@ class _Clean:
         if best is not group:
             residual[:] = restored
             for member in best:
-                shape, start = self._shape(member.tof_samples)
-                _subtract(residual, shape, start, member.amplitude)
+                self._take_out(residual, member.tof_samples, member.amplitude)
         return best
 
     def _choose_overlapping(
