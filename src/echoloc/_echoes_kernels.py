@@ -340,6 +340,28 @@ def joint_fit(
     return cost
 
 
+@njit(cache=True, fastmath={"reassoc"})
+def _products(jac: Any, residual: Any, normal: Any, gradient: Any) -> None:  # pragma: no cover - compiled
+    """``normal = jac jac^T`` and ``gradient = jac residual`` (jac (p, n), residual (n,): real and
+    imaginary parts side by side), the inner products of a fit step.
+
+    The sums may be reassociated (``fastmath={"reassoc"}``), so that they run in SIMD lanes:
+    a fifth less time a complex-amplitude step, rounding differences of 1e-16.
+    """
+    p, n = jac.shape
+    for a in range(p):
+        for b in range(a, p):
+            acc = 0.0
+            for i in range(n):
+                acc += jac[a, i] * jac[b, i]
+            normal[a, b] = acc
+            normal[b, a] = acc
+        acc = 0.0
+        for i in range(n):
+            acc += jac[a, i] * residual[i]
+        gradient[a] = acc
+
+
 @njit(cache=True)
 def _normal_equations(
     shapes: Any, slopes: Any, residual: Any, amps: Any, real: bool, jac: Any, normal: Any, gradient: Any
@@ -359,17 +381,7 @@ def _normal_equations(
             if not real:
                 jac[2 * k + m, j, 0] = -shapes[m, j, 1]
                 jac[2 * k + m, j, 1] = shapes[m, j, 0]
-    for a in range(p):
-        for b in range(a, p):
-            acc = 0.0
-            for j in range(w):
-                acc += jac[a, j, 0] * jac[b, j, 0] + jac[a, j, 1] * jac[b, j, 1]
-            normal[a, b] = acc
-            normal[b, a] = acc
-        acc = 0.0
-        for j in range(w):
-            acc += jac[a, j, 0] * residual[j, 0] + jac[a, j, 1] * residual[j, 1]
-        gradient[a] = acc
+    _products(jac.reshape((p, 2 * w)), residual.reshape(2 * w), normal, gradient)
 
 
 @njit(cache=True)
@@ -405,17 +417,7 @@ def _rotate_normal_equations(
             jac[k + m, j, 1] = ei
             jac[2 * k + m, j, 0] = -ei
             jac[2 * k + m, j, 1] = er
-    for a in range(p):
-        for b in range(a, p):
-            acc = 0.0
-            for j in range(w):
-                acc += jac[a, j, 0] * jac[b, j, 0] + jac[a, j, 1] * jac[b, j, 1]
-            normal[a, b] = acc
-            normal[b, a] = acc
-        acc = 0.0
-        for j in range(w):
-            acc += jac[a, j, 0] * residual[j, 0] + jac[a, j, 1] * residual[j, 1]
-        gradient[a] = acc
+    _products(jac.reshape((p, 2 * w)), residual.reshape(2 * w), normal, gradient)
 
 
 @njit(cache=True)
