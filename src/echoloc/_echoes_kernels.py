@@ -289,11 +289,12 @@ def joint_fit(
     stale = True  # the normal equations at the current point are to be computed
     for _ in range(iterations):
         if stale:
-            _normal_equations(shapes, slopes, residual, amps, real, jac, undamped, gradient)
             if rotation != 0.0 and not real:
                 _rotate_normal_equations(
                     shapes, slopes, residual, tofs, amps, rotation, jac, undamped, gradient
                 )
+            else:
+                _normal_equations(shapes, slopes, residual, amps, real, jac, undamped, gradient)
             stale = False
         # A rejected step leaves the point, so its normal equations, as they were: only the
         # damping changes.
