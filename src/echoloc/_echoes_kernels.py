@@ -1,4 +1,4 @@
-"""Compiled inner loops of the matched filter's batch path (:func:`echoloc.echoes.matched_filter_batch`).
+"""Compiled inner loops of the matched filter (:func:`echoloc.echoes.matched_filter_batch`).
 
 A frame of four channels holds a dozen echoes; written with numpy, each step of
 detection, fitting and checking is an array call of a few microseconds, and the
@@ -7,7 +7,14 @@ the same arithmetic (per channel: candidates, sidelobe test, phase-refined fits,
 joint fits of clusters, residual checks) takes a few microseconds a channel. The
 formulas are those of :func:`echoloc.echoes._isolated_echoes`, which stays as their
 readable statement (the tests hold the two to the same answers); this module holds
-only their loops.
+only their loops. The same holds for CLEAN (:class:`echoloc.echoes._Clean`): its
+extraction loop, subtractions and candidate-model fits are here, its Python
+statement there.
+
+Where a test on noisy data decides (the median's partitions, the local-maximum test
+above the threshold), the loops are written without branches: mispredicted branches
+cost more than the arithmetic. Call the kernels from Python with every argument:
+numba's dispatcher resolves a call that leaves defaults out on a slow path (~60 µs).
 
 ``cache=True`` keeps the machine code in ``__pycache__``: the first call in a fresh
 environment compiles (some seconds), later processes load it.
