@@ -797,7 +797,7 @@ def clean_subtract(
         values[s] -= scale * complex(re, im)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")  # a zero model divides as numpy does (no exception)
 def clean_fit(
     table: Any, u: int, half: int, rate: float, fit_half: int, values: Any, peak: int
 ) -> tuple[float, complex]:  # pragma: no cover - compiled
