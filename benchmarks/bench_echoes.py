@@ -8,10 +8,10 @@ echoloc's `matched` estimator is timed two ways: one frame at a time
 (``matched_filter_echoes``: the latency of a frame) and all frames in one call
 (``matched_filter_batch``: the throughput), with its parts beside them: the
 single-precision correlation, the compiled batch path, its numpy statement, and CLEAN
-on the channels the batch path hands over. All run on the same frames in alternating
-rounds (this machine is shared and noisy); the median of the rounds is reported with
-the ratios, and the accuracy of both chains on the same echoes, so that a speed-up
-never hides a loss of accuracy.
+on the channels the batch path hands over (compiled, and its Python statement). All
+run on the same frames in alternating rounds (this machine is shared and noisy); the
+median of the rounds is reported with the ratios, and the accuracy of both chains on
+the same echoes, so that a speed-up never hides a loss of accuracy.
 
     python benchmarks/bench_echoes.py [--frames 40] [--rounds 7]
 """
@@ -115,6 +115,7 @@ def bench(name: str, scene: Scene, n_frames: int, rounds: int) -> None:
     fast = _compiled_echoes(correlation, mf, options)
     hard = [i for i, f in enumerate(fast) if f is None]
     clean = _Clean(mf, options)
+    clean_python = _Clean(mf, options, compiled=False)
 
     jobs: dict[str, Callable[[], object]] = {
         "scipy": lambda: scipy_chain(recording, frames),
@@ -124,6 +125,7 @@ def bench(name: str, scene: Scene, n_frames: int, rounds: int) -> None:
         "compiled": lambda: _compiled_echoes(correlation, mf, options),
         "numpy": lambda: _isolated_echoes(correlation, mf, options),
         "clean": lambda: [clean.run(mf.correlate(rows[i])) for i in hard],
+        "clean_python": lambda: [clean_python.run(mf.correlate(rows[i])) for i in hard],
     }
     timings: dict[str, list[float]] = {k: [] for k in jobs}
     for _ in range(rounds):
@@ -150,6 +152,7 @@ def bench(name: str, scene: Scene, n_frames: int, rounds: int) -> None:
         ("  of which: batch path, compiled", "compiled"),
         ("  of which: CLEAN on the channels the batch path hands over", "clean"),
         ("  (the batch path's numpy statement, for comparison)", "numpy"),
+        ("  (CLEAN's Python statement on the same channels, for comparison)", "clean_python"),
     )
     for label, key in rows_out:
         print(f"| {label} | {median[key]:.1f} | {median['scipy'] / median[key]:.1f}x |")

@@ -1,4 +1,4 @@
-"""Compiled inner loops of the matched filter's batch path (:func:`echoloc.echoes.matched_filter_batch`).
+"""Compiled inner loops of the matched filter (:func:`echoloc.echoes.matched_filter_batch`).
 
 A frame of four channels holds a dozen echoes; written with numpy, each step of
 detection, fitting and checking is an array call of a few microseconds, and the
@@ -7,7 +7,14 @@ the same arithmetic (per channel: candidates, sidelobe test, phase-refined fits,
 joint fits of clusters, residual checks) takes a few microseconds a channel. The
 formulas are those of :func:`echoloc.echoes._isolated_echoes`, which stays as their
 readable statement (the tests hold the two to the same answers); this module holds
-only their loops.
+only their loops. The same holds for CLEAN (:class:`echoloc.echoes._Clean`): its
+extraction loop, subtractions and candidate-model fits are here, its Python
+statement there.
+
+Where a test on noisy data decides (the median's partitions, the local-maximum test
+above the threshold), the loops are written without branches: mispredicted branches
+cost more than the arithmetic. Call the kernels from Python with every argument:
+numba's dispatcher resolves a call that leaves defaults out on a slow path (~60 µs).
 
 ``cache=True`` keeps the machine code in ``__pycache__``: the first call in a fresh
 environment compiles (some seconds), later processes load it.
@@ -93,45 +100,75 @@ def _model(
 
 @njit(cache=True)
 def _median(values: Any) -> float:  # pragma: no cover - compiled
-    """The median (mean of the two middle values for an even count), by quickselect on a copy."""
-    a = values.copy()
-    n = len(a)
+    """The median (mean of the two middle values for an even count), by quickselect.
+
+    The partitions are branch-free (every element is written, the write position advances
+    by the comparison): on noise the comparisons are unpredictable, and a quickselect that
+    branches on them spends most of its time in mispredicted branches (5 us for 600 values).
+    """
+    n = len(values)
     k = n // 2
-    lo, hi = 0, n - 1
-    while lo < hi:
-        pivot = a[(lo + hi) // 2]
-        i, j = lo, hi
-        while i <= j:
-            while a[i] < pivot:
-                i += 1
-            while a[j] > pivot:
-                j -= 1
-            if i <= j:
-                a[i], a[j] = a[j], a[i]
-                i += 1
-                j -= 1
-        if k <= j:
-            hi = j
-        elif k >= i:
-            lo = i
-        else:
+    a = values.copy()
+    below = np.empty(n, dtype=values.dtype)
+    above = np.empty(n, dtype=values.dtype)
+    lo, hi = 0, n  # the k-th smallest lies in a[lo:hi], all of a[:lo] below it, a[hi:] above
+    upper = a[0]
+    while True:
+        size = hi - lo
+        if size == 1:
+            upper = a[lo]
             break
-    upper = a[k]
+        x, y, z = a[lo], a[lo + size // 2], a[hi - 1]
+        pivot = max(min(x, y), min(max(x, y), z))
+        n_below = 0
+        n_above = 0
+        for i in range(lo, hi):
+            v = a[i]
+            below[n_below] = v
+            n_below += v < pivot
+            above[n_above] = v
+            n_above += v > pivot
+        if k < lo + n_below:
+            a[lo : lo + n_below] = below[:n_below]
+            hi = lo + n_below
+        elif k >= hi - n_above:
+            a[hi - n_above : hi] = above[:n_above]
+            lo = hi - n_above
+        else:
+            upper = pivot
+            break
     if n % 2:
         return float(upper)
-    lower = a[0]
-    for i in range(1, k):
-        lower = max(lower, a[i])
+    # The other middle value: the largest below ``upper``, or ``upper`` itself when it repeats there.
+    smaller = 0
+    lower = -np.inf
+    for i in range(n):
+        v = values[i]
+        smaller += v < upper
+        lower = max(lower, v if v < upper else -np.inf)
+    if smaller < k:
+        lower = upper
     return 0.5 * (float(lower) + float(upper))
+
+
+@njit(cache=True)
+def median(values: Any) -> float:  # pragma: no cover - compiled
+    """:func:`_median`, for CLEAN's noise power (callable from Python)."""
+    return _median(values)
 
 
 @njit(cache=True)
 def _solve(a: Any, b: Any) -> Any:  # pragma: no cover - compiled
     """x with a x = b (small): Gaussian elimination with partial pivoting; NaN if singular."""
-    n = a.shape[0]
-    m = a.copy()
-    v = b.copy()
-    x = np.zeros(n)
+    x = np.zeros(a.shape[0])
+    _solve_in_place(a.copy(), b.copy(), x)
+    return x
+
+
+@njit(cache=True)
+def _solve_in_place(m: Any, v: Any, x: Any) -> None:  # pragma: no cover - compiled
+    """:func:`_solve` into ``x``, overwriting ``m`` and ``v`` (no allocation: it runs every fit step)."""
+    n = m.shape[0]
     for col in range(n):
         pivot = col
         for row in range(col + 1, n):
@@ -139,7 +176,7 @@ def _solve(a: Any, b: Any) -> Any:  # pragma: no cover - compiled
                 pivot = row
         if m[pivot, col] == 0.0 or not np.isfinite(m[pivot, col]):
             x[:] = np.nan
-            return x
+            return
         if pivot != col:
             for k in range(n):
                 m[col, k], m[pivot, k] = m[pivot, k], m[col, k]
@@ -154,7 +191,6 @@ def _solve(a: Any, b: Any) -> Any:  # pragma: no cover - compiled
         for k in range(row + 1, n):
             acc -= m[row, k] * x[k]
         x[row] = acc / m[row, row]
-    return x
 
 
 @njit(cache=True)
@@ -222,12 +258,21 @@ def joint_fit(
     real: bool,
     iterations: int,
     converge: bool = False,
+    rotation: float = 0.0,
+    tolerance: float = 1e-6,
 ) -> float:  # pragma: no cover - compiled
     """Levenberg-Marquardt of sum_k a_k R(s - tau_k) to data (w, 2), in place; the final cost.
 
     As echoes._joint_fit_batch does for one row: ``iterations`` steps, or with
     ``converge`` at most that many, stopping once a step moves no delay by more than
-    1e-6 samples or the damping has grown past 1e8 (no step lowers the cost).
+    ``tolerance`` samples or the damping has grown past 1e8 (no step lowers the cost).
+
+    With complex amplitudes and a ``rotation`` (the carrier's rate, rad/sample), the
+    amplitudes are stepped in the frame that turns with the carrier, ``b_k = a_k
+    exp(-i rotation tau_k)``: ``b_k R(s - tau_k) exp(i rotation tau_k)`` is the envelope
+    moving with the delay, where ``a_k R(s - tau_k)`` turns its phase with it, so that a
+    step in a delay linearised at fixed ``a_k`` is good only for a small fraction of a
+    carrier cycle and the fit crawls. The same cost, the same minima; fewer steps.
     """
     k = len(tofs)
     w = data.shape[0]
@@ -241,39 +286,41 @@ def joint_fit(
     cost = _evaluate(table, u, half, data, lo, valid, tofs, amps, shapes, slopes, residual)
     damping = 1e-3
     jac = np.zeros((p, w, 2))
-    normal = np.zeros((p, p))
+    undamped = np.zeros((p, p))
     gradient = np.zeros(p)
+    normal = np.zeros((p, p))
+    rhs = np.zeros(p)
+    step = np.zeros(p)
     new_tofs = np.zeros(k)
     new_amps = np.zeros(k, dtype=np.complex128)
+    stale = True  # the normal equations at the current point are to be computed
     for _ in range(iterations):
-        for m in range(k):
-            ar, ai = amps[m].real, amps[m].imag
-            for j in range(w):
-                sr, si = slopes[m, j, 0], slopes[m, j, 1]
-                jac[m, j, 0] = ar * sr - ai * si
-                jac[m, j, 1] = ar * si + ai * sr
-                jac[k + m, j, 0] = shapes[m, j, 0]
-                jac[k + m, j, 1] = shapes[m, j, 1]
-                if not real:
-                    jac[2 * k + m, j, 0] = -shapes[m, j, 1]
-                    jac[2 * k + m, j, 1] = shapes[m, j, 0]
-        for a in range(p):
-            for b in range(a, p):
-                acc = 0.0
-                for j in range(w):
-                    acc += jac[a, j, 0] * jac[b, j, 0] + jac[a, j, 1] * jac[b, j, 1]
-                normal[a, b] = acc
-                normal[b, a] = acc
-            acc = 0.0
-            for j in range(w):
-                acc += jac[a, j, 0] * residual[j, 0] + jac[a, j, 1] * residual[j, 1]
-            gradient[a] = acc
+        if stale:
+            if rotation != 0.0 and not real:
+                _rotate_normal_equations(
+                    shapes, slopes, residual, tofs, amps, rotation, jac, undamped, gradient
+                )
+            else:
+                _normal_equations(shapes, slopes, residual, amps, real, jac, undamped, gradient)
+            stale = False
+        # A rejected step leaves the point, so its normal equations, as they were: only the
+        # damping changes.
+        normal[:] = undamped
+        rhs[:] = gradient
         for a in range(p):
             d = normal[a, a]
             normal[a, a] = d + damping * d + (1.0 if d == 0 else 0.0)
-        step = _solve(normal, gradient)
+        _solve_in_place(normal, rhs, step)
         for m in range(k):
             new_tofs[m] = tofs[m] + min(max(step[m], -2.0), 2.0)
+            if rotation != 0.0 and not real:
+                # b + db at the new delay: a_new = (a + db exp(i r tau)) exp(i r (tau_new - tau)).
+                turn = complex(math.cos(rotation * tofs[m]), math.sin(rotation * tofs[m]))
+                moved = new_tofs[m] - tofs[m]
+                new_amps[m] = (amps[m] + complex(step[k + m], step[2 * k + m]) * turn) * complex(
+                    math.cos(rotation * moved), math.sin(rotation * moved)
+                )
+                continue
             new_amps[m] = amps[m] + step[k + m]
             if not real:
                 new_amps[m] += 1j * step[2 * k + m]
@@ -290,14 +337,95 @@ def joint_fit(
             slopes[:] = trial_slopes
             residual[:] = trial_residual
             cost = trial
+            stale = True
             damping /= 4
-            if converge and moved < 1e-6:
+            if converge and moved < tolerance:
                 break
         else:
             damping *= 8
             if converge and damping > 1e8:
                 break
     return cost
+
+
+@njit(cache=True, fastmath={"reassoc"})
+def _products(jac: Any, residual: Any, normal: Any, gradient: Any) -> None:  # pragma: no cover - compiled
+    """``normal = jac jac^T`` and ``gradient = jac residual`` (jac (p, n), residual (n,): real and
+    imaginary parts side by side), the inner products of a fit step.
+
+    The sums may be reassociated (``fastmath={"reassoc"}``), so that they run in SIMD lanes:
+    a fifth less time a complex-amplitude step, rounding differences of 1e-16.
+    """
+    p, n = jac.shape
+    for a in range(p):
+        for b in range(a, p):
+            acc = 0.0
+            for i in range(n):
+                acc += jac[a, i] * jac[b, i]
+            normal[a, b] = acc
+            normal[b, a] = acc
+        acc = 0.0
+        for i in range(n):
+            acc += jac[a, i] * residual[i]
+        gradient[a] = acc
+
+
+@njit(cache=True)
+def _normal_equations(
+    shapes: Any, slopes: Any, residual: Any, amps: Any, real: bool, jac: Any, normal: Any, gradient: Any
+) -> None:  # pragma: no cover - compiled
+    """Jacobian (d model / d parameter: delays, real parts, imaginary parts unless ``real``),
+    the undamped normal matrix ``J^T J`` and the gradient ``J^T residual`` of :func:`joint_fit`."""
+    k, w = shapes.shape[0], shapes.shape[1]
+    p = normal.shape[0]
+    for m in range(k):
+        ar, ai = amps[m].real, amps[m].imag
+        for j in range(w):
+            sr, si = slopes[m, j, 0], slopes[m, j, 1]
+            jac[m, j, 0] = ar * sr - ai * si
+            jac[m, j, 1] = ar * si + ai * sr
+            jac[k + m, j, 0] = shapes[m, j, 0]
+            jac[k + m, j, 1] = shapes[m, j, 1]
+            if not real:
+                jac[2 * k + m, j, 0] = -shapes[m, j, 1]
+                jac[2 * k + m, j, 1] = shapes[m, j, 0]
+    _products(jac.reshape((p, 2 * w)), residual.reshape(2 * w), normal, gradient)
+
+
+@njit(cache=True)
+def _rotate_normal_equations(
+    shapes: Any,
+    slopes: Any,
+    residual: Any,
+    tofs: Any,
+    amps: Any,
+    rotation: float,
+    jac: Any,
+    normal: Any,
+    gradient: Any,
+) -> None:  # pragma: no cover - compiled
+    """:func:`_normal_equations` for complex amplitudes stepped in the frame turning with the carrier.
+
+    d model / d tau_k = a_k (R' + i rotation R) (R' the slope in the delay), d model /
+    d Re b_k = exp(i rotation tau_k) R, d model / d Im b_k = i exp(i rotation tau_k) R.
+    """
+    k, w = shapes.shape[0], shapes.shape[1]
+    p = normal.shape[0]
+    for m in range(k):
+        ar, ai = amps[m].real, amps[m].imag
+        c, sn = math.cos(rotation * tofs[m]), math.sin(rotation * tofs[m])
+        for j in range(w):
+            xr, xi = shapes[m, j, 0], shapes[m, j, 1]
+            dr = slopes[m, j, 0] - rotation * xi
+            di = slopes[m, j, 1] + rotation * xr
+            jac[m, j, 0] = ar * dr - ai * di
+            jac[m, j, 1] = ar * di + ai * dr
+            er, ei = c * xr - sn * xi, c * xi + sn * xr
+            jac[k + m, j, 0] = er
+            jac[k + m, j, 1] = ei
+            jac[2 * k + m, j, 0] = -ei
+            jac[2 * k + m, j, 1] = er
+    _products(jac.reshape((p, 2 * w)), residual.reshape(2 * w), normal, gradient)
 
 
 @njit(cache=True)
@@ -317,15 +445,18 @@ def _fit_peak(
 ) -> tuple[float, complex]:  # pragma: no cover - compiled
     """One echo as echoes._fit_peaks fits it, the other echoes' model (all but ``skip``) taken out."""
     n = len(corr) // 2
-    env = np.zeros(3)
-    values = np.zeros(3, dtype=np.complex128)
-    for i in range(3):
-        s = min(max(peak - 1 + i, 0), n - 1)
-        values[i] = complex(corr[2 * s], corr[2 * s + 1]) - _model(
-            table, half, grid_b, grid_w, amps, count, s, skip, skip + 1
-        )
-        env[i] = abs(values[i])
-    a, b, c = env[0], env[1], env[2]
+    # The peak and its neighbours, as scalars (three-element arrays here cost two allocations a fit).
+    s0, s1, s2 = min(max(peak - 1, 0), n - 1), min(max(peak, 0), n - 1), min(max(peak + 1, 0), n - 1)
+    v0 = complex(corr[2 * s0], corr[2 * s0 + 1]) - _model(
+        table, half, grid_b, grid_w, amps, count, s0, skip, skip + 1
+    )
+    v1 = complex(corr[2 * s1], corr[2 * s1 + 1]) - _model(
+        table, half, grid_b, grid_w, amps, count, s1, skip, skip + 1
+    )
+    v2 = complex(corr[2 * s2], corr[2 * s2 + 1]) - _model(
+        table, half, grid_b, grid_w, amps, count, s2, skip, skip + 1
+    )
+    a, b, c = abs(v0), abs(v1), abs(v2)
     curvature = a - 2 * b + c
     offset = 0.0
     if curvature < 0:
@@ -334,12 +465,11 @@ def _fit_peak(
     period = math.pi / rate
     weighted = 0.0
     total = 0.0
-    for i in range(3):
-        s = min(max(peak - 1 + i, 0), n - 1)
-        estimate = s - math.atan2(values[i].imag, values[i].real) / rate
+    for s, value, magnitude in ((s0, v0, a), (s1, v1, b), (s2, v2, c)):
+        estimate = s - math.atan2(value.imag, value.real) / rate
         estimate += period * np.round((coarse - estimate) / period)
-        weighted += env[i] ** 2 * estimate
-        total += env[i] ** 2
+        weighted += magnitude**2 * estimate
+        total += magnitude**2
     tof = weighted / max(total, 1e-300)
     if abs(tof - coarse) > 1.5:
         tof = coarse
@@ -391,6 +521,7 @@ def batch_echoes(
     fit_half = max(1, int(np.round(mainlobe / 2)))
     span = math.ceil(mainlobe)
     power_map = np.zeros(n)
+    maxima = np.zeros(n + 1, dtype=np.int64)
     noise = np.zeros((n + noise_step - 1) // noise_step)
     for ch in range(n_ch):
         out_count[ch] = 0
@@ -404,23 +535,28 @@ def batch_echoes(
         power = max(_median(noise) / math.log(2.0), 1e-300)
         out_power[ch] = power
         threshold = threshold_factor * power
-        # Candidates: local maxima above the threshold, within the dynamic range.
+        # Candidates: local maxima above the threshold, within the dynamic range. The test of a
+        # sample above the threshold is branch-free (it is written, the count advances by the
+        # test): there the tests are unpredictable, and mispredicted branches cost more than
+        # the arithmetic.
         n_cand = 0
         strongest = 0.0
         for k in range(max(first, 1), n - 1):
             pk = power_map[k]
-            if pk > threshold and pk > power_map[k - 1] and pk >= power_map[k + 1]:
-                n_cand += 1
-                strongest = max(strongest, pk)
+            if pk > threshold:
+                local_max = (pk > power_map[k - 1]) & (pk >= power_map[k + 1])
+                maxima[n_cand] = k
+                n_cand += local_max
+                strongest = max(strongest, pk * local_max)
         if n_cand == 0:
             continue
         cand_k = np.zeros(n_cand, dtype=np.int64)
         cand_a = np.zeros(n_cand)
         m = 0
-        for k in range(max(first, 1), n - 1):
+        for i in range(n_cand):
+            k = maxima[i]
             pk = power_map[k]
-            local_max = pk > threshold and pk > power_map[k - 1] and pk >= power_map[k + 1]
-            if local_max and pk >= strongest * dynamic_range:
+            if pk >= strongest * dynamic_range:
                 cand_k[m] = k
                 cand_a[m] = math.sqrt(pk)
                 m += 1
@@ -557,3 +693,288 @@ def batch_echoes(
             out_tof[ch, e] = tofs[e]
             out_amp[ch, e] = abs(amps[e])
         out_count[ch] = count
+
+
+@njit(cache=True)
+def finish_channels(
+    out_tof: Any,
+    out_amp: Any,
+    out_count: Any,
+    out_power: Any,
+    ok: Any,
+    sample_rate_hz: float,
+    arrival_s: float,
+    blanking_s: float,
+    threshold_db: float,
+    floor_ratio: float,
+    tof_s: Any,
+    amplitude: Any,
+    snr_db: Any,
+    kept: Any,
+) -> None:  # pragma: no cover - compiled
+    """echoes.finish_channel of every channel the batch path fitted: delays in seconds, output
+    SNR, blanked, sub-threshold and out-of-range echoes dropped, in ascending delay (stable)."""
+    for ch in range(len(out_count)):
+        kept[ch] = 0
+        if not ok[ch]:
+            continue
+        count = out_count[ch]
+        strongest = 0.0
+        for e in range(count):
+            strongest = max(strongest, out_amp[ch, e])
+        floor = strongest * floor_ratio
+        m = 0
+        for e in range(count):
+            t = out_tof[ch, e] / sample_rate_hz + arrival_s
+            a = out_amp[ch, e]
+            snr = 10 * np.log10(max(a * a, 1e-300) / out_power[ch])
+            if t >= blanking_s and snr >= threshold_db and a >= floor and np.isfinite(t):
+                # Insertion into the kept echoes, after any of equal delay (a stable sort).
+                i = m
+                while i > 0 and tof_s[ch, i - 1] > t:
+                    tof_s[ch, i] = tof_s[ch, i - 1]
+                    amplitude[ch, i] = amplitude[ch, i - 1]
+                    snr_db[ch, i] = snr_db[ch, i - 1]
+                    i -= 1
+                tof_s[ch, i] = t
+                amplitude[ch, i] = a
+                snr_db[ch, i] = snr
+                m += 1
+        kept[ch] = m
+
+
+# --- CLEAN (echoes._Clean) -----------------------------------------------------------
+#
+# The same arithmetic as _Clean's methods, on one channel's double-precision residual
+# (complex, modified in place); the components are arrays (delays, complex amplitudes) in
+# the order _Clean keeps them in its list, which decides the order of the refits.
+
+
+@njit(cache=True, inline="always")
+def _clean_shape(
+    table: Any, half: int, base0: int, row0: int, base1: int, row1: int, weight: float, s: int
+) -> complex:  # pragma: no cover - compiled
+    """_Clean._shape at sample ``s``: ``(1 - w) row0 + w row1``, row1 one lag later past a whole sample."""
+    width = 2 * half + 1
+    lag0 = s - base0 + half
+    lag1 = s - base1 + half
+    v0 = 0j
+    v1 = 0j
+    if lag0 >= 0 and lag0 < width:
+        v0 = table[row0, lag0]
+    if lag1 >= 0 and lag1 < width:
+        v1 = table[row1, lag1]
+    return (1 - weight) * v0 + weight * v1
+
+
+@njit(cache=True)
+def clean_subtract(
+    table: Any, u: int, half: int, values: Any, tof: float, scale: complex
+) -> None:  # pragma: no cover - compiled
+    """``values -= scale * R(s - tof)`` over the template's reach (_Clean._shape, then echoes._subtract).
+
+    The interpolation in real arithmetic, ``(1 - w) row0 + w row1`` part by part as numpy
+    multiplies a complex row by a real weight (a complex product would cost twice as much).
+    """
+    b0, r0, b1, r1, w = _grid(u, tof)
+    start = b0 - half
+    width = 2 * half + 1
+    shift = b1 - b0  # row1 is one lag later when the next shift starts the next whole sample
+    lo = max(start, 0)
+    hi = min(start + width, len(values))
+    for s in range(lo, hi):
+        lag = s - start
+        v0 = table[r0, lag]
+        re = (1 - w) * v0.real
+        im = (1 - w) * v0.imag
+        if lag - shift >= 0:
+            v1 = table[r1, lag - shift]
+            re += w * v1.real
+            im += w * v1.imag
+        else:
+            re += w * 0.0
+            im += w * 0.0
+        values[s] -= scale * complex(re, im)
+
+
+@njit(cache=True, error_model="numpy")  # a zero model divides as numpy does (no exception)
+def clean_fit(
+    table: Any, u: int, half: int, rate: float, fit_half: int, values: Any, peak: int
+) -> tuple[float, complex]:  # pragma: no cover - compiled
+    """_Clean._fit: delay and complex amplitude of one echo whose envelope peaks at ``peak``."""
+    n = len(values)
+    lo, hi = max(peak - 1, 0), min(peak + 2, n)
+    offset = 0.0
+    if hi - lo == 3:
+        a, b, c = abs(values[lo]), abs(values[lo + 1]), abs(values[lo + 2])
+        denominator = a - 2 * b + c
+        if denominator < 0:
+            offset = min(max(0.5 * (a - c) / denominator, -0.5), 0.5)
+    coarse = peak + offset
+    period = math.pi / rate
+    weighted = 0.0
+    total = 0.0
+    for m in range(lo, hi):
+        value = values[m]
+        magnitude = abs(value)
+        estimate = m - math.atan2(value.imag, value.real) / rate
+        estimate += period * np.round((coarse - estimate) / period)
+        weighted += magnitude**2 * estimate
+        total += magnitude**2
+    tof = weighted / total if total > 0 else coarse
+    if abs(tof - coarse) > 1.5:
+        tof = coarse
+    b0, r0, b1, r1, w = _grid(u, tof)
+    centre = int(np.round(tof))
+    num = 0j
+    den = 0.0
+    for s in range(centre - fit_half, centre + fit_half + 1):
+        shape = _clean_shape(table, half, b0, r0, b1, r1, w, s)
+        den += shape.real * shape.real + shape.imag * shape.imag
+        if 0 <= s < n:
+            num += shape.conjugate() * values[s]
+    return tof, num / den
+
+
+@njit(cache=True)
+def clean_refit(
+    table: Any, u: int, half: int, rate: float, fit_half: int, residual: Any, tofs: Any, amps: Any, i: int
+) -> None:  # pragma: no cover - compiled
+    """_Clean._refit of component ``i``: put it back, fit it again alone, take it out again."""
+    n = len(residual)
+    clean_subtract(table, u, half, residual, tofs[i], -amps[i])
+    centre = int(np.round(tofs[i]))
+    lo = max(centre - fit_half, 0)
+    hi = min(centre + fit_half + 1, n)
+    peak = centre
+    if hi > lo:
+        peak = lo
+        best = abs(residual[lo])
+        for s in range(lo + 1, hi):
+            magnitude = abs(residual[s])
+            if magnitude > best:
+                best, peak = magnitude, s
+    tofs[i], amps[i] = clean_fit(table, u, half, rate, fit_half, residual, min(max(peak, 0), n - 1))
+    clean_subtract(table, u, half, residual, tofs[i], amps[i])
+
+
+@njit(cache=True)
+def clean_extract(
+    table: Any,
+    u: int,
+    half: int,
+    rate: float,
+    fit_half: int,
+    cluster_samples: float,
+    residual: Any,
+    tofs: Any,
+    amps: Any,
+    count: int,
+    threshold: float,
+    floor: float,
+    first: int,
+    max_echoes: int,
+    refine_passes: int,
+) -> int:  # pragma: no cover - compiled
+    """_Clean._extract: take echoes out of ``residual`` strongest first; the new number of components.
+
+    ``tofs``/``amps`` hold ``count`` components and room for ``max_echoes``;
+    ``threshold`` is the detection threshold on |c|^2 (threshold factor times the noise power).
+    """
+    n = len(residual)
+    strongest = 0.0
+    for i in range(count):
+        strongest = max(strongest, abs(amps[i]))
+    cluster = np.zeros(max_echoes + 1, dtype=np.int64)
+    while count < max_echoes:
+        # The strongest sample (its power: the square root is taken once, at the peak).
+        peak = 0
+        top = 0.0
+        for s in range(max(first, 0), n):
+            value = residual[s]
+            power = value.real * value.real + value.imag * value.imag
+            if power > top:
+                top, peak = power, s
+        height = abs(residual[peak]) if top > 0 else 0.0
+        if height**2 < threshold or height < floor * strongest:
+            break
+        tof, amp = clean_fit(table, u, half, rate, fit_half, residual, peak)
+        clean_subtract(table, u, half, residual, tof, amp)
+        size = 0
+        for i in range(count):
+            if abs(tofs[i] - tof) < cluster_samples:
+                cluster[size] = i
+                size += 1
+        tofs[count], amps[count] = tof, amp
+        cluster[size] = count
+        count += 1
+        if size:
+            for _ in range(refine_passes):
+                for j in range(size + 1):
+                    clean_refit(table, u, half, rate, fit_half, residual, tofs, amps, cluster[j])
+        strongest = max(strongest, abs(amps[count - 1]))
+    return count
+
+
+@njit(cache=True)
+def clean_fit_models(
+    table: Any,
+    u: int,
+    half: int,
+    fit_half: int,
+    restored: Any,
+    lo: int,
+    hi: int,
+    fit_tof: Any,
+    fit_amp: Any,
+    active: Any,
+    complex_iterations: int,
+    real_iterations: int,
+    rotation: float,
+    tolerance: float,
+    cost: Any,
+) -> None:  # pragma: no cover - compiled
+    """_Clean._try_models' fits: each row's active echoes fitted jointly (complex amplitudes,
+    then real ones) over its own span on ``restored``, in place, and its cost over lo..hi."""
+    n_rows, k = fit_tof.shape
+    for row in range(n_rows):
+        cost[row] = np.inf
+        size = 0
+        for slot in range(k):
+            if active[row, slot]:
+                size += 1
+        if size == 0:
+            continue
+        t = np.zeros(size)
+        a = np.zeros(size, dtype=np.complex128)
+        m = 0
+        for slot in range(k):
+            if active[row, slot]:
+                t[m], a[m] = fit_tof[row, slot], fit_amp[row, slot]
+                m += 1
+        first = min(max(math.floor(t.min()) - fit_half, lo), hi - 2)
+        last = max(min(math.ceil(t.max()) + fit_half + 1, hi), first + 2)
+        data = np.zeros((last - first, 2))
+        for j in range(last - first):
+            data[j, 0] = restored[first + j].real
+            data[j, 1] = restored[first + j].imag
+        valid = np.ones(last - first, dtype=np.bool_)
+        joint_fit(
+            table, u, half, data, first, valid, t, a, False, complex_iterations, True, rotation, tolerance
+        )
+        for i in range(size):
+            a[i] = abs(a[i]) if a[i].real >= 0 else -abs(a[i])
+        joint_fit(table, u, half, data, first, valid, t, a, True, real_iterations, True)
+        grid_b = np.zeros((size, 4), dtype=np.int64)
+        grid_w = np.zeros(size)
+        _prepare(u, t, grid_b, grid_w)
+        total = 0.0
+        for s in range(lo, hi):
+            r = restored[s] - _model(table, half, grid_b, grid_w, a, size, s, 0, 0)
+            total += r.real * r.real + r.imag * r.imag
+        cost[row] = total
+        m = 0
+        for slot in range(k):
+            if active[row, slot]:
+                fit_tof[row, slot], fit_amp[row, slot] = t[m], a[m]
+                m += 1
