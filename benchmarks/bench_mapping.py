@@ -28,7 +28,14 @@ from scipy.spatial.transform import Rotation
 from echoloc import _mapping_kernels as kernels
 from echoloc import pipeline
 from echoloc.echoes import FrameEchoes
-from echoloc.mapping import GridSpec, MapAccumulator, SensorModel, beam_table, half_power_angle_deg
+from echoloc.mapping import (
+    GridSpec,
+    MapAccumulator,
+    SensorModel,
+    beam_table,
+    channel_window,
+    half_power_angle_deg,
+)
 from echoloc.recording import Recording
 from echoloc.scenefile import load_scene
 from echoloc.simulate import simulate
@@ -60,13 +67,9 @@ def _numpy_map(spec: GridSpec, recording: Recording, frames: list[FrameEchoes]) 
             rx = rotation @ recording.receivers_m[rx_index] + t
             paths = np.sort(np.asarray(channel.tof_s) * echoes.speed_of_sound_m_s)
             paths = paths[paths <= window]
-            if len(paths):
-                free_below, reach = (
-                    paths[0] - 3 * model.path_sigma_m,
-                    paths[-1] + 3 * model.path_sigma_m + 2 * spec.cell_m,
-                )
-            else:
-                free_below = reach = model.clear_fraction * window
+            free_below, margin, reach = channel_window(
+                paths, model.clear_fraction * window, model.path_sigma_m, spec.cell_m
+            )
             half = (reach + float(np.linalg.norm(tx - rx))) / 2
             lower = np.maximum(np.floor((tx - half - spec.origin_m) / spec.cell_m).astype(int), 0)
             upper = np.minimum(np.floor((tx + half - spec.origin_m) / spec.cell_m).astype(int) + 1, shape)
@@ -87,6 +90,7 @@ def _numpy_map(spec: GridSpec, recording: Recording, frames: list[FrameEchoes]) 
                     table,
                     model.min_beam_gain,
                     free_below,
+                    margin,
                     0.0,
                     paths,
                     model.path_sigma_m,
@@ -106,13 +110,16 @@ def _numpy_map(spec: GridSpec, recording: Recording, frames: list[FrameEchoes]) 
         free = np.zeros(spec.n_cells)
         np.add.at(occupied, cells, np.concatenate([p[1] for p in parts]))
         np.add.at(support, cells, np.concatenate([p[3] for p in parts]).astype(int))
+        central = np.zeros(spec.n_cells, bool)
+        central[np.concatenate([p[0][p[4]] for p in parts])] = True
         np.minimum.at(free, cells, np.concatenate([p[2] for p in parts]))
         unique = np.unique(cells)
         marked = occupied[unique] > 0
         enough = support[unique] >= min(model.min_support, len(echoes.channels))
         delta = np.where(marked, np.where(enough, occupied[unique], 0.0), free[unique])
         log_odds[unique] = np.clip(log_odds[unique] + delta, low, high)
-        hit_axes[unique[marked & enough]] += occupied[unique[marked & enough], None] * tx_axis
+        axial = unique[marked & enough & central[unique]]
+        hit_axes[axial] += occupied[axial, None] * tx_axis
     return log_odds.reshape(spec.shape)
 
 

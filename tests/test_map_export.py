@@ -193,6 +193,26 @@ def test_map_command_writes_each_format(
         assert np.median(np.abs(occupied[:, 2] - 1.0)) <= grid.spec.cell_m
     if suffix == ".png":
         assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    if suffix == ".ply":
+        vertex = PlyData.read(str(out))["vertex"]
+        assert len(vertex["z"]) > 10
+        assert np.median(np.abs(np.asarray(vertex["z"]) - 1.0)) <= 0.02
+        assert np.all(np.asarray(vertex["intensity"]) > 0.5)
+    if suffix in (".bt", ".ot"):
+        tree = pyoctomap.OcTree(0.1)
+        if suffix == ".bt":
+            assert tree.readBinary(str(out))
+        else:
+            tree = tree.read(str(out))
+        node = tree.search(np.array([0.0, 0.0, 1.0]))
+        assert node is not None
+        assert tree.isNodeOccupied(node)  # the wall straight ahead
+        assert not tree.isNodeOccupied(tree.search(np.array([0.0, 0.0, 0.8])))  # free before it
+    if suffix == ".mcap":
+        messages = _read_mcap(out)
+        assert sum(topic == TF_TOPIC for topic, _, _ in messages) == 120
+        ((_, _, grid_msg),) = [m for m in messages if m[0] == MAP_TOPIC]
+        assert max(grid_msg.data) > 50
 
 
 def test_map_command_3d_and_trajectory(
@@ -213,10 +233,75 @@ def test_map_command_3d_and_trajectory(
     assert angle.max() < 25
 
 
+def test_map_command_stamps_objects_with_their_own_frames_time(
+    capsys: pytest.CaptureFixture[str], panned_wall: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "sub.mcap"
+    code, _, stderr = _run(capsys, "map", panned_wall, "-o", out, "--frames", "40:60")
+    assert code == 0, stderr
+    messages = _read_mcap(out)
+    stamps = [
+        m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for t, _, m in messages if t == "/echoloc/objects"
+    ]
+    tfs = [m.transforms[0].header.stamp for t, _, m in messages if t == TF_TOPIC]
+    # 100 frames a second: frame k at k / 100 s.
+    np.testing.assert_allclose(stamps, np.arange(40, 60) / 100, atol=1e-9)
+    assert len(tfs) == 20
+
+
+@pytest.mark.filterwarnings("always::echoloc.mapping.MapWarning")
+def test_a_trajectory_that_misses_every_frame_is_refused_and_a_partial_one_warned(
+    capsys: pytest.CaptureFixture[str], panned_wall: Path, tmp_path: Path
+) -> None:
+    late = tmp_path / "late.txt"
+    late.write_text("100 0 0 0 0 0 0 1\n101 0.5 0 0 0 0 0 1\n")
+    code, _, stderr = _run(capsys, "map", panned_wall, "-o", tmp_path / "a.npz", "--trajectory", late)
+    assert code == 2
+    assert "cover none of the frames" in stderr
+    part = tmp_path / "part.txt"
+    part.write_text("0 0 0 0 0 0 0 1\n0.5 0 0 0 0 0 0 1\n")
+    code, _, stderr = _run(capsys, "map", panned_wall, "-o", tmp_path / "b.npz", "--trajectory", part)
+    assert code == 0
+    assert "69 of 120 frames fall outside" in stderr
+
+
+@pytest.mark.filterwarnings("always::echoloc.mapping.MapWarning")
+def test_a_map_with_nothing_in_reach_says_so(
+    capsys: pytest.CaptureFixture[str], panned_wall: Path, tmp_path: Path
+) -> None:
+    code, _, stderr = _run(
+        capsys, "map", panned_wall, "-o", tmp_path / "far.npz", "--extent-m", "100,101,100,101"
+    )
+    assert code == 0
+    assert "within reach of the sensor" in stderr
+
+
+def test_an_unaligned_floor_plan_still_gives_one_octomap_voxel_per_cell(tmp_path: Path) -> None:
+    from echoloc.map_export import voxel_centres_m
+
+    # The layer is centred on y = 0 with 2 cm cells: its centre sits on an OctoMap voxel
+    # edge, where writing cell centres could send two cells to one voxel and add their
+    # log-odds.
+    spec = GridSpec.floor_plan((-0.99, 0.99), (0.01, 0.99), 0.02, height_m=0.0)
+    grid = _grid(spec, seed=4)
+    tree = pyoctomap.OcTree(0.1).read(str(write_octomap(grid, tmp_path / "g.ot")))
+    known = np.argwhere(grid.known())
+    centres = voxel_centres_m(spec, known)
+    assert len(np.unique(np.floor(centres / 0.02).astype(int), axis=0)) == len(known)
+    for cell, centre in zip(known[::5], centres[::5], strict=True):
+        node = tree.search(centre)
+        assert node.getLogOdds() == pytest.approx(float(grid.log_odds[tuple(cell)]), abs=1e-5)
+    # Each voxel centre is within half a cell of its cell's centre.
+    own = spec.origin_m + (known + 0.5) * spec.cell_m
+    assert np.max(np.abs(centres - own)) <= spec.cell_m / 2 + 1e-12
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
         (["-o", "map.txt"], "choose the format by extension"),
+        (["-o", "map.png", "--3d", "--height-m", "0.1"], "--height-m"),
+        (["-o", "nowhere/map.png"], "does not exist"),
         (["-o", "map.png", "--cell-m", "0"], "--cell-m"),
         (["-o", "map.png", "--extent-m", "1,2,3"], "--extent-m"),
         (["-o", "map.png", "--extent-m", "1,0,0,1"], "low to high"),

@@ -196,7 +196,7 @@ def test_one_channels_clearing_does_not_erase_another_channels_echo_in_the_same_
 
 
 def test_an_arc_heard_by_one_receiver_only_is_not_marked_with_min_support_two() -> None:
-    rec = _recording([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]], fov_deg=20.0)
+    rec = _recording([[0.0, 0.0, 0.0], [0.25, 0.0, 0.0]], fov_deg=40.0)
     spec = _floor()
     acc = MapAccumulator(spec, rec, SensorModel(min_support=2))
     acc.add_frame(_echoes([[1.6], []]), IDENTITY)
@@ -208,9 +208,42 @@ def test_an_arc_heard_by_one_receiver_only_is_not_marked_with_min_support_two() 
     both.add_frame(_echoes([[1.6], [path_1]]), IDENTITY)
     grid = both.grid()
     assert _cell_value(grid.log_odds, spec, [0.0, 0.0, 0.8]) > 0
-    # Along the arc of rx 0, away from where the ellipses meet, nothing is marked.
-    side = [0.8 * math.sin(math.radians(8)), 0.0, 0.8 * math.cos(math.radians(8))]
-    assert _cell_value(grid.log_odds, spec, side) <= 0
+    # Along the arc of rx 0, where the two ellipses have parted by more than the arcs'
+    # width (0.25 sin 15° = 6.5 cm of path against 3 σ = 3 cm), nothing is marked.
+    for angle in (-15.0, 15.0):
+        side = [0.8 * math.sin(math.radians(angle)), 0.0, 0.8 * math.cos(math.radians(angle))]
+        assert _cell_value(grid.log_odds, spec, side) <= 0
+
+
+def test_the_cell_holding_a_wall_is_the_one_marked_wherever_the_wall_lies_in_it() -> None:
+    # One transducer, 5 cm cells: a wall anywhere inside the cell from z = 1.00 to 1.05
+    # must mark that cell and clear the one before it, not the one behind.
+    rec = _recording([[0.0, 0.0, 0.0]], fov_deg=20.0)
+    spec = GridSpec.floor_plan((-0.5, 0.5), (0.0, 2.0), 0.05)
+    for distance in np.linspace(1.0005, 1.0495, 9):
+        acc = MapAccumulator(spec, rec, SensorModel(min_support=1))
+        for _ in range(3):
+            acc.add_frame(_echoes([[2 * distance]]), IDENTITY)
+        grid = acc.grid()
+        assert _cell_value(grid.log_odds, spec, [0.0, 0.0, distance]) > 0, distance
+        assert _cell_value(grid.log_odds, spec, [0.0, 0.0, 0.9]) < 0, distance
+        assert _cell_value(grid.updates, spec, [0.0, 0.0, 1.22]) == 0, distance
+
+
+def test_scratch_counts_do_not_leak_into_the_next_frame() -> None:
+    # With no beam-gain floor, far beam edges add arcs of zero evidence; a single
+    # channel in the next frame must still not pass min_support = 2.
+    rec = _recording([[0.0, 0.0, 0.0], [0.25, 0.0, 0.0]], fov_deg=40.0)
+    spec = _floor()
+    acc = MapAccumulator(spec, rec, SensorModel(min_support=2, min_beam_gain=0.0))
+    acc.add_frame(_echoes([[1.6], [1.6]]), IDENTITY)
+    acc.add_frame(_echoes([[1.2], []]), IDENTITY)
+    lone = acc.grid().log_odds
+    fresh = MapAccumulator(spec, rec, SensorModel(min_support=2, min_beam_gain=0.0))
+    fresh.add_frame(_echoes([[1.6], [1.6]]), IDENTITY)
+    # The second frame's lone arc at r = 0.6 m marks nothing.
+    assert _cell_value(lone, spec, [0.0, 0.0, 0.6]) <= 0
+    assert np.count_nonzero(lone > 0) <= np.count_nonzero(fresh.grid().log_odds > 0)
 
 
 def _pose_yaw(deg: float) -> np.ndarray:
@@ -409,7 +442,11 @@ def test_a_pan_scan_widens_what_a_narrow_beam_sees(scanned_wall: tuple[Scene, Re
 def test_compiled_channel_update_equals_its_numpy_statement(
     yaw_deg: float, rx_x: float, paths: list[float], heard_before: bool, fov_deg: float
 ) -> None:
+    """The kernel, on the float32/int32 scratch the accumulator uses and inside the bounds
+    the accumulator gives it, touches exactly the cells the numpy statement does on the
+    whole grid, with the same evidence, clearing, support and near-axis marks."""
     from echoloc import _mapping_kernels as kernels
+    from echoloc.mapping import _cone_bounds, channel_window
 
     spec = GridSpec.box([-1.0, -0.3, 0.0], [1.0, 0.3, 2.0], 0.05)
     shape = np.array(spec.shape, dtype=np.int64)
@@ -421,25 +458,17 @@ def test_compiled_channel_update_equals_its_numpy_statement(
     rx_axis /= np.linalg.norm(rx_axis)
     cos_null, table = beam_table(fov_deg)
     echo_paths = np.sort(np.array(paths))
-    free_below = echo_paths[0] - 0.006 if len(echo_paths) else 2.5
-    reach = echo_paths[-1] + 0.1 if len(echo_paths) else 2.5
+    free_below, margin, reach = channel_window(echo_paths, 2.5, 0.002, spec.cell_m)
+    bounds = _cone_bounds(spec, tx, tx_axis, math.radians(fov_deg), (reach + abs(rx_x)) / 2)
     hit_axes = np.zeros((n, 3), np.float32)
     if heard_before:
         hit_axes[:] = [1.0, 0.0, 0.0]
-    args = (
-        spec.origin_m,
-        spec.cell_m,
-        shape,
-        np.zeros(3, np.int64),
-        shape,
-        tx,
-        rx,
-        tx_axis,
-        rx_axis,
+    model = (
         cos_null,
         table,
         0.1,
         free_below,
+        margin,
         0.2,
         echo_paths,
         0.002,
@@ -447,29 +476,38 @@ def test_compiled_channel_update_equals_its_numpy_statement(
         0.2,
         math.log(0.4 / 0.6),
     )
-    occupied, free = np.zeros(n), np.zeros(n)
-    support = np.zeros(n, np.uint8)
-    central = np.zeros(n, np.uint8)
+    head = (spec.origin_m, spec.cell_m, shape)
+    geometry = (tx, rx, tx_axis, rx_axis)
+    clear_cos = math.cos(math.radians(7.4))
+    cells, ref_occupied, ref_free, ref_arc, ref_central = kernels.channel_update_reference(
+        *head, np.zeros(3, np.int64), shape, *geometry, *model, hit_axes, clear_cos, 0.05
+    )
+    if bounds is None:
+        assert len(cells) == 0
+        return
+    occupied, free = np.zeros(n, np.float32), np.zeros(n, np.float32)
+    support, central = np.zeros(n, np.uint8), np.zeros(n, np.uint8)
     stamp = np.full(n, -1, np.int32)
-    touched = np.zeros(n, np.int64)
+    touched = np.zeros(n, np.int32)
     count = kernels.channel_update(
-        *args,
+        *head,
+        *bounds,
+        *geometry,
+        *model,
         occupied,
         free,
         support,
         central,
         hit_axes,
-        math.cos(math.radians(7.4)),
+        clear_cos,
         0.05,
         stamp,
         0,
         touched,
         0,
     )
-    cells, ref_occupied, ref_free, ref_arc = kernels.channel_update_reference(
-        *args, hit_axes, math.cos(math.radians(7.4)), 0.05
-    )
     assert sorted(touched[:count].tolist()) == sorted(cells.tolist())
-    np.testing.assert_allclose(occupied[cells], ref_occupied, rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(free[cells], ref_free, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(occupied[cells], ref_occupied, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(free[cells], ref_free, rtol=1e-5, atol=1e-6)
     np.testing.assert_array_equal(support[cells], ref_arc.astype(np.uint8))
+    np.testing.assert_array_equal(central[cells], ref_central.astype(np.uint8))

@@ -121,6 +121,7 @@ def channel_update(
     beam_table: np.ndarray,
     min_gain: float,
     free_below_m: float,
+    free_margin_sigmas: float,
     blind_m: float,
     echo_paths_m: np.ndarray,
     path_sigma_m: float,
@@ -144,9 +145,10 @@ def channel_update(
     A cell at ``p`` with path ``L = |p - T| + |p - R|`` inside both beams (two-way
     gain ``w = D_T D_R >= min_gain``) and beyond the blind zone gets
 
-    - ``free_gain * w`` (negative log-odds scale) when ``L`` is shorter than
-      ``free_below_m`` (the first echo less its uncertainty, or the clearing range of
-      a channel with no echo): nothing detectable lies there;
+    - log-odds ``free_gain * w`` (``free_gain`` = logit of the free probability, < 0)
+      when ``L`` is shorter than ``free_below_m - free_margin_sigmas * s`` (the first
+      echo less three of the cell's own ``s`` below, or the clearing range of a
+      channel with no echo and no margin): nothing detectable lies there;
     - ``log(p / (1 - p))`` with ``p = 0.5 + hit_gain * w * exp(-(L - L_k)^2 / 2 s^2)``
       for each echo ``L_k`` within 3 s, where ``s^2 = path_sigma_m^2 + (|grad L| h / 2)^2``
       widens the arc by the cell's own spread of paths (h the cell size), so that
@@ -210,7 +212,13 @@ def channel_update(
                 if gain < min_gain:
                     continue
                 cell = (i * ny + j) * nz + k
-                if path < free_below_m:
+                gx = dtx / r_t + drx / r_r
+                gy = dty / r_t + dry / r_r
+                gz = dtz / r_t + drz / r_r
+                spread = 0.5 * cell_m * math.sqrt(gx * gx + gy * gy + gz * gz)
+                sigma2 = path_sigma_m * path_sigma_m + spread * spread
+                sigma = math.sqrt(sigma2)
+                if path < free_below_m - free_margin_sigmas * sigma:
                     value = free_gain * gain
                     hx = hit_axes[cell, 0]
                     hy = hit_axes[cell, 1]
@@ -218,16 +226,11 @@ def channel_update(
                     norm = math.sqrt(hx * hx + hy * hy + hz * hz)
                     if norm > 0.0 and hx * tx_axis[0] + hy * tx_axis[1] + hz * tx_axis[2] < clear_cos * norm:
                         value *= silent_clear
-                    n_touched = _touch(cell, stamp, frame_id, touched, n_touched)
-                    if value < free[cell]:
-                        free[cell] = value
+                    if value < 0.0:
+                        n_touched = _touch(cell, stamp, frame_id, touched, n_touched)
+                        if value < free[cell]:
+                            free[cell] = value
                     continue
-                gx = dtx / r_t + drx / r_r
-                gy = dty / r_t + dry / r_r
-                gz = dtz / r_t + drz / r_r
-                spread = 0.5 * cell_m * math.sqrt(gx * gx + gy * gy + gz * gz)
-                sigma2 = path_sigma_m * path_sigma_m + spread * spread
-                sigma = math.sqrt(sigma2)
                 supported = False
                 for e in range(n_echoes):
                     offset = path - echo_paths_m[e]
@@ -275,11 +278,11 @@ def apply_frame(
     for n in range(n_touched):
         cell = touched[n]
         evidence = occupied[cell]
+        enough = support[cell] >= min_support
+        near_axis = central[cell] != 0
+        support[cell] = 0
+        central[cell] = 0
         if evidence > 0.0:
-            enough = support[cell] >= min_support
-            near_axis = central[cell] != 0
-            support[cell] = 0
-            central[cell] = 0
             occupied[cell] = 0.0
             free[cell] = 0.0
             if not enough:
@@ -317,6 +320,7 @@ def channel_update_reference(
     beam_table: np.ndarray,
     min_gain: float,
     free_below_m: float,
+    free_margin_sigmas: float,
     blind_m: float,
     echo_paths_m: np.ndarray,
     path_sigma_m: float,
@@ -326,13 +330,13 @@ def channel_update_reference(
     hit_axes: np.ndarray,
     clear_cos: float,
     silent_clear: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The numpy statement of :func:`channel_update` for one channel on a fresh frame.
 
     Returns the flat indices of the touched cells, their occupied evidence (sum over
-    echoes), their clearing (0 where none) and whether the channel's arc passes
-    through them; the tests hold the compiled loop to it and the benchmark compares
-    their speed.
+    echoes), their clearing (0 where none), whether the channel's arc passes through
+    them and whether they lie near the beam's axis (``central``); the tests hold the
+    compiled loop to it and the benchmark compares their speed.
     """
     axes = [origin[a] + (np.arange(lower[a], upper[a]) + 0.5) * cell_m for a in range(3)]
     px, py, pz = np.meshgrid(*axes, indexing="ij")
@@ -362,16 +366,19 @@ def channel_update_reference(
         & (gain >= min_gain)
     )
     cells = (index[:, 0] * shape[1] + index[:, 1]) * shape[2] + index[:, 2]
-    free = np.where(ok & (path < free_below_m), free_gain * gain, 0.0)
+    g = (dt / r_t[:, None]) + (dr / r_r[:, None])
+    sigma2 = path_sigma_m**2 + (0.5 * cell_m * np.linalg.norm(g, axis=1)) ** 2
+    clear = ok & (path < free_below_m - free_margin_sigmas * np.sqrt(sigma2))
+    free = np.where(clear, free_gain * gain, 0.0)
     heard = hit_axes[cells]
     norm = np.linalg.norm(heard, axis=1)
     oblique = (norm > 0) & (heard @ tx_axis < clear_cos * norm)
     free = np.where(oblique, free * silent_clear, free)
-    g = (dt / r_t[:, None]) + (dr / r_r[:, None])
-    sigma2 = path_sigma_m**2 + (0.5 * cell_m * np.linalg.norm(g, axis=1)) ** 2
     offset = path[:, None] - echo_paths_m[None, :]
-    near = (np.abs(offset) <= 3.0 * np.sqrt(sigma2)[:, None]) & (ok & (path >= free_below_m))[:, None]
+    near = (np.abs(offset) <= 3.0 * np.sqrt(sigma2)[:, None]) & (ok & ~clear)[:, None]
     prob = 0.5 + hit_gain * gain[:, None] * np.exp(-0.5 * offset**2 / sigma2[:, None])
     occupied = np.where(near, np.log(prob / (1.0 - prob)), 0.0).sum(axis=1)
-    touched = (free < 0) | near.any(axis=1)
-    return cells[touched], occupied[touched], free[touched], near.any(axis=1)[touched]
+    on_arc = near.any(axis=1)
+    touched = (free < 0) | on_arc
+    central = on_arc & (cos_t >= clear_cos)
+    return cells[touched], occupied[touched], free[touched], on_arc[touched], central[touched]

@@ -703,6 +703,17 @@ def export_command(
 _MAP_FORMATS = (".png", ".npz", ".ply", ".bt", ".ot", ".mcap")
 
 
+def _check_writable(path: Path) -> None:
+    """Refuse an output that cannot be written before the work that would fill it."""
+    if path.is_dir():
+        raise EchoLocError(f"{path}: is a directory")
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise EchoLocError(f"{path}: directory {parent} does not exist")
+    if not os.access(path if path.exists() else parent, os.W_OK):
+        raise EchoLocError(f"{path}: cannot write here (permission denied)")
+
+
 def _extent_option(text: str | None, dims: int) -> list[tuple[float, float]] | None:
     """``--extent-m``: "x0,x1,z0,z1" for a floor plan, "x0,x1,y0,y1,z0,z1" in 3-D."""
     if text is None:
@@ -785,11 +796,11 @@ def map_command(
     from echoloc.map_plots import plot_grid
     from echoloc.mapping import (
         GridSpec,
-        SensorModel,
-        build_map,
+        chain_accumulator,
         default_box,
         default_floor_plan,
         frame_poses,
+        integrate,
         read_trajectory,
     )
 
@@ -801,6 +812,11 @@ def map_command(
         raise EchoLocError(f"--cell-m must be between 0.001 and 1 m, got {cell_m:g}")
     if height_m is not None:
         _finite("--height-m", height_m)
+        if three_d:
+            raise EchoLocError(
+                "--height-m sets the floor plan's height; a --3d grid takes --extent-m instead"
+            )
+    _check_writable(output_path)
     extent = _extent_option(extent_text, 3 if three_d else 2)
     trajectory = read_trajectory(trajectory_path) if trajectory_path is not None else None
     recording, chain, frames = processing.open()
@@ -821,7 +837,7 @@ def map_command(
             spec = GridSpec.floor_plan(
                 (spec.origin_m[0], spec.upper_m[0]), (spec.origin_m[2], spec.upper_m[2]), cell_m, height_m
             )
-    model = SensorModel(field_of_view_deg=processing.field_of_view_deg)
+    accumulator = chain_accumulator(chain, spec, path_sigma_m=processing.path_sigma_m)
     located: list[FrameObjects] = []
 
     def results() -> Iterator[tuple[FrameEchoes, FrameObjects | None]]:
@@ -831,16 +847,7 @@ def map_command(
 
     started = time.perf_counter()
     with _progress(len(frames), "mapping", True) as advance:
-        grid = build_map(
-            recording,
-            results(),
-            spec,
-            model=model,
-            poses=poses,
-            blind_path_m=chain.echo_options.blanking_s * c,
-            usable_receivers=chain.usable_receivers,
-            progress=advance,
-        )
+        grid = integrate(accumulator, results(), poses, progress=advance)
     elapsed = time.perf_counter() - started
     if suffix == ".png":
         written = plot_grid(grid, output_path, sensor_path_m=poses[list(frames), :3])
@@ -855,8 +862,9 @@ def map_command(
         write_map_mcap(
             output_path,
             grid,
-            poses=poses[list(frames)],
-            frame_times_s=times[list(frames)],
+            poses=poses,
+            frame_times_s=times,
+            frames=list(frames),
             objects_per_frame=located,
         )
         written = output_path
@@ -1905,10 +1913,10 @@ _IDENTITY_POSE = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
 
 def _live_mapper(header: Recording, chain: Chain) -> Any:
     """A floor plan at 2 cm around a sensor that does not move (live frames carry no pose)."""
-    from echoloc.mapping import MapAccumulator, default_floor_plan
+    from echoloc.mapping import chain_accumulator, default_floor_plan
 
     spec = default_floor_plan(header, _IDENTITY_POSE[None, :], 0.02, chain.speed_of_sound_m_s)
-    return MapAccumulator(spec, header, blind_path_m=chain.echo_options.blanking_s * chain.speed_of_sound_m_s)
+    return chain_accumulator(chain, spec)
 
 
 class _LiveStream:

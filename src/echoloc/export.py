@@ -237,6 +237,7 @@ def write_ply(
     per_frame: bool = False,
     intensities: Sequence[ArrayLike] | None = None,
     double: bool = False,
+    comments: Sequence[str] | None = None,
 ) -> list[Path]:
     """Write located objects as a PLY point cloud (Bourke's polygon file format, 1994).
 
@@ -246,7 +247,9 @@ def write_ply(
     position covariance, m^2), ``receivers`` (how many receivers support the object)
     and, when all frames share one file, ``frame`` (the frame index). ``binary``
     writes ``binary_little_endian``, else ``ascii``. With ``per_frame`` one file per
-    frame is written next to ``path``, named ``{stem}_{frame:06d}.ply``.
+    frame is written next to ``path``, named ``{stem}_{frame:06d}.ply``. ``comments``
+    replace the header's description of the points (what they are, their frame and
+    what their intensity means) for other kinds of points.
 
     Returns the paths written. Raises :class:`EchoLocError` for a name not ending in
     ``.ply``, a missing directory or a file that cannot be written.
@@ -262,11 +265,11 @@ def write_ply(
         written = []
         for frame, table in zip(frames, tables, strict=True):
             out = target.with_name(f"{target.stem}_{frame.frame:06d}.ply")
-            _write_ply_file(out, [table], None, binary=binary, double=double)
+            _write_ply_file(out, [table], None, binary=binary, double=double, comments=comments)
             written.append(out)
         return written
     frame_ids = [frame.frame for frame in frames]
-    _write_ply_file(target, tables, frame_ids, binary=binary, double=double)
+    _write_ply_file(target, tables, frame_ids, binary=binary, double=double, comments=comments)
     return [target]
 
 
@@ -277,6 +280,7 @@ def _write_ply_file(
     *,
     binary: bool,
     double: bool,
+    comments: Sequence[str] | None = None,
 ) -> None:
     float_type, float_name = ("<f8", "double") if double else ("<f4", "float")
     columns: list[tuple[str, str, str]] = [(name, float_type, float_name) for name in POINT_FIELDS]
@@ -297,14 +301,17 @@ def _write_ply_file(
         if frame_ids is not None:
             vertices["frame"][rows] = frame_ids[index]
         row += len(positions)
+    described = comments or (
+        "echoloc located objects",
+        f"frame_id {SENSOR_FRAME_ID}: REP 103 optical frame, x right, y down, z boresight, metres",
+        "intensity: localisation score of the object (or the echo amplitude if given)",
+        "cov_xx cov_yy cov_zz: diagonal of the position covariance, m^2 (NaN: unknown)",
+        "receivers: number of receivers whose echoes support the object",
+    )
     header = [
         "ply",
         f"format {'binary_little_endian' if binary else 'ascii'} 1.0",
-        "comment echoloc located objects",
-        f"comment frame_id {SENSOR_FRAME_ID}: REP 103 optical frame, x right, y down, z boresight, metres",
-        "comment intensity: localisation score of the object (or the echo amplitude if given)",
-        "comment cov_xx cov_yy cov_zz: diagonal of the position covariance, m^2 (NaN: unknown)",
-        "comment receivers: number of receivers whose echoes support the object",
+        *(f"comment {line}" for line in described),
     ]
     if frame_ids is not None:
         header.append("comment frame: index of the recording frame the object was located in")

@@ -139,11 +139,33 @@ def occupied_points(grid: OccupancyGrid) -> FrameObjects:
 
 
 def write_grid_ply(grid: OccupancyGrid, path: str | Path, *, binary: bool = True) -> Path:
-    """The occupied cells as a PLY point cloud (intensity = occupancy probability)."""
-    return write_ply(path, [occupied_points(grid)], binary=binary)[0]
+    """The occupied cells as a PLY point cloud (intensity = occupancy probability), in double precision."""
+    comments = (
+        "echoloc occupancy grid: the centres of its occupied cells",
+        f"frame_id {MAP_FRAME_ID}: the frame of the sensor poses (REP 103 optical axes), metres",
+        "intensity: occupancy probability of the cell",
+        f"cov_xx cov_yy cov_zz: h^2/12 of a uniform cell of h = {grid.spec.cell_m:g} m, m^2",
+        "receivers: 0 (a cell, not a located object)",
+    )
+    return write_ply(path, [occupied_points(grid)], binary=binary, double=True, comments=comments)[0]
 
 
 # --- OctoMap -----------------------------------------------------------------------------
+
+
+def voxel_centres_m(spec: GridSpec, cells: NDArray[np.int64]) -> NDArray[np.float64]:
+    """Centres of the OctoMap voxels that hold ``cells`` (n, 3 indices) of ``spec``.
+
+    OctoMap's voxels tile space from 0 in steps of the resolution; each cell goes to
+    the voxel nearest its centre, ``(round(c / h - 1/2) + 1/2) h``, so that neighbouring
+    cells land in neighbouring voxels. For a grid whose origin is a multiple of ``h``
+    (``GridSpec.box`` and a floor plan's x and z) that is the cell itself; otherwise
+    (a floor plan's layer, centred on its height) the map moves by less than half a
+    cell along that axis.
+    """
+    h = spec.cell_m
+    centres = spec.origin_m + (np.asarray(cells) + 0.5) * h
+    return np.asarray((np.round(centres / h - 0.5) + 0.5) * h)
 
 
 def octree(grid: OccupancyGrid) -> Any:
@@ -156,7 +178,7 @@ def octree(grid: OccupancyGrid) -> Any:
     tree.setClampingThresMax(high)
     tree.setOccupancyThres(grid.model.occupied_probability)
     known = np.argwhere(grid.known())
-    centres = grid.spec.origin_m + (known + 0.5) * grid.spec.cell_m
+    centres = voxel_centres_m(grid.spec, known)
     values = grid.log_odds[tuple(known.T)]
     for centre, value in zip(centres, values, strict=True):
         tree.updateNode(centre, float(value), True)
@@ -254,14 +276,17 @@ def write_map_mcap(
     *,
     poses: NDArray[np.float64] | None = None,
     frame_times_s: NDArray[np.float64] | None = None,
+    frames: Sequence[int] | None = None,
     objects_per_frame: Sequence[FrameObjects] = (),
     start_time_s: float = 0.0,
 ) -> int:
     """Write the map (and the sensor's poses and objects per frame) as ROS 2 messages in MCAP.
 
-    ``poses`` (n, 7) and ``frame_times_s`` (n,) give one ``/tf`` per frame; the
-    objects of each frame go on ``/echoloc/objects``; the map is stamped with the last
-    frame's time. Returns the number of messages written.
+    ``frame_times_s`` holds every frame's time, indexed by frame number, and
+    ``poses`` (same length, rows ``[x, y, z, qx, qy, qz, qw]``) the sensor's pose:
+    one ``/tf`` is written for each frame of ``frames`` (default: all). Each
+    :class:`FrameObjects` goes on ``/echoloc/objects`` stamped with its frame's time;
+    the map is stamped with the last frame written. Returns the number of messages.
     """
     target = _check_path(path, ".mcap")
     if not math.isfinite(start_time_s) or start_time_s < 0:
@@ -269,7 +294,13 @@ def write_map_mcap(
     times = np.zeros(0) if frame_times_s is None else np.asarray(frame_times_s, dtype=float)
     if poses is not None and len(poses) != len(times):
         raise EchoLocError(f"{target}: {len(poses)} poses for {len(times)} frame times")
-    last = start_time_s + (float(times.max()) if len(times) else 0.0)
+    written = list(range(len(times))) if frames is None else [int(k) for k in frames]
+    if any(not 0 <= k < len(times) for k in written):
+        raise EchoLocError(f"{target}: a frame to write is not among the {len(times)} frame times")
+    for frame in objects_per_frame:
+        if not 0 <= frame.frame < len(times):
+            raise EchoLocError(f"{target}: objects of frame {frame.frame}, which has no time")
+    last = start_time_s + (float(times[written].max()) if written else 0.0)
     try:
         stream = target.open("wb")
     except OSError as error:
@@ -288,8 +319,9 @@ def write_map_mcap(
         cloud_schema = writer.register_msgdef("sensor_msgs/msg/PointCloud2", POINT_CLOUD2_SCHEMA)
         if poses is not None:
             tf_schema = writer.register_msgdef("tf2_msgs/msg/TFMessage", TF_MESSAGE_SCHEMA)
-            for index, (pose, time_s) in enumerate(zip(poses, times, strict=True)):
-                stamp = start_time_s + float(time_s)
+            for index, k in enumerate(written):
+                pose = poses[k]
+                stamp = start_time_s + float(times[k])
                 t_ns = round(stamp * 1e9)
                 writer.write_message(
                     TF_TOPIC,
@@ -301,7 +333,7 @@ def write_map_mcap(
                 )
                 count += 1
         for index, frame in enumerate(objects_per_frame):
-            stamp = start_time_s + (float(times[frame.frame]) if frame.frame < len(times) else frame.time_s)
+            stamp = start_time_s + float(times[frame.frame])
             t_ns = round(stamp * 1e9)
             writer.write_message(
                 OBJECTS_TOPIC,

@@ -12,8 +12,9 @@ A cell at ``p`` with path ``L = |p - T| + |p - R|`` (the echo's ellipsoid, foci 
 transmitter and the receiver) and two-way beam gain ``w = D_T(θ_T) D_R(θ_R)`` (piston
 main lobe, :func:`beam_table`) is
 
-- *free* with ``p = 0.5 - (0.5 - free_probability) w`` when ``L`` is shorter than the
-  first echo less three standard deviations (nothing detectable lies there);
+- *free* with log-odds ``w logit(free_probability)`` when ``L`` is shorter than the
+  first echo less three of the cell's own standard deviations (those of the arc,
+  below): nothing detectable lies there;
 - *occupied* with ``p = 0.5 + (hit_probability - 0.5) w g`` on each echo's arc, ``g`` a
   Gaussian in ``L - L_k`` whose width is the path uncertainty and the cell's own
   spread of paths;
@@ -48,8 +49,9 @@ horizontal x-z plane of that frame at one height: one layer of cells.
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -57,9 +59,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation, Slerp
 
-from echoloc.echoes import FrameEchoes
+from echoloc.echoes import FrameEchoes, frame_time_s
 from echoloc.errors import EchoLocError
 from echoloc.locate import FrameObjects
+from echoloc.pipeline import Chain
 from echoloc.recording import Recording
 from echoloc.transducer import X_FIRST_NULL, X_MINUS_3DB
 
@@ -68,7 +71,18 @@ FloatArray = NDArray[np.float64]
 MAP_FRAME_ID = "echoloc_map"
 """ROS frame id of the map: the fixed frame the sensor poses are given in."""
 
-_MAX_CELLS = 400_000_000
+_MAX_CELLS = 60_000_000
+"""A map holds about 36 bytes a cell while it is built (:class:`MapAccumulator`) and the
+pictures and exports take copies: 60 M cells is about 2 GiB of scratch."""
+
+
+class MapWarning(UserWarning):
+    """A map was built, but from less than was asked (frames outside a trajectory, nothing in reach)."""
+
+
+def _check_cell(cell_m: float) -> None:
+    if not (math.isfinite(cell_m) and cell_m > 0):
+        raise EchoLocError(f"grid cell size must be > 0 m, got {cell_m}")
 
 
 def _logit(p: float) -> float:
@@ -100,31 +114,46 @@ class GridSpec:
         if math.prod(shape) > _MAX_CELLS:
             raise EchoLocError(
                 f"a grid of {shape[0]} x {shape[1]} x {shape[2]} cells is too large "
-                f"(at most {_MAX_CELLS:,}); use larger cells or a smaller extent"
+                f"(at most {_MAX_CELLS:,}, about 36 bytes each while mapping); "
+                "use larger cells or a smaller extent"
             )
         object.__setattr__(self, "origin_m", origin)
         object.__setattr__(self, "shape", shape)
 
     @classmethod
     def box(cls, lower_m: ArrayLike, upper_m: ArrayLike, cell_m: float) -> GridSpec:
-        """A 3-D grid covering the box from ``lower_m`` to ``upper_m`` (rounded out to whole cells)."""
+        """A 3-D grid covering the box from ``lower_m`` to ``upper_m``.
+
+        The box is rounded out to cell boundaries at whole multiples of ``cell_m``, the
+        lattice OctoMap uses, so that every cell is one OctoMap voxel.
+        """
+        _check_cell(cell_m)
         lower = np.asarray(lower_m, dtype=float)
         upper = np.asarray(upper_m, dtype=float)
         if lower.shape != (3,) or upper.shape != (3,) or not np.all(upper > lower):
             raise EchoLocError(f"grid box needs lower < upper on every axis, got {lower} and {upper}")
-        counts = np.maximum(1, np.ceil((upper - lower) / cell_m - 1e-9)).astype(int)
-        return cls(lower, cell_m, (int(counts[0]), int(counts[1]), int(counts[2])))
+        first = np.floor(lower / cell_m + 1e-9)
+        last = np.ceil(upper / cell_m - 1e-9)
+        counts = np.maximum(1, last - first).astype(int)
+        return cls(first * cell_m, cell_m, (int(counts[0]), int(counts[1]), int(counts[2])))
 
     @classmethod
     def floor_plan(
         cls, x_m: tuple[float, float], z_m: tuple[float, float], cell_m: float, height_m: float = 0.0
     ) -> GridSpec:
-        """A 2-D grid: the horizontal x-z plane of the map frame at ``y = height_m`` (y points down)."""
+        """A 2-D grid: the horizontal x-z plane of the map frame at ``y = height_m`` (y points down).
+
+        Its one layer is centred on ``height_m``; x and z are rounded out to whole
+        multiples of ``cell_m``.
+        """
+        _check_cell(cell_m)
         if not (x_m[1] > x_m[0] and z_m[1] > z_m[0]):
             raise EchoLocError(f"floor plan needs x and z ranges low < high, got x {x_m}, z {z_m}")
-        nx = max(1, math.ceil((x_m[1] - x_m[0]) / cell_m - 1e-9))
-        nz = max(1, math.ceil((z_m[1] - z_m[0]) / cell_m - 1e-9))
-        return cls(np.array([x_m[0], height_m - cell_m / 2, z_m[0]]), cell_m, (nx, 1, nz))
+        x0 = math.floor(x_m[0] / cell_m + 1e-9)
+        z0 = math.floor(z_m[0] / cell_m + 1e-9)
+        nx = max(1, math.ceil(x_m[1] / cell_m - 1e-9) - x0)
+        nz = max(1, math.ceil(z_m[1] / cell_m - 1e-9) - z0)
+        return cls(np.array([x0 * cell_m, height_m - cell_m / 2, z0 * cell_m]), cell_m, (nx, 1, nz))
 
     @property
     def is_floor_plan(self) -> bool:
@@ -391,13 +420,27 @@ def read_trajectory(path: str | Path) -> Trajectory:
 
 
 def frame_poses(recording: Recording, trajectory: Trajectory | None = None) -> FloatArray:
-    """The sensor's pose at every frame (n_frames, 7): the trajectory's, the recording's, or identity."""
+    """The sensor's pose at every frame (n_frames, 7): the trajectory's, the recording's, or identity.
+
+    A trajectory must span at least one frame's time; frames outside its span take
+    its first or last pose, with a :class:`MapWarning`.
+    """
     if trajectory is not None:
-        times = (
-            recording.frame_times_s
-            if recording.frame_times_s is not None
-            else np.arange(recording.n_frames) * recording.n_samples / recording.sample_rate_hz
-        )
+        times = np.array([frame_time_s(recording, k) for k in range(recording.n_frames)])
+        start, end = trajectory.times_s[0], trajectory.times_s[-1]
+        outside = (times < start - 1e-9) | (times > end + 1e-9)
+        if np.all(outside):
+            raise EchoLocError(
+                f"{trajectory.source}: its times {start:g} .. {end:g} s cover none of the frames of "
+                f"{recording.source} ({times[0]:g} .. {times[-1]:g} s)"
+            )
+        if np.any(outside):
+            warnings.warn(
+                f"{trajectory.source}: {int(outside.sum())} of {len(times)} frames fall outside its "
+                f"times {start:g} .. {end:g} s and take its first or last pose",
+                MapWarning,
+                stacklevel=2,
+            )
         return trajectory.at(times)
     if recording.sensor_poses is not None:
         return np.asarray(recording.sensor_poses, dtype=float)
@@ -445,6 +488,22 @@ def _unit(vectors: FloatArray) -> FloatArray:
     return np.asarray(vectors / np.linalg.norm(vectors, axis=-1, keepdims=True))
 
 
+def channel_window(
+    paths_m: FloatArray, clear_m: float, path_sigma_m: float, cell_m: float
+) -> tuple[float, float, float]:
+    """Where one channel's reading acts: (clear below this path, less so many sigmas; reach).
+
+    With echoes, cells are cleared below the first echo less three of the cell's own
+    sigma (its path's and its spread of paths'), and nothing is touched beyond the
+    last echo plus three of the largest such sigma, ``sqrt(σ² + h²)`` (|∇L| <= 2).
+    Without echoes, cells are cleared up to ``clear_m`` and nothing beyond.
+    """
+    if len(paths_m) == 0:
+        return clear_m, 0.0, clear_m
+    widest = math.hypot(path_sigma_m, cell_m)
+    return float(paths_m[0]), 3.0, float(paths_m[-1]) + 3.0 * widest + cell_m
+
+
 def _cone_bounds(
     spec: GridSpec, apex: FloatArray, axis: FloatArray, half_angle_rad: float, reach_m: float
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]] | None:
@@ -483,6 +542,7 @@ class MapAccumulator:
         *,
         blind_path_m: float = 0.0,
         window_path_m: float | None = None,
+        usable_receivers: NDArray[np.bool_] | None = None,
     ) -> None:
         from echoloc import _mapping_kernels
 
@@ -508,6 +568,7 @@ class MapAccumulator:
         self._frames = 0
         self._blind_m = float(blind_path_m)
         self._window_m = window_path_m
+        self._usable = None if usable_receivers is None else np.asarray(usable_receivers, dtype=bool)
         self._tx_axes = (
             _unit(np.asarray(recording.transmitter_axes, dtype=float))
             if recording.transmitter_axes is not None
@@ -522,7 +583,6 @@ class MapAccumulator:
         self._clamp = (_logit(low), _logit(high))
         self._hit_gain = self.model.hit_probability - 0.5
         self._free_gain = _logit(self.model.free_probability)
-        self._object_logit = _logit(self.model.object_probability)
 
     @property
     def memory_bytes(self) -> int:
@@ -549,7 +609,12 @@ class MapAccumulator:
         objects: FrameObjects | None = None,
         usable_receivers: NDArray[np.bool_] | None = None,
     ) -> None:
-        """Integrate one frame: every channel's reading, then the located objects, at ``pose``."""
+        """Integrate one frame: every channel's reading, then the located objects, at ``pose``.
+
+        ``usable_receivers`` (default: the accumulator's) leaves the others out.
+        """
+        if usable_receivers is None:
+            usable_receivers = self._usable
         pose_row = np.asarray(pose, dtype=float).reshape(7)
         rotation = Rotation.from_quat(pose_row[3:]).as_matrix()
         translation = pose_row[:3]
@@ -575,17 +640,11 @@ class MapAccumulator:
         for rx, channel in enumerate(echoes.channels):
             if usable_receivers is not None and not usable_receivers[rx]:
                 continue
-            order = np.argsort(channel.tof_s)
-            paths = np.asarray(channel.tof_s, dtype=float)[order] * c
-            keep = paths <= window
-            paths = paths[keep]
+            paths = np.sort(np.asarray(channel.tof_s, dtype=float) * c)
+            paths = paths[paths <= window]
             rx_world = rotation @ self.recording.receivers_m[rx] + translation
             rx_axis = rotation @ self._rx_axes[rx]
-            if len(paths):
-                free_below = float(paths[0]) - 3.0 * sigma
-                reach = float(paths[-1]) + 3.0 * sigma + 2.0 * spec.cell_m
-            else:
-                free_below = reach = float(clear_m)
+            free_below, margin, reach = channel_window(paths, float(clear_m), sigma, spec.cell_m)
             baseline = float(np.linalg.norm(tx_world - rx_world))
             bounds = _cone_bounds(spec, tx_world, tx_axis, self._half_angle, (reach + baseline) / 2)
             if bounds is None:
@@ -604,6 +663,7 @@ class MapAccumulator:
                 self._beam,
                 self.model.min_beam_gain,
                 free_below,
+                margin,
                 self._blind_m,
                 paths,
                 sigma,
@@ -710,28 +770,66 @@ def build_map(
 
     ``results`` is what :func:`echoloc.pipeline.run` yields (objects may be None to
     map from echoes alone); ``poses`` (n_frames, 7), by default :func:`frame_poses`.
+    """
+    accumulator = MapAccumulator(
+        spec, recording, model, blind_path_m=blind_path_m, usable_receivers=usable_receivers
+    )
+    return integrate(accumulator, results, poses, progress=progress)
+
+
+def chain_accumulator(chain: Chain, spec: GridSpec, *, path_sigma_m: float | None = None) -> MapAccumulator:
+    """A :class:`MapAccumulator` for the frames a chain processes.
+
+    Its beam is the chain's field of view (the recording's ``field_of_view_deg`` or
+    the user's, at most the half-space), its blind zone the chain's blanking, and it
+    leaves out the receivers the chain leaves out.
+    """
+    fov = min(90.0, float(chain.locate_options.field_of_view_deg))
+    model = SensorModel(field_of_view_deg=fov)
+    if path_sigma_m is not None:
+        model = replace(model, path_sigma_m=path_sigma_m)
+    return MapAccumulator(
+        spec,
+        chain.recording,
+        model,
+        blind_path_m=chain.echo_options.blanking_s * chain.speed_of_sound_m_s,
+        usable_receivers=chain.usable_receivers,
+    )
+
+
+def integrate(
+    accumulator: MapAccumulator,
+    results: Iterable[tuple[FrameEchoes, FrameObjects | None]],
+    poses: FloatArray | None = None,
+    *,
+    progress: Callable[[int], None] | None = None,
+) -> OccupancyGrid:
+    """Add every frame of ``results`` to ``accumulator`` at its pose; the grid it then holds.
+
     Frames fired by transmitter ``frame_transmitter[k]`` use that transmitter.
     """
+    recording = accumulator.recording
     poses = frame_poses(recording) if poses is None else np.asarray(poses, dtype=float)
     if poses.shape != (recording.n_frames, 7):
         raise EchoLocError(
             f"{recording.source}: {poses.shape[0]} poses for {recording.n_frames} frames (need one per frame)"
         )
-    accumulator = MapAccumulator(spec, recording, model, blind_path_m=blind_path_m)
     for echoes, objects in results:
         transmitter = (
             0 if recording.frame_transmitter is None else int(recording.frame_transmitter[echoes.frame])
         )
-        accumulator.add_frame(
-            echoes,
-            poses[echoes.frame],
-            transmitter=transmitter,
-            objects=objects,
-            usable_receivers=usable_receivers,
-        )
+        accumulator.add_frame(echoes, poses[echoes.frame], transmitter=transmitter, objects=objects)
         if progress is not None:
             progress(1)
-    return accumulator.grid()
+    grid = accumulator.grid()
+    if grid.frames and not grid.known().any():
+        warnings.warn(
+            f"{recording.source}: no cell of the {' x '.join(map(str, grid.spec.shape))} grid was within "
+            "reach of the sensor; the map is all unknown (check its extent and height)",
+            MapWarning,
+            stacklevel=2,
+        )
+    return grid
 
 
 # --- accuracy against known surfaces ---------------------------------------------------
