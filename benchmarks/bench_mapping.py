@@ -68,7 +68,7 @@ def _numpy_map(spec: GridSpec, recording: Recording, frames: list[FrameEchoes]) 
             paths = np.sort(np.asarray(channel.tof_s) * echoes.speed_of_sound_m_s)
             paths = paths[paths <= window]
             free_below, margin, reach = channel_window(
-                paths, model.clear_fraction * window, model.path_sigma_m, spec.cell_m
+                paths, model.clear_fraction * window, model.path_sigma_m, spec.cell_m, model.arc_sigmas
             )
             half = (reach + float(np.linalg.norm(tx - rx))) / 2
             lower = np.maximum(np.floor((tx - half - spec.origin_m) / spec.cell_m).astype(int), 0)
@@ -94,6 +94,7 @@ def _numpy_map(spec: GridSpec, recording: Recording, frames: list[FrameEchoes]) 
                     0.0,
                     paths,
                     model.path_sigma_m,
+                    model.arc_sigmas,
                     reach,
                     model.hit_probability - 0.5,
                     math.log(model.free_probability / (1 - model.free_probability)),

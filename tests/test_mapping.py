@@ -157,7 +157,7 @@ def test_one_echo_clears_before_marks_the_arc_and_leaves_the_rest() -> None:
     index = np.argwhere(log_odds > 0)
     centres = spec.origin_m + (index + 0.5) * spec.cell_m
     radius = np.linalg.norm(centres, axis=1)
-    assert np.all(np.abs(radius - 1.0) <= 3 * math.hypot(0.002, spec.cell_m) / 2 + spec.cell_m)
+    assert np.all(np.abs(radius - 1.0) <= 2 * math.hypot(0.002, spec.cell_m) / 2 + spec.cell_m)
     # Every arc cell holds the closed form p = 0.5 + 0.2 D(θ)² exp(-(L - 2)² / 2σ²), with
     # σ² = σ_path² + (|∇L| h / 2)² and |∇L| = 2 for a transducer that sends and receives.
     theta = np.arccos(centres[:, 2] / radius)
@@ -458,7 +458,7 @@ def test_compiled_channel_update_equals_its_numpy_statement(
     rx_axis /= np.linalg.norm(rx_axis)
     cos_null, table = beam_table(fov_deg)
     echo_paths = np.sort(np.array(paths))
-    free_below, margin, reach = channel_window(echo_paths, 2.5, 0.002, spec.cell_m)
+    free_below, margin, reach = channel_window(echo_paths, 2.5, 0.002, spec.cell_m, 2.0)
     bounds = _cone_bounds(spec, tx, tx_axis, math.radians(fov_deg), (reach + abs(rx_x)) / 2)
     hit_axes = np.zeros((n, 3), np.float32)
     if heard_before:
@@ -472,6 +472,7 @@ def test_compiled_channel_update_equals_its_numpy_statement(
         0.2,
         echo_paths,
         0.002,
+        2.0,
         reach,
         0.2,
         math.log(0.4 / 0.6),

@@ -125,6 +125,7 @@ def channel_update(
     blind_m: float,
     echo_paths_m: np.ndarray,
     path_sigma_m: float,
+    arc_sigmas: float,
     reach_m: float,
     hit_gain: float,
     free_gain: float,
@@ -147,10 +148,10 @@ def channel_update(
 
     - log-odds ``free_gain * w`` (``free_gain`` = logit of the free probability, < 0)
       when ``L`` is shorter than ``free_below_m - free_margin_sigmas * s`` (the first
-      echo less three of the cell's own ``s`` below, or the clearing range of a
-      channel with no echo and no margin): nothing detectable lies there;
+      echo less ``arc_sigmas`` of the cell's own ``s`` below, or the clearing range of
+      a channel with no echo and no margin): nothing detectable lies there;
     - ``log(p / (1 - p))`` with ``p = 0.5 + hit_gain * w * exp(-(L - L_k)^2 / 2 s^2)``
-      for each echo ``L_k`` within 3 s, where ``s^2 = path_sigma_m^2 + (|grad L| h / 2)^2``
+      for each echo ``L_k`` within ``arc_sigmas`` s, where ``s^2 = path_sigma_m^2 + (|grad L| h / 2)^2``
       widens the arc by the cell's own spread of paths (h the cell size), so that
       the arc cannot fall between cell centres;
     - nothing beyond ``reach_m`` (the last echo plus its uncertainty).
@@ -234,7 +235,7 @@ def channel_update(
                 supported = False
                 for e in range(n_echoes):
                     offset = path - echo_paths_m[e]
-                    if abs(offset) > 3.0 * sigma:
+                    if abs(offset) > arc_sigmas * sigma:
                         continue
                     p = 0.5 + hit_gain * gain * math.exp(-0.5 * offset * offset / sigma2)
                     n_touched = _touch(cell, stamp, frame_id, touched, n_touched)
@@ -324,6 +325,7 @@ def channel_update_reference(
     blind_m: float,
     echo_paths_m: np.ndarray,
     path_sigma_m: float,
+    arc_sigmas: float,
     reach_m: float,
     hit_gain: float,
     free_gain: float,
@@ -375,7 +377,7 @@ def channel_update_reference(
     oblique = (norm > 0) & (heard @ tx_axis < clear_cos * norm)
     free = np.where(oblique, free * silent_clear, free)
     offset = path[:, None] - echo_paths_m[None, :]
-    near = (np.abs(offset) <= 3.0 * np.sqrt(sigma2)[:, None]) & (ok & ~clear)[:, None]
+    near = (np.abs(offset) <= arc_sigmas * np.sqrt(sigma2)[:, None]) & (ok & ~clear)[:, None]
     prob = 0.5 + hit_gain * gain[:, None] * np.exp(-0.5 * offset**2 / sigma2[:, None])
     occupied = np.where(near, np.log(prob / (1.0 - prob)), 0.0).sum(axis=1)
     on_arc = near.any(axis=1)

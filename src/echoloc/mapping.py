@@ -215,6 +215,10 @@ class SensorModel:
         :func:`half_power_angle_deg`) from the axes it was heard along by only
         ``silent_clear`` of the usual amount: specular walls are silent at oblique
         incidence, so silence from there is no evidence (module doc).
+    arc_sigmas
+        Half-width of an echo's arc, in the cell's own sigma (``sqrt(σ_path² + (|∇L|
+        h / 2)²)``): a cell holding the reflector is within about one of it, so two
+        mark it and clear nothing of it.
     min_support
         A cell on an echo arc is marked occupied only when the arcs of at least this
         many channels of the frame pass through it (fewer where fewer receivers work):
@@ -235,6 +239,7 @@ class SensorModel:
     clear_angle_deg: float | None = None
     min_support: int = 2
     clear_fraction: float = 0.8
+    arc_sigmas: float = 2.0
 
     def __post_init__(self) -> None:
         for name in ("hit_probability", "object_probability"):
@@ -258,6 +263,8 @@ class SensorModel:
             angle = getattr(self, name)
             if angle is not None and not (math.isfinite(angle) and 0 < angle <= 90):
                 raise EchoLocError(f"{name} must be in (0, 90] degrees, got {angle}")
+        if not (math.isfinite(self.arc_sigmas) and 1.0 <= self.arc_sigmas <= 5.0):
+            raise EchoLocError(f"arc_sigmas must be between 1 and 5, got {self.arc_sigmas}")
         if not 0.0 < self.clear_fraction <= 1.0:
             raise EchoLocError(f"clear_fraction must be in (0, 1], got {self.clear_fraction}")
         if not 1 <= self.min_support <= 254:
@@ -489,19 +496,20 @@ def _unit(vectors: FloatArray) -> FloatArray:
 
 
 def channel_window(
-    paths_m: FloatArray, clear_m: float, path_sigma_m: float, cell_m: float
+    paths_m: FloatArray, clear_m: float, path_sigma_m: float, cell_m: float, arc_sigmas: float = 2.0
 ) -> tuple[float, float, float]:
     """Where one channel's reading acts: (clear below this path, less so many sigmas; reach).
 
-    With echoes, cells are cleared below the first echo less three of the cell's own
-    sigma (its path's and its spread of paths'), and nothing is touched beyond the
-    last echo plus three of the largest such sigma, ``sqrt(σ² + h²)`` (|∇L| <= 2).
-    Without echoes, cells are cleared up to ``clear_m`` and nothing beyond.
+    With echoes, cells are cleared below the first echo less ``arc_sigmas`` of the
+    cell's own sigma (its path's and its spread of paths', the arc's half-width), and
+    nothing is touched beyond the last echo plus that many of the largest such sigma,
+    ``sqrt(σ² + h²)`` (|∇L| <= 2). Without echoes, cells are cleared up to
+    ``clear_m`` and nothing beyond.
     """
     if len(paths_m) == 0:
         return clear_m, 0.0, clear_m
     widest = math.hypot(path_sigma_m, cell_m)
-    return float(paths_m[0]), 3.0, float(paths_m[-1]) + 3.0 * widest + cell_m
+    return float(paths_m[0]), arc_sigmas, float(paths_m[-1]) + arc_sigmas * widest + cell_m
 
 
 def _cone_bounds(
@@ -644,7 +652,9 @@ class MapAccumulator:
             paths = paths[paths <= window]
             rx_world = rotation @ self.recording.receivers_m[rx] + translation
             rx_axis = rotation @ self._rx_axes[rx]
-            free_below, margin, reach = channel_window(paths, float(clear_m), sigma, spec.cell_m)
+            free_below, margin, reach = channel_window(
+                paths, float(clear_m), sigma, spec.cell_m, self.model.arc_sigmas
+            )
             baseline = float(np.linalg.norm(tx_world - rx_world))
             bounds = _cone_bounds(spec, tx_world, tx_axis, self._half_angle, (reach + baseline) / 2)
             if bounds is None:
@@ -667,6 +677,7 @@ class MapAccumulator:
                 self._blind_m,
                 paths,
                 sigma,
+                self.model.arc_sigmas,
                 reach,
                 self._hit_gain,
                 self._free_gain,
