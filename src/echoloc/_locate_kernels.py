@@ -23,9 +23,13 @@ OWN, SHARED, NONE = 0, 1, 2
 @njit(cache=True)
 def _solve(a: Any, b: Any, x: Any) -> bool:  # pragma: no cover - compiled
     """Solve the small system a x = b by Gaussian elimination with partial pivoting; False if singular."""
-    n = a.shape[0]
-    m = a.copy()
-    v = b.copy()
+    return _solve_in_place(a.copy(), b.copy(), x)
+
+
+@njit(cache=True)
+def _solve_in_place(m: Any, v: Any, x: Any) -> bool:  # pragma: no cover - compiled
+    """:func:`_solve` overwriting ``m`` and ``v`` (no allocation: called per echo combination)."""
+    n = m.shape[0]
     for col in range(n):
         pivot = col
         for row in range(col + 1, n):
@@ -80,8 +84,21 @@ def _well_conditioned(normal: Any) -> bool:  # pragma: no cover - compiled
 def _exact(t: Any, receivers: Any, paths: Any, points: Any) -> int:  # pragma: no cover - compiled
     """Points meeting D paths exactly (locate.exact_solutions for one row); returns how many (0-2)."""
     d = paths.shape[0]
-    m = np.empty((d, d + 1))
-    b = np.empty(d)
+    return _exact_work(t, receivers, paths, points, np.empty((4 * d + 4, d + 1)))
+
+
+@njit(cache=True)
+def _exact_work(t: Any, receivers: Any, paths: Any, points: Any, work: Any) -> int:  # pragma: no cover
+    """:func:`_exact` in the scratch rows ``work`` (4 D + 4, D + 1): no allocation per combination."""
+    d = paths.shape[0]
+    m = work[:d, :]
+    b = work[d, :d]
+    v = work[d + 1, :]
+    minor = work[d + 2 : 2 * d + 2, :d]
+    gram = work[2 * d + 2 : 3 * d + 2, :d]
+    y = work[3 * d + 2, :d]
+    u0 = work[3 * d + 3, :]
+    scratch = work[3 * d + 4 : 4 * d + 4, :d]
     for i in range(d):
         norm2 = 0.0
         for j in range(d):
@@ -91,8 +108,6 @@ def _exact(t: Any, receivers: Any, paths: Any, points: Any) -> int:  # pragma: n
         m[i, d] = -2.0 * paths[i]
         b[i] = norm2 - paths[i] * paths[i]
     # Null vector: v_j = (-1)^j det(M without column j).
-    v = np.empty(d + 1)
-    minor = np.empty((d, d))
     for j in range(d + 1):
         for i in range(d):
             k = 0
@@ -102,16 +117,27 @@ def _exact(t: Any, receivers: Any, paths: Any, points: Any) -> int:  # pragma: n
                     k += 1
         v[j] = (-1.0) ** j * _det(minor)
     # Particular solution u0 = M^T (M M^T)^-1 b.
-    gram = m @ m.T
+    for i in range(d):
+        for k in range(d):
+            s = 0.0
+            for j in range(d + 1):
+                s += m[i, j] * m[k, j]
+            gram[i, k] = s
     trace = 0.0
     for i in range(d):
         trace += gram[i, i]
     if not abs(_det(gram)) > 1e-18 * max(trace, 1e-30) ** d:
         return 0
-    y = np.empty(d)
-    if not _solve(gram, b, y):
+    scratch[:, :] = gram
+    rhs = minor[0]  # the minors are done with: one row holds a copy of b
+    rhs[:] = b
+    if not _solve_in_place(scratch, rhs, y):
         return 0
-    u0 = m.T @ y
+    for j in range(d + 1):
+        s = 0.0
+        for i in range(d):
+            s += m[i, j] * y[i]
+        u0[j] = s
     qa = -v[d] * v[d]
     qb = -u0[d] * v[d]
     qc = -u0[d] * u0[d]
@@ -211,9 +237,13 @@ def seed_candidates(
     row_echo = np.empty(n_ch, dtype=np.int64)
     row_use = np.empty(n_ch, dtype=np.int8)
     gain = np.empty(d)
+    normal = np.empty((d, d))
+    lhs = np.empty((d, d))
+    column = np.empty(d)
+    work = np.empty((4 * d + 4, d + 1))
+    sizes = np.empty(d, dtype=np.int64)
     for s_index in range(seeds.shape[0]):
         seed = seeds[s_index]
-        sizes = np.empty(d, dtype=np.int64)
         empty = False
         for k in range(d):
             sizes[k] = offset[seed[k] + 1] - offset[seed[k]]
@@ -248,7 +278,7 @@ def seed_candidates(
                         if abs(seed_paths[k] - seed_paths[q]) > np.sqrt(span) + np.sqrt(span_t) + tol:
                             feasible = False
             if feasible:
-                n_points = _exact(t, seed_rx, seed_paths, points)
+                n_points = _exact_work(t, seed_rx, seed_paths, points, work)
                 for r in range(n_points):
                     p = points[r]
                     ahead = 0.0
@@ -277,7 +307,13 @@ def seed_candidates(
                     for k in range(d):
                         for j in range(d):
                             seed_jac[k, j] = jac[seed[k], j]
-                    if not _well_conditioned(seed_jac.T @ seed_jac):
+                    for i in range(d):
+                        for j in range(d):
+                            acc = 0.0
+                            for k in range(d):
+                                acc += seed_jac[k, i] * seed_jac[k, j]
+                            normal[i, j] = acc
+                    if not _well_conditioned(normal):
                         continue
                     n_own = 0
                     keep = True
@@ -299,7 +335,11 @@ def seed_candidates(
                         if not visible or outside:
                             continue  # this channel cannot see the point: no echo, none needed
                         # Prediction variance from the seed: g_c J_s^-1, squared, times sigma^2.
-                        if not _solve(seed_jac.T, jac[c].copy(), gain):
+                        for i in range(d):
+                            column[i] = jac[c, i]
+                            for j in range(d):
+                                lhs[i, j] = seed_jac[j, i]
+                        if not _solve_in_place(lhs, column, gain):
                             keep = False
                             break
                         var = 0.0
