@@ -398,68 +398,269 @@ def gauss_newton(
     Returns (positions, covariances, chi2, converged); a singular or non-finite
     system leaves NaN.
     """
-    n, n_ch = paths.shape
+    n = paths.shape[0]
     d = receivers.shape[1]
     positions = np.full((n, d), np.nan)
     covariances = np.full((n, d, d), np.nan)
     chi2 = np.full(n, np.nan)
     converged = np.zeros(n, dtype=np.bool_)
-    normal = np.empty((d, d))
-    rhs = np.empty(d)
-    delta = np.empty(d)
-    jac = np.empty(d)
-    column = np.empty(d)
-    unit = np.empty(d)
+    work = np.empty((2 * d + 6, d))
     for row in range(n):
-        p = start[row].copy()
-        step = np.inf
-        ok = True
-        for it in range(iterations + 1):
-            normal[:] = 0.0
-            rhs[:] = 0.0
+        chi2[row], converged[row] = _gauss_newton_row(
+            transmitters,
+            receivers,
+            paths[row],
+            weights[row],
+            start[row],
+            iterations,
+            positions[row],
+            covariances[row],
+            work,
+        )
+    return positions, covariances, chi2, converged
+
+
+@njit(cache=True)
+def _gauss_newton_row(
+    transmitters: Any,
+    receivers: Any,
+    paths: Any,
+    weights: Any,
+    start: Any,
+    iterations: int,
+    position: Any,
+    covariance: Any,
+    work: Any,
+) -> Any:  # pragma: no cover - compiled
+    """One row of :func:`gauss_newton` into ``position`` (D,) and ``covariance`` (D, D), which
+    stay as given (NaN) when the system is singular; returns (chi2, converged).
+    ``work`` is scratch of (2 D + 6, D)."""
+    n_ch = paths.shape[0]
+    d = receivers.shape[1]
+    normal = work[:d]
+    lhs = work[d : 2 * d]
+    p = work[2 * d]
+    rhs = work[2 * d + 1]
+    delta = work[2 * d + 2]
+    jac = work[2 * d + 3]
+    column = work[2 * d + 4]
+    unit = work[2 * d + 5]
+    for j in range(d):
+        p[j] = start[j]
+    chi2 = np.nan
+    step = np.inf
+    for it in range(iterations + 1):
+        normal[:] = 0.0
+        rhs[:] = 0.0
+        total = 0.0
+        for c in range(n_ch):
+            w = weights[c]
+            if w == 0.0:
+                continue
+            r_t = 0.0
+            r_r = 0.0
+            for j in range(d):
+                r_t += (p[j] - transmitters[c, j]) ** 2
+                r_r += (p[j] - receivers[c, j]) ** 2
+            r_t = np.sqrt(r_t)
+            r_r = np.sqrt(r_r)
+            for j in range(d):
+                jac[j] = (p[j] - transmitters[c, j]) / r_t + (p[j] - receivers[c, j]) / r_r
+            residual = paths[c] - r_t - r_r
+            total += w * residual * residual
+            for i in range(d):
+                rhs[i] += w * jac[i] * residual
+                for j in range(d):
+                    normal[i, j] += w * jac[i] * jac[j]
+        if not _well_conditioned(normal):
+            return np.nan, False
+        if it == iterations or step < 1e-9:
+            # Converged (or out of iterations): covariance and chi-square at p.
+            for j in range(d):
+                for i in range(d):
+                    unit[i] = 1.0 if i == j else 0.0
+                lhs[:, :] = normal
+                _solve_in_place(lhs, unit, column)
+                for i in range(d):
+                    covariance[i, j] = column[i]
+            chi2 = total
+            break
+        lhs[:, :] = normal
+        if not _solve_in_place(lhs, rhs, delta):
+            return np.nan, False
+        step = 0.0
+        for j in range(d):
+            p[j] += delta[j]
+            step += delta[j] ** 2
+        step = np.sqrt(step)
+    for j in range(d):
+        position[j] = p[j]
+    return chi2, bool(step < 1e-6 and np.isfinite(chi2))
+
+
+@njit(cache=True)
+def _fit_row(
+    transmitters: Any,
+    receivers: Any,
+    transmitter_axes: Any,
+    receiver_axes: Any,
+    boresight: Any,
+    paths: Any,
+    sigmas: Any,
+    offset: Any,
+    echo: Any,
+    use: Any,
+    start: Any,
+    merge_sigma: float,
+    gates: Any,
+    check_beams: bool,
+    cos_fov: float,
+    iterations: int,
+    measured: Any,
+    weights: Any,
+    position: Any,
+    covariance: Any,
+    work: Any,
+) -> Any:  # pragma: no cover - compiled
+    """locate._fit_and_gate for one candidate: (chi2, converged, passes the gate and is in view).
+
+    ``merge_sigma`` < 0: no merged peaks (resolution None).
+    """
+    n_ch = echo.shape[0]
+    n_used = 0
+    for c in range(n_ch):
+        if use[c] == NONE:
+            measured[c] = 0.0
+            weights[c] = 0.0
+            continue
+        n_used += 1
+        k = offset[c] + echo[c]
+        sigma = sigmas[k]
+        if merge_sigma >= 0.0 and use[c] == SHARED:
+            sigma = np.hypot(sigma, merge_sigma)
+        measured[c] = paths[k]
+        weights[c] = 1.0 / sigma**2
+    position[:] = np.nan
+    covariance[:, :] = np.nan
+    chi2, converged = _gauss_newton_row(
+        transmitters, receivers, measured, weights, start, iterations, position, covariance, work
+    )
+    ok = converged and chi2 <= gates[n_used]
+    if ok:
+        ahead = 0.0
+        for j in range(position.shape[0]):
+            ahead += (position[j] - transmitters[0, j]) * boresight[j]
+        ok = ahead > 0.0
+    if ok and check_beams:
+        for c in range(n_ch):
+            if use[c] != NONE:
+                ok = ok and _in_beam(position, transmitters[c], transmitter_axes[c], cos_fov)
+                ok = ok and _in_beam(position, receivers[c], receiver_axes[c], cos_fov)
+    return chi2, converged, ok
+
+
+@njit(cache=True)
+def refine(
+    transmitters: Any,
+    receivers: Any,
+    transmitter_axes: Any,
+    receiver_axes: Any,
+    boresight: Any,
+    required: Any,
+    paths: Any,
+    sigmas: Any,
+    amplitudes: Any,
+    offset: Any,
+    echo: Any,
+    use: Any,
+    start: Any,
+    merge_sigma: float,
+    gates: Any,
+    check_beams: bool,
+    cos_fov: float,
+    min_own: int,
+    iterations: int,
+    amplitude_log_sigma: float,
+) -> Any:  # pragma: no cover - compiled
+    """Step 3 of locate.associate (locate._refine_reference): every candidate fitted and gated,
+    again without its optional channels when it fails with them; the amplitude chi-square
+    of those kept (``amplitudes`` empty: none). Returns the kept rows:
+    (echo, use, positions, covariances, chi2, converged, amplitude_chi2)."""
+    n, n_ch = echo.shape
+    d = receivers.shape[1]
+    echo_out = np.empty((n, n_ch), dtype=np.int64)
+    use_out = np.empty((n, n_ch), dtype=np.int8)
+    positions = np.empty((n, d))
+    covariances = np.empty((n, d, d))
+    chi2_out = np.empty(n)
+    converged_out = np.empty(n, dtype=np.bool_)
+    amplitude_chi2 = np.zeros(n)
+    measured = np.empty(n_ch)
+    weights = np.empty(n_ch)
+    row_echo = np.empty(n_ch, dtype=np.int64)
+    row_use = np.empty(n_ch, dtype=np.int8)
+    log_strength = np.empty(n_ch)
+    work = np.empty((2 * d + 6, d))
+    kept = 0
+    for row in range(n):
+        position = positions[kept]
+        covariance = covariances[kept]
+        optional = False
+        for c in range(n_ch):
+            row_echo[c] = echo[row, c]
+            row_use[c] = use[row, c]
+            optional = optional or (use[row, c] != NONE and not required[c])
+        args = (transmitters, receivers, transmitter_axes, receiver_axes, boresight, paths, sigmas, offset)
+        fit = (start[row], merge_sigma, gates, check_beams, cos_fov, iterations)
+        scratch = (measured, weights, position, covariance, work)
+        chi2, converged, ok = _fit_row(*args, row_echo, row_use, *fit, *scratch)
+        if not ok and optional:
+            own = 0
+            for c in range(n_ch):
+                if not required[c]:
+                    row_use[c] = NONE
+                if row_use[c] == NONE:
+                    row_echo[c] = -1
+                own += row_use[c] == OWN
+            if own >= min_own:
+                chi2, converged, ok = _fit_row(*args, row_echo, row_use, *fit, *scratch)
+        if not ok:
+            continue
+        echo_out[kept] = row_echo
+        use_out[kept] = row_use
+        chi2_out[kept] = chi2
+        converged_out[kept] = converged
+        if amplitudes.shape[0] > 0:
+            count = 0
             total = 0.0
             for c in range(n_ch):
-                w = weights[row, c]
-                if w == 0.0:
+                log_strength[c] = 0.0
+                if row_use[c] != OWN:
                     continue
+                count += 1
                 r_t = 0.0
                 r_r = 0.0
                 for j in range(d):
-                    r_t += (p[j] - transmitters[c, j]) ** 2
-                    r_r += (p[j] - receivers[c, j]) ** 2
-                r_t = np.sqrt(r_t)
-                r_r = np.sqrt(r_r)
-                for j in range(d):
-                    jac[j] = (p[j] - transmitters[c, j]) / r_t + (p[j] - receivers[c, j]) / r_r
-                residual = paths[row, c] - r_t - r_r
-                total += w * residual * residual
-                for i in range(d):
-                    rhs[i] += w * jac[i] * residual
-                    for j in range(d):
-                        normal[i, j] += w * jac[i] * jac[j]
-            if not _well_conditioned(normal):
-                ok = False
-                break
-            if it == iterations or step < 1e-9:
-                # Converged (or out of iterations): covariance and chi-square at p.
-                for j in range(d):
-                    for i in range(d):
-                        unit[i] = 1.0 if i == j else 0.0
-                    _solve(normal, unit, column)
-                    for i in range(d):
-                        covariances[row, i, j] = column[i]
-                chi2[row] = total
-                break
-            if not _solve(normal, rhs, delta):
-                ok = False
-                break
-            step = 0.0
-            for j in range(d):
-                p[j] += delta[j]
-                step += delta[j] ** 2
-            step = np.sqrt(step)
-        if ok:
-            for j in range(d):
-                positions[row, j] = p[j]
-            converged[row] = step < 1e-6 and np.isfinite(chi2[row])
-    return positions, covariances, chi2, converged
+                    r_t += (position[j] - transmitters[c, j]) ** 2
+                    r_r += (position[j] - receivers[c, j]) ** 2
+                spread = np.sqrt(r_t) * np.sqrt(r_r)
+                log_strength[c] = np.log(abs(amplitudes[offset[c] + row_echo[c]]) * spread)
+                total += log_strength[c]
+            count = max(count, 1)
+            mean = total / count
+            spread2 = 0.0
+            for c in range(n_ch):
+                if row_use[c] == OWN:
+                    spread2 += (log_strength[c] - mean) ** 2
+            value = spread2 / amplitude_log_sigma**2 / count
+            amplitude_chi2[kept] = 1e3 if np.isnan(value) or value == np.inf else value
+        kept += 1
+    return (
+        echo_out[:kept],
+        use_out[:kept],
+        positions[:kept],
+        covariances[:kept],
+        chi2_out[:kept],
+        converged_out[:kept],
+        amplitude_chi2[:kept],
+    )

@@ -676,7 +676,56 @@ def _refine(
 
     A candidate that fails with echoes on optional channels (older frames of other
     transmitters, whose reflector may have moved since) is fitted again without them.
+    Runs compiled (:func:`echoloc._locate_kernels.refine`); :func:`_refine_reference`
+    is the same in numpy.
     """
+    if not _COMPILED:
+        return _refine_reference(geometry, candidates, echoes, options)
+    from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
+
+    echo, use, position, covariance, chi2, converged, amplitude_chi2 = kernels.refine(
+        geometry.transmitters_m,
+        geometry.receivers_m,
+        geometry.transmitter_axes,
+        geometry.receiver_axes,
+        geometry.boresight,
+        geometry.required,
+        echoes.paths,
+        echoes.sigmas,
+        _NO_AMPLITUDES if echoes.amplitudes is None else echoes.amplitudes,
+        echoes.offset,
+        np.ascontiguousarray(candidates.echo, dtype=np.int64),
+        np.ascontiguousarray(candidates.use, dtype=np.int8),
+        np.ascontiguousarray(candidates.solution.position_m, dtype=float),
+        -1.0 if options.resolution_m is None else _merge_sigma(options.resolution_m),
+        _gates(options.gate_probability, geometry.dim, geometry.n),
+        _checks_beams(options),
+        float(np.cos(np.radians(options.field_of_view_deg))),
+        max(options.min_receivers, geometry.dim),
+        6,
+        AMPLITUDE_LOG_SIGMA,
+    )
+    return _Candidates(echo, use, Solution(position, covariance, chi2, converged), amplitude_chi2)
+
+
+_COMPILED = True
+"""Whether association runs its compiled stages (False: the numpy references, for tests)."""
+_NO_AMPLITUDES = np.zeros(0)
+
+
+def _checks_beams(options: LocateOptions) -> bool:
+    """Whether solutions are held to the beams (a narrower field of view, or axes of their own)."""
+    return bool(
+        options.field_of_view_deg < 90
+        or options.transmitter_axes is not None
+        or options.receiver_axes is not None
+    )
+
+
+def _refine_reference(
+    geometry: _Geometry, candidates: _Candidates, echoes: _Echoes, options: LocateOptions
+) -> _Candidates:
+    """:func:`_refine` in numpy."""
     echo, use = candidates.echo, candidates.use
     solution, ok = _fit_and_gate(geometry, echo, use, candidates.solution.position_m, echoes, options)
     optional = (use != _NONE) & ~geometry.required
@@ -718,11 +767,7 @@ def _fit_and_gate(
     if np.any(ok):
         points = solution.position_m[ok]
         inside = _ahead(geometry, points)
-        if (
-            options.field_of_view_deg < 90
-            or options.transmitter_axes is not None
-            or options.receiver_axes is not None
-        ):
+        if _checks_beams(options):
             supported = use[ok] != _NONE
             cos_fov = np.cos(np.radians(options.field_of_view_deg))
             inside &= np.all(_in_beams(geometry, points, cos_fov) | ~supported, axis=1)

@@ -1,0 +1,95 @@
+"""The compiled stages of association give what their numpy references give."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from echoloc import locate
+from echoloc.echoes import ChannelEchoes, FrameEchoes
+from echoloc.locate import LocatedObject, LocateOptions, combine_frames, locate_frame, model_paths_m
+
+CROSS = np.array([[0.25, 0, 0], [-0.25, 0, 0], [0, 0.25, 0], [0, -0.25, 0]], dtype=float)
+TRANSMITTERS = np.array([[0.0, 0.0, 0.0], [0.1, 0.1, 0.0]])
+OPTIONS = [
+    LocateOptions(resolution_m=0.0275, carrier_hz=40e3),
+    LocateOptions(),
+    LocateOptions(resolution_m=0.0275, field_of_view_deg=35.0),
+]
+
+
+def _frame(rng: np.random.Generator, index: int, transmitter: np.ndarray, points: np.ndarray) -> FrameEchoes:
+    """Noisy echoes of ``points``: some lost, some merged, some spurious; c = 1 (tof = path)."""
+    paths = model_paths_m(transmitter, CROSS, points) + rng.normal(0, 0.5e-3, (len(points), len(CROSS)))
+    strength = rng.uniform(0.5, 2.0, len(points))
+    channels = []
+    for i, receiver in enumerate(CROSS):
+        spread = np.linalg.norm(points - transmitter, axis=1) * np.linalg.norm(points - receiver, axis=1)
+        path, amplitude = paths[:, i], strength / spread * rng.lognormal(0, 0.1, len(points))
+        keep = rng.random(len(points)) > 0.05
+        path, amplitude = path[keep], amplitude[keep]
+        extra = rng.integers(0, 3)
+        path = np.r_[path, rng.uniform(0.4, 2.5, extra)]
+        amplitude = np.r_[amplitude, rng.uniform(0.1, 2.0, extra)]
+        order = np.argsort(path)
+        path, amplitude = path[order], amplitude[order]
+        merged = np.r_[True, np.diff(path) > 0.01]  # echoes closer than 1 cm come out as one
+        channels.append(
+            ChannelEchoes(
+                tof_s=path[merged], amplitude=amplitude[merged], snr_db=rng.uniform(10, 30, merged.sum())
+            )
+        )
+    return FrameEchoes(index, 0.0, 1.0, tuple(channels))
+
+
+def _scene(seed: int) -> tuple[np.random.Generator, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 7))
+    points = np.column_stack([rng.uniform(-0.5, 0.5, n), rng.uniform(-0.5, 0.5, n), rng.uniform(0.2, 1.2, n)])
+    return rng, points
+
+
+def _assert_same(expected: tuple[LocatedObject, ...], got: tuple[LocatedObject, ...]) -> None:
+    assert len(got) == len(expected)
+    for a, b in zip(expected, got, strict=True):
+        assert (a.receivers, a.echo_indices, a.transmitters, a.shared) == (
+            b.receivers,
+            b.echo_indices,
+            b.transmitters,
+            b.shared,
+        )
+        assert b.position_m == pytest.approx(a.position_m, rel=1e-9, abs=1e-12)
+        assert b.covariance_m2 == pytest.approx(a.covariance_m2, rel=1e-9, abs=1e-18)
+        assert b.chi2 == pytest.approx(a.chi2, rel=1e-7, abs=1e-12)
+        assert b.score == pytest.approx(a.score, rel=1e-7, abs=1e-12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), which=st.sampled_from(range(len(OPTIONS))))
+def test_locate_frame_matches_the_numpy_reference(seed: int, which: int) -> None:
+    """On random noisy scenes of 1-6 reflectors the compiled association finds the same objects."""
+    rng, points = _scene(seed)
+    frame = _frame(rng, 0, TRANSMITTERS[0], points)
+    compiled = locate_frame(frame, TRANSMITTERS[0], CROSS, OPTIONS[which])
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(locate, "_COMPILED", False)
+        reference = locate_frame(frame, TRANSMITTERS[0], CROSS, OPTIONS[which])
+    _assert_same(reference.objects, compiled.objects)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), moved=st.floats(0.0, 0.01))
+def test_combined_frames_match_the_numpy_reference(seed: int, moved: float) -> None:
+    """Two transmitters' frames (optional channels, fitted again without them) agree too."""
+    rng, points = _scene(seed)
+    frames = [
+        (0, _frame(rng, 0, TRANSMITTERS[0], points)),
+        (1, _frame(rng, 1, TRANSMITTERS[1], points + np.array([0.0, 0.0, moved]))),
+    ]
+    compiled = combine_frames(frames, TRANSMITTERS, CROSS, OPTIONS[0])
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(locate, "_COMPILED", False)
+        reference = combine_frames(frames, TRANSMITTERS, CROSS, OPTIONS[0])
+    _assert_same(reference.objects, compiled.objects)
