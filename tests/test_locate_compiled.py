@@ -35,7 +35,7 @@ def _frame(rng: np.random.Generator, index: int, transmitter: np.ndarray, points
         amplitude = np.r_[amplitude, rng.uniform(0.1, 2.0, extra)]
         order = np.argsort(path)
         path, amplitude = path[order], amplitude[order]
-        merged = np.r_[True, np.diff(path) > 0.01]  # echoes closer than 1 cm come out as one
+        merged = np.diff(path, prepend=-np.inf) > 0.01  # echoes closer than 1 cm come out as one
         channels.append(
             ChannelEchoes(
                 tof_s=path[merged], amplitude=amplitude[merged], snr_db=rng.uniform(10, 30, merged.sum())
@@ -93,3 +93,51 @@ def test_combined_frames_match_the_numpy_reference(seed: int, moved: float) -> N
         patch.setattr(locate, "_COMPILED", False)
         reference = combine_frames(frames, TRANSMITTERS, CROSS, OPTIONS[0])
     _assert_same(reference.objects, compiled.objects)
+
+
+candidate_sets = st.lists(
+    st.tuples(
+        st.lists(st.integers(-1, 3), min_size=4, max_size=4),
+        st.floats(0.5, 1.0, allow_nan=False),
+    ),
+    min_size=1,
+    max_size=24,
+    unique_by=lambda item: item[1],
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(items=candidate_sets, node_limit=st.sampled_from([1, 5, 40, 50_000]))
+def test_the_compiled_set_packing_matches_the_reference(items: list, node_limit: int) -> None:
+    """Weighted set packing: the same candidates, in the same order, as locate._best_disjoint,
+    also when the node limit cuts the search short."""
+    from echoloc import _locate_kernels
+
+    echo = np.array([e for e, _ in items], dtype=np.int64)
+    weights = np.array([w for _, w in items])
+    reference = [
+        locate._Candidate(frozenset((c, int(e)) for c, e in enumerate(row) if e >= 0), float(w), k)
+        for k, (row, w) in enumerate(zip(echo, weights, strict=True))
+    ]
+    expected = locate._best_disjoint(reference, node_limit)
+    ids = np.where(echo >= 0, 4 * np.arange(4) + echo, -1)
+    out = np.empty(len(items), dtype=np.int64)
+    count, done = _locate_kernels.best_disjoint(np.arange(len(items)), ids, weights, 16, node_limit, out)
+    assert done
+    assert out[:count].tolist() == expected
+
+
+def test_tied_weights_leave_the_packing_to_the_reference() -> None:
+    """Equal weights in one group of conflicting candidates: the reference's order (set
+    iteration) decides, so the compiled packing declines."""
+    from echoloc import _locate_kernels
+
+    ids = np.array([[0, 4, -1, -1], [0, 5, -1, -1], [1, 6, -1, -1]])
+    out = np.empty(3, dtype=np.int64)
+    _, done = _locate_kernels.best_disjoint(np.arange(3), ids, np.array([0.9, 0.9, 0.95]), 8, 50_000, out)
+    assert not done
+    count, done = _locate_kernels.best_disjoint(
+        np.arange(3), ids, np.array([0.9, 0.91, 0.95]), 8, 50_000, out
+    )
+    assert done
+    assert out[:count].tolist() == [1, 2]

@@ -15,7 +15,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from numba import njit
+from numba import njit, objmode
 
 OWN, SHARED, NONE = 0, 1, 2
 
@@ -527,19 +527,7 @@ def _fit_row(
     ``merge_sigma`` < 0: no merged peaks (resolution None).
     """
     n_ch = echo.shape[0]
-    n_used = 0
-    for c in range(n_ch):
-        if use[c] == NONE:
-            measured[c] = 0.0
-            weights[c] = 0.0
-            continue
-        n_used += 1
-        k = offset[c] + echo[c]
-        sigma = sigmas[k]
-        if merge_sigma >= 0.0 and use[c] == SHARED:
-            sigma = np.hypot(sigma, merge_sigma)
-        measured[c] = paths[k]
-        weights[c] = 1.0 / sigma**2
+    n_used = _measure(paths, sigmas, offset, echo, use, merge_sigma, measured, weights)
     position[:] = np.nan
     covariance[:, :] = np.nan
     chi2, converged = _gauss_newton_row(
@@ -664,3 +652,517 @@ def refine(
         converged_out[:kept],
         amplitude_chi2[:kept],
     )
+
+
+@njit(cache=True)
+def _weights(use: Any, chi2: Any, amplitude_chi2: Any, gates: Any, out: Any) -> bool:  # pragma: no cover
+    """locate._weights into ``out``; False when two weights tie or one is NaN (order undefined)."""
+    n, n_ch = use.shape
+    for row in range(n):
+        n_used = 0
+        n_shared = 0
+        for c in range(n_ch):
+            n_used += use[row, c] != NONE
+            n_shared += use[row, c] == SHARED
+        gate = gates[n_used]
+        gate = max(gate, 1.0) if np.isfinite(gate) else 1.0
+        tie = chi2[row] / gate + amplitude_chi2[row] / max(n_used, 1) + 0.5 * n_shared
+        if np.isnan(tie):
+            return False
+        out[row] = 1.0 - 1e-3 * min(tie, 100.0)
+    return True
+
+
+@njit(cache=True)
+def _has_tie(values: Any, members: Any) -> bool:  # pragma: no cover - compiled
+    for a in range(members.shape[0]):
+        for b in range(a):
+            if values[members[a]] == values[members[b]]:
+                return True
+    return False
+
+
+@njit(cache=True)
+def _order_by_weight(weights: Any, members: Any) -> None:  # pragma: no cover - compiled
+    """Sort ``members`` heaviest first (insertion sort; callers rule out ties)."""
+    for a in range(1, members.shape[0]):
+        item = members[a]
+        b = a - 1
+        while b >= 0 and weights[members[b]] < weights[item]:
+            members[b + 1] = members[b]
+            b -= 1
+        members[b + 1] = item
+
+
+@njit(cache=True)
+def _pack_group(
+    group: Any, ids: Any, weights: Any, n_echo: int, node_limit: int, out: Any
+) -> int:  # pragma: no cover
+    """locate._pack_group: branch and bound over ``group`` (sorted heaviest first); the chosen
+    members into ``out`` in group order, returns how many. ``ids`` (n, C): flat echo ids, -1 none."""
+    m = group.shape[0]
+    n_ch = ids.shape[1]
+    # Local echo numbers within the group.
+    local = np.full(n_echo, -1, dtype=np.int64)
+    q = 0
+    per_echo = -np.inf
+    for k in range(m):
+        size = 0
+        for c in range(n_ch):
+            e = ids[group[k], c]
+            if e >= 0:
+                size += 1
+                if local[e] < 0:
+                    local[e] = q
+                    q += 1
+        per_echo = max(per_echo, weights[group[k]] / max(size, 1))
+    per_echo = max(per_echo, 0.0)
+    reachable = np.zeros((m + 1, q), dtype=np.bool_)
+    for k in range(m - 1, -1, -1):
+        reachable[k] = reachable[k + 1]
+        for c in range(n_ch):
+            e = ids[group[k], c]
+            if e >= 0:
+                reachable[k, local[e]] = True
+    used = np.zeros(q, dtype=np.bool_)
+    best = np.empty(m, dtype=np.int64)
+    n_best = 0
+    best_weight = 0.0
+    for k in range(m):  # the greedy incumbent
+        if weights[group[k]] > 0 and _disjoint(ids[group[k]], local, used):
+            best[n_best] = k
+            n_best += 1
+            _mark(ids[group[k]], local, used, True)
+    for i in range(n_best):
+        best_weight += weights[group[best[i]]]
+    used[:] = False
+    picked = np.empty(m, dtype=np.int64)
+    n_picked = 0
+    steps = 0
+    # Depth-first, "take item k" before "leave it", as the recursion of the reference.
+    stack_k = np.empty(m + 2, dtype=np.int64)
+    stack_total = np.empty(m + 2)
+    stack_state = np.empty(m + 2, dtype=np.int64)
+    depth = 1
+    stack_k[0] = 0
+    stack_total[0] = 0.0
+    stack_state[0] = 0
+    while depth > 0:
+        top = depth - 1
+        k = stack_k[top]
+        total = stack_total[top]
+        if stack_state[top] == 0:
+            steps += 1
+            if total > best_weight + 1e-12:
+                best[:n_picked] = picked[:n_picked]
+                n_best = n_picked
+                best_weight = total
+            if k == m or steps > node_limit:
+                depth -= 1
+                continue
+            free = 0
+            for i in range(q):
+                free += reachable[k, i] and not used[i]
+            if total + per_echo * free <= best_weight + 1e-12:
+                depth -= 1
+                continue
+            w = weights[group[k]]
+            if w > 0 and _disjoint(ids[group[k]], local, used):
+                stack_state[top] = 1
+                picked[n_picked] = k
+                n_picked += 1
+                _mark(ids[group[k]], local, used, True)
+                total += w
+            else:
+                stack_state[top] = 2
+        elif stack_state[top] == 1:
+            n_picked -= 1
+            _mark(ids[group[k]], local, used, False)
+            stack_state[top] = 2
+        else:
+            depth -= 1
+            continue
+        stack_k[depth] = k + 1
+        stack_total[depth] = total
+        stack_state[depth] = 0
+        depth += 1
+    for i in range(n_best):
+        out[i] = group[best[i]]
+    return n_best
+
+
+@njit(cache=True)
+def _disjoint(ids: Any, local: Any, used: Any) -> bool:  # pragma: no cover - compiled
+    """Whether no echo of a candidate (flat ids, -1 none) is marked in ``used`` (by ``local`` number)."""
+    free = True
+    for c in range(ids.shape[0]):
+        free = free and not (ids[c] >= 0 and used[local[ids[c]]])
+    return free
+
+
+@njit(cache=True)
+def _mark(ids: Any, local: Any, used: Any, value: bool) -> None:  # pragma: no cover - compiled
+    for c in range(ids.shape[0]):
+        if ids[c] >= 0:
+            used[local[ids[c]]] = value
+
+
+@njit(cache=True)
+def best_disjoint(
+    members: Any, ids: Any, weights: Any, n_echo: int, node_limit: int, out: Any
+) -> Any:  # pragma: no cover - compiled
+    """locate._best_disjoint over the candidates ``members`` (rows of ``ids``/``weights``):
+    the chosen rows into ``out`` in the reference's order; returns (how many, True), or
+    (0, False) when weights tie within a group (the reference's order is then undefined)."""
+    n = members.shape[0]
+    n_ch = ids.shape[1]
+    # Which members hold each echo (CSR), for the connected groups of conflicting members.
+    start = np.zeros(n_echo + 1, dtype=np.int64)
+    for i in range(n):
+        for c in range(n_ch):
+            e = ids[members[i], c]
+            if e >= 0:
+                start[e + 1] += 1
+    for e in range(n_echo):
+        start[e + 1] += start[e]
+    holder = np.empty(start[n_echo], dtype=np.int64)
+    fill = start[:-1].copy()
+    for i in range(n):
+        for c in range(n_ch):
+            e = ids[members[i], c]
+            if e >= 0:
+                holder[fill[e]] = i
+                fill[e] += 1
+    seen = np.zeros(n, dtype=np.bool_)
+    queue = np.empty(n, dtype=np.int64)
+    count = 0
+    for root in range(n):
+        if seen[root]:
+            continue
+        seen[root] = True
+        queue[0] = root
+        size = 1
+        head = 0
+        while head < size:
+            node = queue[head]
+            head += 1
+            for c in range(n_ch):
+                e = ids[members[node], c]
+                if e < 0:
+                    continue
+                for h in range(start[e], start[e + 1]):
+                    other = holder[h]
+                    if not seen[other]:
+                        seen[other] = True
+                        queue[size] = other
+                        size += 1
+        if size == 1:
+            out[count] = members[root]
+            count += 1
+            continue
+        group = members[queue[:size]]
+        if _has_tie(weights, group):
+            return 0, False
+        _order_by_weight(weights, group)
+        count += _pack_group(group, ids, weights, n_echo, node_limit, out[count:])
+    return count, True
+
+
+@njit(cache=True)
+def _attach_ids(echo: Any, use: Any, offset: Any, ids: Any) -> None:  # pragma: no cover - compiled
+    """Flat echo id (offset[c] + echo) of every echo a candidate uses, -1 where none."""
+    for row in range(echo.shape[0]):
+        for c in range(echo.shape[1]):
+            ids[row, c] = offset[c] + echo[row, c] if use[row, c] != NONE else -1
+
+
+@njit(cache=True)
+def choose(
+    transmitters: Any,
+    receivers: Any,
+    transmitter_axes: Any,
+    receiver_axes: Any,
+    boresight: Any,
+    required: Any,
+    paths: Any,
+    sigmas: Any,
+    amplitudes: Any,
+    offset: Any,
+    echo: Any,
+    use: Any,
+    position: Any,
+    chi2: Any,
+    amplitude_chi2: Any,
+    merge_sigma: float,
+    merge_reach: float,
+    gates: Any,
+    check_beams: bool,
+    cos_fov: float,
+    min_own: int,
+    sharing_rounds: int,
+    amplitude_log_sigma: float,
+    node_limit: int,
+) -> Any:  # pragma: no cover - compiled
+    """Step 4 of locate.associate (locate._choose_reference) up to the scores.
+
+    Returns (done, echo, use, positions, covariances, chi2, converged, good): the
+    chosen objects' rows and which survive (converged, finite, no duplicate).
+    ``done`` False: weights tie where the reference's order decides; nothing else
+    is meaningful then and the caller runs the reference. ``merge_sigma`` < 0: no
+    merged peaks (resolution None).
+    """
+    n, n_ch = echo.shape
+    d = receivers.shape[1]
+    n_echo = offset[n_ch]
+    min_own_sharing = min_own - 1
+    cap = 2 * n + 1
+    chosen_echo = np.empty((cap, n_ch), dtype=np.int64)
+    chosen_use = np.empty((cap, n_ch), dtype=np.int8)
+    starts = np.empty((cap, d))
+    failed = (
+        False,
+        np.empty((0, n_ch), dtype=np.int64),
+        np.empty((0, n_ch), dtype=np.int8),
+        np.empty((0, d)),
+        np.empty((0, d, d)),
+        np.empty(0),
+        np.empty(0, dtype=np.bool_),
+        np.empty(0, dtype=np.bool_),
+    )
+    weights = np.empty(n)
+    if not _weights(use, chi2, amplitude_chi2, gates, weights):
+        return failed
+    ids = np.empty((n, n_ch), dtype=np.int64)
+    _attach_ids(echo, use, offset, ids)
+    has_shared = np.zeros(n, dtype=np.bool_)
+    for row in range(n):
+        for c in range(n_ch):
+            has_shared[row] = has_shared[row] or use[row, c] == SHARED
+    # First pass: candidates whose echoes are all their own; each echo used once.
+    picked = np.empty(n, dtype=np.int64)
+    count, ok = best_disjoint(np.flatnonzero(~has_shared), ids, weights, n_echo, node_limit, picked)
+    if not ok:
+        return failed
+    # Then candidates with a merged-looking echo no chosen object uses.
+    taken = np.zeros(n_echo, dtype=np.bool_)
+    for i in range(count):
+        for c in range(n_ch):
+            if ids[picked[i], c] >= 0:
+                taken[ids[picked[i], c]] = True
+    second_pass = np.empty(n, dtype=np.int64)
+    n_second = 0
+    identity = np.arange(n_echo)
+    for row in range(n):
+        if has_shared[row] and _disjoint(ids[row], identity, taken):
+            second_pass[n_second] = row
+            n_second += 1
+    more, ok = best_disjoint(second_pass[:n_second], ids, weights, n_echo, node_limit, picked[count:])
+    if not ok:
+        return failed
+    count += more
+    n_chosen = count
+    done = np.zeros(n, dtype=np.bool_)
+    for i in range(count):
+        chosen_echo[i] = echo[picked[i]]
+        chosen_use[i] = use[picked[i]]
+        starts[i] = position[picked[i]]
+        done[picked[i]] = True
+    # Sharing rounds: candidates that lost echoes to chosen objects, with enough left.
+    claimed = np.zeros(n_echo, dtype=np.bool_)
+    retry = np.empty(n, dtype=np.int64)
+    row_ids = np.empty(n_ch, dtype=np.int64)
+    for _ in range(sharing_rounds):
+        claimed[:] = False
+        for i in range(n_chosen):
+            for c in range(n_ch):
+                if chosen_use[i, c] != NONE:
+                    claimed[offset[c] + chosen_echo[i, c]] = True
+        n_retry = 0
+        for row in range(n):
+            if done[row]:
+                continue
+            shared_claimed = True
+            any_shared = False
+            own_claimed = False
+            own_free = 0
+            for c in range(n_ch):
+                e = ids[row, c]
+                if e < 0:
+                    continue
+                if use[row, c] == OWN:
+                    own_claimed = own_claimed or claimed[e]
+                    own_free += not claimed[e]
+                else:
+                    any_shared = True
+                    shared_claimed = shared_claimed and claimed[e]
+            if shared_claimed and (any_shared or own_claimed) and own_free >= min_own_sharing:
+                retry[n_retry] = row
+                n_retry += 1
+        if n_retry == 0:
+            break
+        rows = retry[:n_retry]
+        done[rows] = True
+        new_use = use[rows].copy()
+        for i in range(n_retry):
+            for c in range(n_ch):
+                e = ids[rows[i], c]
+                if e >= 0 and claimed[e]:
+                    new_use[i, c] = SHARED
+        s_echo, s_use, s_position, _, s_chi2, _, s_amplitude = refine(
+            transmitters,
+            receivers,
+            transmitter_axes,
+            receiver_axes,
+            boresight,
+            required,
+            paths,
+            sigmas,
+            amplitudes,
+            offset,
+            echo[rows],
+            new_use,
+            position[rows],
+            merge_sigma,
+            gates,
+            check_beams,
+            cos_fov,
+            min_own,
+            6,
+            amplitude_log_sigma,
+        )
+        m = s_echo.shape[0]
+        s_weights = np.empty(m)
+        order = np.arange(m)
+        if not _weights(s_use, s_chi2, s_amplitude, gates, s_weights):
+            return failed
+        if _has_tie(s_weights, order):
+            # Ties: the order is numpy's (the reference's), whatever its sort does with them.
+            with objmode(order="int64[:]"):
+                order = np.argsort(-s_weights).astype(np.int64)
+        else:
+            _order_by_weight(s_weights, order)
+        taken[:] = False
+        added = False
+        for k in order:
+            clash = False
+            for c in range(n_ch):
+                if s_use[k, c] == NONE:
+                    row_ids[c] = -1
+                    continue
+                row_ids[c] = offset[c] + s_echo[k, c]
+                if s_use[k, c] == SHARED:
+                    clash = clash or not claimed[row_ids[c]]
+                else:
+                    clash = clash or claimed[row_ids[c]] or taken[row_ids[c]]
+            if clash:
+                continue
+            for c in range(n_ch):
+                if s_use[k, c] == OWN:
+                    taken[row_ids[c]] = True
+            chosen_echo[n_chosen] = s_echo[k]
+            chosen_use[n_chosen] = s_use[k]
+            starts[n_chosen] = s_position[k]
+            n_chosen += 1
+            added = True
+        if not added:
+            break
+    # An object must keep echoes no other object explains (else a ghost): worst first.
+    users = np.zeros(n_echo, dtype=np.int64)
+    for i in range(n_chosen):
+        for c in range(n_ch):
+            if chosen_use[i, c] != NONE:
+                users[offset[c] + chosen_echo[i, c]] += 1
+    while n_chosen > 0:
+        worst = -1
+        fewest = n_ch + 1
+        for i in range(n_chosen):
+            exclusive = 0
+            for c in range(n_ch):
+                if chosen_use[i, c] != NONE:
+                    exclusive += users[offset[c] + chosen_echo[i, c]] == 1
+            if exclusive < fewest:
+                fewest = exclusive
+                worst = i
+        if fewest >= min_own_sharing:
+            break
+        for c in range(n_ch):
+            if chosen_use[worst, c] != NONE:
+                users[offset[c] + chosen_echo[worst, c]] -= 1
+        for i in range(worst, n_chosen - 1):
+            chosen_echo[i] = chosen_echo[i + 1]
+            chosen_use[i] = chosen_use[i + 1]
+            starts[i] = starts[i + 1]
+        n_chosen -= 1
+    # Every echo that serves two objects is a merged peak for all of them: re-solve.
+    f_echo = chosen_echo[:n_chosen].copy()
+    f_use = chosen_use[:n_chosen].copy()
+    for i in range(n_chosen):
+        for c in range(n_ch):
+            if f_use[i, c] != NONE and users[offset[c] + f_echo[i, c]] > 1:
+                f_use[i, c] = SHARED
+    f_position = np.full((n_chosen, d), np.nan)
+    f_covariance = np.full((n_chosen, d, d), np.nan)
+    f_chi2 = np.empty(n_chosen)
+    f_converged = np.empty(n_chosen, dtype=np.bool_)
+    good = np.empty(n_chosen, dtype=np.bool_)
+    measured = np.empty(n_ch)
+    row_weights = np.empty(n_ch)
+    work = np.empty((2 * d + 6, d))
+    for i in range(n_chosen):
+        _measure(paths, sigmas, offset, f_echo[i], f_use[i], merge_sigma, measured, row_weights)
+        f_chi2[i], f_converged[i] = _gauss_newton_row(
+            transmitters, receivers, measured, row_weights, starts[i], 4, f_position[i], f_covariance[i], work
+        )
+        good[i] = f_converged[i] and np.all(np.isfinite(f_covariance[i]))
+    # Objects that repeat a better one (paths within a merge's reach everywhere) go.
+    if merge_sigma >= 0.0 and n_chosen >= 2:
+        model = np.empty((n_chosen, n_ch))
+        rank = np.empty(n_chosen)
+        for i in range(n_chosen):
+            for c in range(n_ch):
+                r_t = 0.0
+                r_r = 0.0
+                for j in range(d):
+                    r_t += (f_position[i, j] - transmitters[c, j]) ** 2
+                    r_r += (f_position[i, j] - receivers[c, j]) ** 2
+                model[i, c] = np.sqrt(r_t) + np.sqrt(r_r)
+            n_shared = 0
+            for c in range(n_ch):
+                n_shared += f_use[i, c] == SHARED
+            value = f_chi2[i]
+            if np.isnan(value):
+                value = 1e6
+            elif np.isinf(value):
+                value = np.finfo(np.float64).max if value > 0 else -np.finfo(np.float64).max
+            rank[i] = n_shared * 1e6 + value
+        drop = np.zeros(n_chosen, dtype=np.bool_)
+        for i in range(n_chosen):
+            for j in range(i + 1, n_chosen):
+                close = True
+                for c in range(n_ch):
+                    close = close and abs(model[i, c] - model[j, c]) <= merge_reach
+                if close and not (drop[i] or drop[j]):
+                    drop[i if rank[i] > rank[j] else j] = True
+        good &= ~drop
+    return True, f_echo, f_use, f_position, f_covariance, f_chi2, f_converged, good
+
+
+@njit(cache=True)
+def _measure(
+    paths: Any, sigmas: Any, offset: Any, echo: Any, use: Any, merge_sigma: float, measured: Any, weights: Any
+) -> int:  # pragma: no cover - compiled
+    """locate._measurements for one candidate into ``measured``/``weights``; returns the channels used."""
+    n_used = 0
+    for c in range(echo.shape[0]):
+        if use[c] == NONE:
+            measured[c] = 0.0
+            weights[c] = 0.0
+            continue
+        n_used += 1
+        k = offset[c] + echo[c]
+        sigma = sigmas[k]
+        if merge_sigma >= 0.0 and use[c] == SHARED:
+            sigma = np.hypot(sigma, merge_sigma)
+        measured[c] = paths[k]
+        weights[c] = 1.0 / sigma**2
+    return n_used

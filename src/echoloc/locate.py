@@ -867,7 +867,75 @@ def _weights(candidates: _Candidates, options: LocateOptions, dim: int) -> NDArr
 def _choose(
     geometry: _Geometry, candidates: _Candidates, echoes: _Echoes, options: LocateOptions
 ) -> list[_Chosen]:
-    """Step 4: the heaviest disjoint set, then rounds that share merged echoes, a final re-solve."""
+    """Step 4: the heaviest disjoint set, then rounds that share merged echoes, a final re-solve.
+
+    Runs compiled (:func:`echoloc._locate_kernels.choose`) but for the scores;
+    :func:`_choose_reference` is the same in Python and numpy, and takes over when
+    packing weights tie (its order, from set iteration, then decides).
+    """
+    if not _COMPILED:
+        return _choose_reference(geometry, candidates, echoes, options)
+    from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
+
+    done, echo, use, position, covariance, chi2, _, good = kernels.choose(
+        geometry.transmitters_m,
+        geometry.receivers_m,
+        geometry.transmitter_axes,
+        geometry.receiver_axes,
+        geometry.boresight,
+        geometry.required,
+        echoes.paths,
+        echoes.sigmas,
+        _NO_AMPLITUDES if echoes.amplitudes is None else echoes.amplitudes,
+        echoes.offset,
+        candidates.echo,
+        candidates.use,
+        candidates.solution.position_m,
+        candidates.solution.chi2,
+        candidates.amplitude_chi2,
+        -1.0 if options.resolution_m is None else _merge_sigma(options.resolution_m),
+        _merge_reach(options),
+        _gates(options.gate_probability, geometry.dim, geometry.n),
+        _checks_beams(options),
+        float(np.cos(np.radians(options.field_of_view_deg))),
+        max(options.min_receivers, geometry.dim),
+        _SHARING_ROUNDS if options.resolution_m is not None else 0,
+        AMPLITUDE_LOG_SIGMA,
+        _NODE_LIMIT,
+    )
+    if not done:
+        return _choose_reference(geometry, candidates, echoes, options)
+    rows = np.flatnonzero(good)
+    if len(rows) == 0:
+        return []
+    use = use[rows]
+    n_used = np.sum(use != _NONE, axis=1)
+    dof = n_used - geometry.dim
+    score = np.where(dof > 0, special.chdtrc(np.maximum(dof, 1), chi2[rows]), 1.0).tolist()
+    result = []
+    for k, (echo_row, use_row) in enumerate(zip(echo[rows].tolist(), use.tolist(), strict=True)):
+        channels = [c for c, u in enumerate(use_row) if u != _NONE]
+        result.append(
+            _Chosen(
+                position[rows[k]],
+                covariance[rows[k]],
+                tuple(channels),
+                tuple(echo_row[c] for c in channels),
+                float(chi2[rows[k]]),
+                float(score[k]),
+                sum(1 for u in use_row if u == _SHARED),
+            )
+        )
+    return result
+
+
+_NODE_LIMIT = 50_000
+
+
+def _choose_reference(
+    geometry: _Geometry, candidates: _Candidates, echoes: _Echoes, options: LocateOptions
+) -> list[_Chosen]:
+    """:func:`_choose` in Python and numpy."""
     weights = _weights(candidates, options, geometry.dim).tolist()
     echo_rows: list[list[int]] = candidates.echo.tolist()
     use_rows: list[list[int]] = candidates.use.tolist()
@@ -1022,7 +1090,7 @@ def _rows(solution: Solution, rows: list[int]) -> Solution:
     )
 
 
-def _best_disjoint(candidates: list[_Candidate], node_limit: int = 50_000) -> list[int]:
+def _best_disjoint(candidates: list[_Candidate], node_limit: int = _NODE_LIMIT) -> list[int]:
     """Indices of the heaviest set of candidates that share no echo (weighted set packing).
 
     Solved exactly by branch and bound on each connected group of conflicting
