@@ -141,3 +141,58 @@ def test_tied_weights_leave_the_packing_to_the_reference() -> None:
     )
     assert done
     assert out[:count].tolist() == [1, 2]
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    channels=st.lists(
+        st.lists(st.sampled_from([0.5, 0.7, 1.1, np.nan]) | st.floats(0.0, 3.0), max_size=8),
+        min_size=1,
+        max_size=6,
+    )
+)
+def test_the_compiled_sort_within_channels_matches_lexsort(channels: list) -> None:
+    """Each channel's paths sorted stably (ties keep their order, NaN last), as np.lexsort does."""
+    from echoloc import _locate_kernels
+
+    paths = np.array([p for ch in channels for p in ch], dtype=float)
+    offset = np.cumsum([0] + [len(ch) for ch in channels])
+    channel = np.repeat(np.arange(len(channels)), np.diff(offset))
+    order = np.lexsort((paths, channel))
+    sorted_paths, sorted_index = _locate_kernels.sort_within_channels(paths, offset)
+    np.testing.assert_array_equal(sorted_paths, paths[order])
+    np.testing.assert_array_equal(sorted_index, order - offset[channel[order]])
+
+
+@settings(max_examples=200, deadline=None)
+@given(rows=st.lists(st.tuples(st.integers(-1, 2), st.integers(-1, 2), st.integers(0, 2)), max_size=40))
+def test_the_compiled_first_of_each_matches_the_reference(rows: list) -> None:
+    """The first row of every distinct (echo, use), in order, as locate._first_of_each."""
+    from echoloc import _locate_kernels
+
+    echo = np.array([[a, b] for a, b, _ in rows], dtype=np.int64).reshape(-1, 2)
+    use = np.array([[u, 2 - u] for _, _, u in rows], dtype=np.int8).reshape(-1, 2)
+    padded_echo, padded_use = (
+        np.vstack([echo, np.zeros((3, 2), np.int64)]),
+        np.vstack([use, np.zeros((3, 2), np.int8)]),
+    )
+    expected = locate._first_of_each(echo, use)
+    assert _locate_kernels.first_of_each(padded_echo, padded_use, len(rows)).tolist() == expected
+
+
+def test_the_geometry_cache_tells_streams_apart() -> None:
+    """The cached per-stream setup follows usable receivers and axes: a dead receiver or a
+    narrower beam on a later call is not answered from an earlier call's geometry."""
+    rng, points = _scene(7)
+    frame = _frame(rng, 0, TRANSMITTERS[0], points)
+    all_four = locate_frame(frame, TRANSMITTERS[0], CROSS, OPTIONS[0])
+    dead = locate_frame(frame, TRANSMITTERS[0], CROSS, OPTIONS[0], np.array([True, False, True, True]))
+    assert all(1 not in o.receivers for o in dead.objects)
+    assert any(1 in o.receivers for o in all_four.objects)
+    tilted = np.tile([0.0, 0.6, 0.8], (4, 1))
+    options = LocateOptions(resolution_m=0.0275, field_of_view_deg=30.0, receiver_axes=tilted)
+    again = locate_frame(frame, TRANSMITTERS[0], CROSS, options)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(locate, "_SETUPS", {})
+        fresh = locate_frame(frame, TRANSMITTERS[0], CROSS, options)
+    _assert_same(fresh.objects, again.objects)

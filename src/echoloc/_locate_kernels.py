@@ -1166,3 +1166,57 @@ def _measure(
         measured[c] = paths[k]
         weights[c] = 1.0 / sigma**2
     return n_used
+
+
+@njit(cache=True)
+def sort_within_channels(paths: Any, offset: Any) -> Any:  # pragma: no cover - compiled
+    """Each channel's paths sorted, and their echo indices: np.lexsort((paths, channel)) of
+    locate._seed_candidates (stable insertion sort, NaN last)."""
+    sorted_paths = paths.copy()
+    sorted_index = np.empty(paths.shape[0], dtype=np.int64)
+    for c in range(offset.shape[0] - 1):
+        lo = offset[c]
+        for i in range(lo, offset[c + 1]):
+            value = paths[i]
+            j = i - 1
+            while j >= lo and (
+                sorted_paths[j] > value or (np.isnan(sorted_paths[j]) and not np.isnan(value))
+            ):
+                sorted_paths[j + 1] = sorted_paths[j]
+                sorted_index[j + 1] = sorted_index[j]
+                j -= 1
+            sorted_paths[j + 1] = value
+            sorted_index[j + 1] = i - lo
+    return sorted_paths, sorted_index
+
+
+@njit(cache=True)
+def first_of_each(echo: Any, use: Any, count: int) -> Any:  # pragma: no cover - compiled
+    """Indices (ascending) of the first of every distinct (echo, use) row among the first ``count``."""
+    n_ch = echo.shape[1]
+    size = 1
+    while size < 2 * count + 1:
+        size *= 2
+    table = np.full(size, -1, dtype=np.int64)
+    first = np.empty(count, dtype=np.int64)
+    n_first = 0
+    for row in range(count):
+        h = 1469598103934665603
+        for c in range(n_ch):
+            h = (h ^ (echo[row, c] + 1)) * 1099511628211
+            h = (h ^ use[row, c]) * 1099511628211
+        slot = h & (size - 1)
+        while True:
+            other = table[slot]
+            if other < 0:
+                table[slot] = row
+                first[n_first] = row
+                n_first += 1
+                break
+            same = True
+            for c in range(n_ch):
+                same = same and echo[other, c] == echo[row, c] and use[other, c] == use[row, c]
+            if same:
+                break
+            slot = (slot + 1) & (size - 1)
+    return first[:n_first]

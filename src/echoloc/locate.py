@@ -26,7 +26,7 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass, field
 from functools import lru_cache
-from itertools import combinations
+from itertools import combinations, pairwise
 from typing import Any
 
 import numpy as np
@@ -465,22 +465,10 @@ def associate(
     """
     receivers = np.asarray(receivers_m, dtype=float)
     n_ch, dim = receivers.shape
-    usable_mask = np.ones(n_ch, dtype=bool) if usable is None else np.asarray(usable, dtype=bool)
-    tx = np.broadcast_to(np.asarray(transmitter_m, dtype=float), (n_ch, dim))
-    tx_index = (
-        np.zeros(n_ch, np.int64) if transmitter_index is None else np.asarray(transmitter_index, np.int64)
-    )
-    rx_index = np.arange(n_ch) if receiver_index is None else np.asarray(receiver_index, np.int64)
-    if transmitter_index is None and np.ndim(transmitter_m) == 2:
-        _, tx_index = np.unique(tx, axis=0, return_inverse=True)
-        tx_index = tx_index.reshape(-1)
-    active = np.flatnonzero(usable_mask)
+    setup = _setup(transmitter_m, receivers, usable, transmitter_index, receiver_index, required, options)
+    geometry, active, origin, receiver_of, transmitter_of = setup
     if len(active) < max(options.min_receivers, dim):
         return []
-    must = np.ones(n_ch, dtype=bool) if required is None else np.asarray(required, dtype=bool)
-    geometry = _geometry(
-        tx[active], receivers[active], tx_index[active], rx_index[active], must[active], options, dim
-    )
     echoes = _flatten(
         [paths[c] for c in active],
         [sigmas[c] for c in active],
@@ -491,8 +479,6 @@ def associate(
         return []
     candidates = _refine(geometry, candidates, echoes, options)
     chosen = _choose(geometry, candidates, echoes, options)
-    receiver_of = rx_index[active].tolist()
-    transmitter_of = tx_index[active].tolist()
     objects = [
         LocatedObject(
             position_m=obj.position_m,
@@ -506,8 +492,79 @@ def associate(
         )
         for obj in chosen
     ]
-    objects.sort(key=lambda o: float(np.linalg.norm(o.position_m - tx[0])))
+    objects.sort(key=lambda o: float(np.linalg.norm(o.position_m - origin)))
     return objects
+
+
+_Setup = tuple[_Geometry, list[int], NDArray[np.float64], list[int], list[int]]
+_SETUPS: dict[tuple[Any, ...], _Setup] = {}
+
+
+def _key(a: Any) -> tuple[Any, ...] | None:
+    """Hashable value of an array argument (None stays None)."""
+    if a is None:
+        return None
+    a = np.asarray(a)
+    return (a.shape, a.dtype.str, a.tobytes())
+
+
+def _setup(
+    transmitter_m: NDArray[np.float64],
+    receivers: NDArray[np.float64],
+    usable: NDArray[np.bool_] | None,
+    transmitter_index: NDArray[np.int64] | None,
+    receiver_index: NDArray[np.int64] | None,
+    required: NDArray[np.bool_] | None,
+    options: LocateOptions,
+) -> _Setup:
+    """The geometry of the usable channels, their indices, the origin of the objects' order,
+    and each channel's receiver and transmitter: the same for every frame of a stream (cached)."""
+    key = (
+        _key(transmitter_m),
+        _key(receivers),
+        _key(usable),
+        _key(transmitter_index),
+        _key(receiver_index),
+        _key(required),
+        options.boresight,
+        _key(options.transmitter_axes),
+        _key(options.receiver_axes),
+    )
+    setup = _SETUPS.get(key)
+    if setup is None:
+        if len(_SETUPS) >= 64:
+            _SETUPS.clear()
+        setup = _SETUPS[key] = _make_setup(
+            transmitter_m, receivers, usable, transmitter_index, receiver_index, required, options
+        )
+    return setup
+
+
+def _make_setup(
+    transmitter_m: NDArray[np.float64],
+    receivers: NDArray[np.float64],
+    usable: NDArray[np.bool_] | None,
+    transmitter_index: NDArray[np.int64] | None,
+    receiver_index: NDArray[np.int64] | None,
+    required: NDArray[np.bool_] | None,
+    options: LocateOptions,
+) -> _Setup:
+    n_ch, dim = receivers.shape
+    usable_mask = np.ones(n_ch, dtype=bool) if usable is None else np.asarray(usable, dtype=bool)
+    tx = np.broadcast_to(np.asarray(transmitter_m, dtype=float), (n_ch, dim))
+    tx_index = (
+        np.zeros(n_ch, np.int64) if transmitter_index is None else np.asarray(transmitter_index, np.int64)
+    )
+    rx_index = np.arange(n_ch) if receiver_index is None else np.asarray(receiver_index, np.int64)
+    if transmitter_index is None and np.ndim(transmitter_m) == 2:
+        _, tx_index = np.unique(tx, axis=0, return_inverse=True)
+        tx_index = tx_index.reshape(-1)
+    active = np.flatnonzero(usable_mask)
+    must = np.ones(n_ch, dtype=bool) if required is None else np.asarray(required, dtype=bool)
+    geometry = _geometry(
+        tx[active], receivers[active], tx_index[active], rx_index[active], must[active], options, dim
+    )
+    return geometry, active.tolist(), tx[0].copy(), rx_index[active].tolist(), tx_index[active].tolist()
 
 
 def _geometry(
@@ -528,15 +585,21 @@ def _geometry(
         a = np.asarray(given, dtype=float)[index][:, -dim:]
         return np.asarray(a / np.linalg.norm(a, axis=1, keepdims=True))
 
+    # C-ordered, writeable arrays: what the compiled stages take as they are.
     return _Geometry(
-        tx,
-        rx,
-        tx_index,
-        rx_index,
-        required,
-        axes(options.transmitter_axes, tx_index),
-        axes(options.receiver_axes, rx_index),
-        boresight,
+        *(
+            np.array(a, order="C")
+            for a in (
+                tx,
+                rx,
+                tx_index,
+                rx_index,
+                required,
+                axes(options.transmitter_axes, tx_index),
+                axes(options.receiver_axes, rx_index),
+                boresight,
+            )
+        )
     )
 
 
@@ -566,27 +629,27 @@ def _seed_candidates(geometry: _Geometry, echoes: _Echoes, options: LocateOption
     """
     dim, n_ch = geometry.dim, geometry.n
     seeds = np.array(_seed_sets(geometry), dtype=np.int64).reshape(-1, dim)
-    # Sorted within each channel: by channel first, then by path.
-    channel = np.repeat(np.arange(n_ch), np.diff(echoes.offset))
-    order = np.lexsort((echoes.paths, channel))
-    sorted_paths = echoes.paths[order]
-    sorted_index = order - echoes.offset[channel[order]]
-    low, high = options.window_m
-    capacity = 4096
     from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
 
+    # Sorted within each channel: by channel first, then by path.
+    if _COMPILED:
+        sorted_paths, sorted_index = kernels.sort_within_channels(echoes.paths, echoes.offset)
+    else:
+        channel = np.repeat(np.arange(n_ch), np.diff(echoes.offset))
+        order = np.lexsort((echoes.paths, channel))
+        sorted_paths = echoes.paths[order]
+        sorted_index = order - echoes.offset[channel[order]]
+    low, high = options.window_m
+    capacity = 4096
+
     while True:
-
-        def contiguous(a: NDArray[Any]) -> NDArray[Any]:
-            return np.array(a, order="C")
-
         echo, use, points, count, overflow = kernels.seed_candidates(
-            contiguous(geometry.transmitters_m),
-            contiguous(geometry.receivers_m),
-            contiguous(geometry.transmitter_axes),
-            contiguous(geometry.receiver_axes),
-            contiguous(geometry.boresight),
-            contiguous(geometry.required),
+            geometry.transmitters_m,
+            geometry.receivers_m,
+            geometry.transmitter_axes,
+            geometry.receiver_axes,
+            geometry.boresight,
+            geometry.required,
             echoes.paths,
             echoes.sigmas,
             echoes.offset,
@@ -613,15 +676,23 @@ def _seed_candidates(geometry: _Geometry, echoes: _Echoes, options: LocateOption
             return _no_candidates(n_ch, dim)
         capacity *= 4
     # The same object comes from several seeds: keep one of each echo set.
-    seen: set[tuple[int, ...]] = set()
-    first = []
-    for k, row in enumerate(np.concatenate([echo[:count], use[:count].astype(np.int64)], axis=1).tolist()):
-        if tuple(row) not in seen:
-            seen.add(tuple(row))
-            first.append(k)
+    first = (
+        kernels.first_of_each(echo, use, count) if _COMPILED else _first_of_each(echo[:count], use[:count])
+    )
     return _Candidates(
         echo[first], use[first], _empty_solution(len(first), dim, points[first]), np.zeros(len(first))
     )
+
+
+def _first_of_each(echo: NDArray[np.int64], use: NDArray[np.int8]) -> list[int]:
+    """Rows that are the first of their (echo, use) (numpy reference of the compiled one)."""
+    seen: set[tuple[int, ...]] = set()
+    first = []
+    for k, row in enumerate(np.concatenate([echo, use.astype(np.int64)], axis=1).tolist()):
+        if tuple(row) not in seen:
+            seen.add(tuple(row))
+            first.append(k)
+    return first
 
 
 def _no_candidates(n_ch: int, dim: int) -> _Candidates:
@@ -1178,9 +1249,19 @@ def locate_frame(
 ) -> FrameObjects:
     """Objects of one frame from its echoes (one transmitter, one channel per receiver)."""
     c = frame_echoes.speed_of_sound_m_s
-    paths = [ch.tof_s * c for ch in frame_echoes.channels]
-    sigmas = [path_sigmas_m(ch.snr_db, c, options) for ch in frame_echoes.channels]
-    amplitudes = [ch.amplitude for ch in frame_echoes.channels]
+    channels = frame_echoes.channels
+    if _COMPILED and channels:
+        # Every channel at once (the same element-wise arithmetic, fewer numpy calls).
+        bounds = np.cumsum([0] + [len(ch.tof_s) for ch in channels]).tolist()
+        all_paths = np.concatenate([ch.tof_s for ch in channels]) * c
+        all_sigmas = path_sigmas_m(np.concatenate([ch.snr_db for ch in channels]), c, options)
+        spans = list(pairwise(bounds))
+        paths = [all_paths[lo:hi] for lo, hi in spans]
+        sigmas = [all_sigmas[lo:hi] for lo, hi in spans]
+    else:
+        paths = [ch.tof_s * c for ch in channels]
+        sigmas = [path_sigmas_m(ch.snr_db, c, options) for ch in channels]
+    amplitudes = [ch.amplitude for ch in channels]
     objects = associate(transmitter_m, receivers_m, paths, sigmas, options, usable, amplitudes)
     return FrameObjects(frame_echoes.frame, frame_echoes.time_s, tuple(objects))
 
