@@ -115,7 +115,7 @@ def _exact_work(t: Any, receivers: Any, paths: Any, points: Any, work: Any) -> i
                 if col != j:
                     minor[i, k] = m[i, col]
                     k += 1
-        v[j] = (-1.0) ** j * _det(minor)
+        v[j] = (1.0 if j % 2 == 0 else -1.0) * _det(minor)
     # Particular solution u0 = M^T (M M^T)^-1 b.
     for i in range(d):
         for k in range(d):
@@ -242,6 +242,7 @@ def seed_candidates(
     column = np.empty(d)
     work = np.empty((4 * d + 4, d + 1))
     sizes = np.empty(d, dtype=np.int64)
+    pair_reach = np.zeros((d, d))
     for s_index in range(seeds.shape[0]):
         seed = seeds[s_index]
         empty = False
@@ -256,136 +257,140 @@ def seed_candidates(
         for k in range(d):
             for j in range(d):
                 seed_rx[k, j] = receivers[seed[k], j]
-        while True:
-            # One combination of echoes on the seed channels: triangle-inequality pruning.
-            feasible = True
-            for k in range(d):
-                c = seed[k]
-                seed_paths[k] = flat_paths[offset[c] + choice[k]]
-                seed_sigmas[k] = flat_sigmas[offset[c] + choice[k]]
-                if seed_paths[k] < direct[c] - 4.0 * seed_sigmas[k]:
-                    feasible = False
-            if feasible:
+        for k in range(d):
+            for q in range(k):
+                a, b = seed[k], seed[q]
+                span = 0.0
+                span_t = 0.0
+                for j in range(d):
+                    span += (receivers[a, j] - receivers[b, j]) ** 2
+                    span_t += (transmitters[a, j] - transmitters[b, j]) ** 2
+                pair_reach[k, q] = np.sqrt(span) + np.sqrt(span_t)
+        # Combinations of one echo per seed channel, depth first (the last channel's echo
+        # changing fastest); triangle-inequality pruning on each prefix skips every
+        # combination that shares an infeasible one.
+        level = 0
+        while level >= 0:
+            if choice[level] == sizes[level]:
+                choice[level] = 0
+                level -= 1
+                if level >= 0:
+                    choice[level] += 1
+                continue
+            c = seed[level]
+            seed_paths[level] = flat_paths[offset[c] + choice[level]]
+            seed_sigmas[level] = flat_sigmas[offset[c] + choice[level]]
+            feasible = not seed_paths[level] < direct[c] - 4.0 * seed_sigmas[level]
+            for q in range(level):
+                tol = 4.0 * np.sqrt(seed_sigmas[level] ** 2 + seed_sigmas[q] ** 2)
+                feasible = (
+                    feasible and not abs(seed_paths[level] - seed_paths[q]) > pair_reach[level, q] + tol
+                )
+            if not feasible:
+                choice[level] += 1
+                continue
+            if level < d - 1:
+                level += 1
+                continue
+            n_points = _exact_work(t, seed_rx, seed_paths, points, work)
+            for r in range(n_points):
+                p = points[r]
+                ahead = 0.0
+                for j in range(d):
+                    ahead += (p[j] - transmitters[0, j]) * boresight[j]
+                if not ahead > 0.0:
+                    continue
+                ok = True
                 for k in range(d):
-                    for q in range(k):
-                        a, b = seed[k], seed[q]
-                        span = 0.0
-                        span_t = 0.0
-                        for j in range(d):
-                            span += (receivers[a, j] - receivers[b, j]) ** 2
-                            span_t += (transmitters[a, j] - transmitters[b, j]) ** 2
-                        tol = 4.0 * np.sqrt(seed_sigmas[k] ** 2 + seed_sigmas[q] ** 2)
-                        if abs(seed_paths[k] - seed_paths[q]) > np.sqrt(span) + np.sqrt(span_t) + tol:
-                            feasible = False
-            if feasible:
-                n_points = _exact_work(t, seed_rx, seed_paths, points, work)
-                for r in range(n_points):
-                    p = points[r]
-                    ahead = 0.0
+                    c = seed[k]
+                    ok = ok and _in_beam(p, transmitters[c], transmitter_axes[c], cos_fov)
+                    ok = ok and _in_beam(p, receivers[c], receiver_axes[c], cos_fov)
+                if not ok:
+                    continue
+                for c in range(n_ch):
+                    r_t = 0.0
+                    r_r = 0.0
                     for j in range(d):
-                        ahead += (p[j] - transmitters[0, j]) * boresight[j]
-                    if not ahead > 0.0:
-                        continue
-                    ok = True
-                    for k in range(d):
-                        c = seed[k]
-                        ok = ok and _in_beam(p, transmitters[c], transmitter_axes[c], cos_fov)
-                        ok = ok and _in_beam(p, receivers[c], receiver_axes[c], cos_fov)
-                    if not ok:
-                        continue
-                    for c in range(n_ch):
-                        r_t = 0.0
-                        r_r = 0.0
-                        for j in range(d):
-                            r_t += (p[j] - transmitters[c, j]) ** 2
-                            r_r += (p[j] - receivers[c, j]) ** 2
-                        r_t = np.sqrt(r_t)
-                        r_r = np.sqrt(r_r)
-                        predicted[c] = r_t + r_r
-                        for j in range(d):
-                            jac[c, j] = (p[j] - transmitters[c, j]) / r_t + (p[j] - receivers[c, j]) / r_r
-                    for k in range(d):
-                        for j in range(d):
-                            seed_jac[k, j] = jac[seed[k], j]
-                    for i in range(d):
-                        for j in range(d):
-                            acc = 0.0
-                            for k in range(d):
-                                acc += seed_jac[k, i] * seed_jac[k, j]
-                            normal[i, j] = acc
-                    if not _well_conditioned(normal):
-                        continue
-                    n_own = 0
-                    keep = True
-                    for c in range(n_ch):
-                        in_seed = -1
+                        r_t += (p[j] - transmitters[c, j]) ** 2
+                        r_r += (p[j] - receivers[c, j]) ** 2
+                    r_t = np.sqrt(r_t)
+                    r_r = np.sqrt(r_r)
+                    predicted[c] = r_t + r_r
+                    for j in range(d):
+                        jac[c, j] = (p[j] - transmitters[c, j]) / r_t + (p[j] - receivers[c, j]) / r_r
+                for k in range(d):
+                    for j in range(d):
+                        seed_jac[k, j] = jac[seed[k], j]
+                for i in range(d):
+                    for j in range(d):
+                        acc = 0.0
                         for k in range(d):
-                            if seed[k] == c:
-                                in_seed = k
-                        if in_seed >= 0:
-                            row_echo[c] = choice[in_seed]
+                            acc += seed_jac[k, i] * seed_jac[k, j]
+                        normal[i, j] = acc
+                if not _well_conditioned(normal):
+                    continue
+                n_own = 0
+                keep = True
+                for c in range(n_ch):
+                    in_seed = -1
+                    for k in range(d):
+                        if seed[k] == c:
+                            in_seed = k
+                    if in_seed >= 0:
+                        row_echo[c] = choice[in_seed]
+                        row_use[c] = OWN
+                        n_own += 1
+                        continue
+                    row_echo[c] = -1
+                    row_use[c] = NONE
+                    visible = _in_beam(p, transmitters[c], transmitter_axes[c], cos_fov)
+                    visible = visible and _in_beam(p, receivers[c], receiver_axes[c], cos_fov)
+                    outside = predicted[c] < window_low or predicted[c] > window_high
+                    if not visible or outside:
+                        continue  # this channel cannot see the point: no echo, none needed
+                    # Prediction variance from the seed: g_c J_s^-1, squared, times sigma^2.
+                    for i in range(d):
+                        column[i] = jac[c, i]
+                        for j in range(d):
+                            lhs[i, j] = seed_jac[j, i]
+                    if not _solve_in_place(lhs, column, gain):
+                        keep = False
+                        break
+                    var = 0.0
+                    for k in range(d):
+                        var += gain[k] ** 2 * seed_sigmas[k] ** 2
+                    lo, hi = offset[c], offset[c + 1]
+                    if hi > lo:
+                        pos = lo + np.searchsorted(sorted_paths[lo:hi], predicted[c])
+                        best = -1
+                        gap = np.inf
+                        for cand in (pos - 1, pos):
+                            if lo <= cand < hi and abs(sorted_paths[cand] - predicted[c]) < gap:
+                                gap = abs(sorted_paths[cand] - predicted[c])
+                                best = cand
+                        echo_index = sorted_index[best]
+                        reach = k_gate * np.sqrt(var + flat_sigmas[lo + echo_index] ** 2)
+                        if gap <= reach:
+                            row_echo[c] = echo_index
                             row_use[c] = OWN
                             n_own += 1
-                            continue
-                        row_echo[c] = -1
-                        row_use[c] = NONE
-                        visible = _in_beam(p, transmitters[c], transmitter_axes[c], cos_fov)
-                        visible = visible and _in_beam(p, receivers[c], receiver_axes[c], cos_fov)
-                        outside = predicted[c] < window_low or predicted[c] > window_high
-                        if not visible or outside:
-                            continue  # this channel cannot see the point: no echo, none needed
-                        # Prediction variance from the seed: g_c J_s^-1, squared, times sigma^2.
-                        for i in range(d):
-                            column[i] = jac[c, i]
-                            for j in range(d):
-                                lhs[i, j] = seed_jac[j, i]
-                        if not _solve_in_place(lhs, column, gain):
-                            keep = False
-                            break
-                        var = 0.0
-                        for k in range(d):
-                            var += gain[k] ** 2 * seed_sigmas[k] ** 2
-                        lo, hi = offset[c], offset[c + 1]
-                        if hi > lo:
-                            pos = lo + np.searchsorted(sorted_paths[lo:hi], predicted[c])
-                            best = -1
-                            gap = np.inf
-                            for cand in (pos - 1, pos):
-                                if lo <= cand < hi and abs(sorted_paths[cand] - predicted[c]) < gap:
-                                    gap = abs(sorted_paths[cand] - predicted[c])
-                                    best = cand
-                            echo_index = sorted_index[best]
-                            reach = k_gate * np.sqrt(var + flat_sigmas[lo + echo_index] ** 2)
-                            if gap <= reach:
-                                row_echo[c] = echo_index
-                                row_use[c] = OWN
-                                n_own += 1
-                            elif required[c] and gap <= merge_reach + reach:
-                                # A merged peak; on an optional channel (an older frame) a
-                                # larger gap means the reflector moved: no support there.
-                                row_echo[c] = echo_index
-                                row_use[c] = SHARED
-                        if row_use[c] == NONE and required[c]:
-                            # A required channel that can see the point must show its echo.
-                            keep = False
-                            break
-                    if keep and n_own >= min_own:
-                        if count == capacity:
-                            return echo_out, use_out, points_out, count, True
-                        echo_out[count] = row_echo
-                        use_out[count] = row_use
-                        points_out[count] = p
-                        count += 1
-            # Next combination (odometer over the seed channels).
-            k = d - 1
-            while k >= 0:
-                choice[k] += 1
-                if choice[k] < sizes[k]:
-                    break
-                choice[k] = 0
-                k -= 1
-            if k < 0:
-                break
+                        elif required[c] and gap <= merge_reach + reach:
+                            # A merged peak; on an optional channel (an older frame) a
+                            # larger gap means the reflector moved: no support there.
+                            row_echo[c] = echo_index
+                            row_use[c] = SHARED
+                    if row_use[c] == NONE and required[c]:
+                        # A required channel that can see the point must show its echo.
+                        keep = False
+                        break
+                if keep and n_own >= min_own:
+                    if count == capacity:
+                        return echo_out, use_out, points_out, count, True
+                    echo_out[count] = row_echo
+                    use_out[count] = row_use
+                    points_out[count] = p
+                    count += 1
+            choice[level] += 1
     return echo_out, use_out, points_out, count, False
 
 
