@@ -26,7 +26,7 @@ def _solve(a: Any, b: Any, x: Any) -> bool:  # pragma: no cover - compiled
     return _solve_in_place(a.copy(), b.copy(), x)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _solve_in_place(m: Any, v: Any, x: Any) -> bool:  # pragma: no cover - compiled
     """:func:`_solve` overwriting ``m`` and ``v`` (no allocation: called per echo combination)."""
     n = m.shape[0]
@@ -54,7 +54,7 @@ def _solve_in_place(m: Any, v: Any, x: Any) -> bool:  # pragma: no cover - compi
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _det(a: Any) -> float:  # pragma: no cover - compiled
     """Determinant of a 1x1, 2x2 or 3x3 matrix."""
     n = a.shape[0]
@@ -69,7 +69,7 @@ def _det(a: Any) -> float:  # pragma: no cover - compiled
     )
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _well_conditioned(normal: Any) -> bool:  # pragma: no cover - compiled
     """det > 1e-12 x product of the diagonal (Hadamard's bound): not near-singular."""
     bound = 1.0
@@ -87,7 +87,7 @@ def _exact(t: Any, receivers: Any, paths: Any, points: Any) -> int:  # pragma: n
     return _exact_work(t, receivers, paths, points, np.empty((4 * d + 4, d + 1)))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _exact_work(t: Any, receivers: Any, paths: Any, points: Any, work: Any) -> int:  # pragma: no cover
     """:func:`_exact` in the scratch rows ``work`` (4 D + 4, D + 1): no allocation per combination."""
     d = paths.shape[0]
@@ -176,7 +176,7 @@ def _exact_work(t: Any, receivers: Any, paths: Any, points: Any, work: Any) -> i
     return found
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _in_beam(point: Any, origin: Any, axis: Any, cos_fov: float) -> bool:  # pragma: no cover - compiled
     along = 0.0
     dist2 = 0.0
@@ -425,7 +425,7 @@ def gauss_newton(
     return positions, covariances, chi2, converged
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _gauss_newton_row(
     transmitters: Any,
     receivers: Any,
@@ -796,7 +796,7 @@ def _pack_group(
     return n_best
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _disjoint(ids: Any, local: Any, used: Any) -> bool:  # pragma: no cover - compiled
     """Whether no echo of a candidate (flat ids, -1 none) is marked in ``used`` (by ``local`` number)."""
     free = True
@@ -805,7 +805,7 @@ def _disjoint(ids: Any, local: Any, used: Any) -> bool:  # pragma: no cover - co
     return free
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _mark(ids: Any, local: Any, used: Any, value: bool) -> None:  # pragma: no cover - compiled
     for c in range(ids.shape[0]):
         if ids[c] >= 0:
@@ -1152,7 +1152,7 @@ def choose(
     return True, f_echo, f_use, f_position, f_covariance, f_chi2, f_converged, good
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _measure(
     paths: Any, sigmas: Any, offset: Any, echo: Any, use: Any, merge_sigma: float, measured: Any, weights: Any
 ) -> int:  # pragma: no cover - compiled

@@ -23,11 +23,12 @@ transmitter's place (a transducer that both sends and receives).
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass, field
 from functools import lru_cache
 from itertools import combinations, pairwise
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -492,8 +493,13 @@ def associate(
         )
         for obj in chosen
     ]
-    objects.sort(key=lambda o: float(np.linalg.norm(o.position_m - origin)))
+    objects.sort(key=lambda o: _distance(o.position_m - origin))
     return objects
+
+
+def _distance(offset: NDArray[np.float64]) -> float:
+    """np.linalg.norm of a vector, as it computes it (sqrt of the dot product), without its overhead."""
+    return math.sqrt(float(offset.dot(offset)))
 
 
 _Setup = tuple[_Geometry, list[int], NDArray[np.float64], list[int], list[int]]
@@ -907,8 +913,9 @@ def _amplitude_chi2(
     return np.asarray(np.nan_to_num(spread2 / AMPLITUDE_LOG_SIGMA**2 / count, nan=1e3, posinf=1e3))
 
 
-@dataclass(frozen=True, eq=False)
-class _Chosen:
+class _Chosen(NamedTuple):
+    """One chosen object (a named tuple: built per object and frame, so cheaply)."""
+
     position_m: NDArray[np.float64]
     covariance_m2: NDArray[np.float64]
     receivers: tuple[int, ...]  # channel indices (mapped to receivers by associate)
