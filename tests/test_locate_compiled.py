@@ -196,3 +196,38 @@ def test_the_geometry_cache_tells_streams_apart() -> None:
         patch.setattr(locate, "_SETUPS", {})
         fresh = locate_frame(frame, TRANSMITTERS[0], CROSS, options)
     _assert_same(fresh.objects, again.objects)
+
+
+def test_options_that_differ_only_in_their_axes_are_told_apart() -> None:
+    """LocateOptions hash without their axes: the compiled path's cached options must still
+    hold a solution to receivers' own axes when those are given, and not when not."""
+    points = np.array([[0.1, -0.45, 0.4], [0.0, 0.3, 0.8]])  # the first behind the tilted receivers
+    frame = _frame(np.random.default_rng(11), 0, TRANSMITTERS[0], points)
+    tilted = np.tile([0.0, 0.8, 0.6], (4, 1))
+    plain = LocateOptions(resolution_m=0.0275)
+    with_axes = LocateOptions(resolution_m=0.0275, receiver_axes=tilted, boresight=[0.0, 0.0, 1.0])  # type: ignore[arg-type]
+    for options in (plain, with_axes, plain):
+        compiled = locate_frame(frame, TRANSMITTERS[0], CROSS, options)
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(locate, "_COMPILED", False)
+            reference = locate_frame(frame, TRANSMITTERS[0], CROSS, options)
+        _assert_same(reference.objects, compiled.objects)
+    assert len(locate_frame(frame, TRANSMITTERS[0], CROSS, with_axes).objects) < len(
+        locate_frame(frame, TRANSMITTERS[0], CROSS, plain).objects
+    )
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_too_many_combinations_skip_the_frame_with_a_warning(compiled: bool) -> None:
+    """Past the seed-row limit a frame is skipped with a LocateWarning, compiled or not."""
+    paths = np.arange(0.5, 0.9, 0.01)
+    channels = tuple(
+        ChannelEchoes(tof_s=paths, amplitude=np.ones(len(paths)), snr_db=np.full(len(paths), 20.0))
+        for _ in CROSS
+    )
+    frame = FrameEchoes(0, 0.0, 1.0, channels)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(locate, "_MAX_SEED_ROWS", 4096)
+        patch.setattr(locate, "_COMPILED", compiled)
+        with pytest.warns(locate.LocateWarning, match="frame skipped"):
+            assert locate_frame(frame, TRANSMITTERS[0], CROSS, OPTIONS[0]).objects == ()

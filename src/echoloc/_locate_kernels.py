@@ -1225,3 +1225,118 @@ def first_of_each(echo: Any, use: Any, count: int) -> Any:  # pragma: no cover -
                 break
             slot = (slot + 1) & (size - 1)
     return first[:n_first]
+
+
+@njit(cache=True)
+def associate(
+    transmitters: Any,
+    receivers: Any,
+    transmitter_axes: Any,
+    receiver_axes: Any,
+    boresight: Any,
+    required: Any,
+    paths: Any,
+    sigmas: Any,
+    amplitudes: Any,
+    offset: Any,
+    seeds: Any,
+    window_low: float,
+    window_high: float,
+    cos_fov: float,
+    k_gate: float,
+    merge_reach: float,
+    merge_sigma: float,
+    gates: Any,
+    check_beams: bool,
+    min_own: int,
+    sharing_rounds: int,
+    amplitude_log_sigma: float,
+    node_limit: int,
+    max_rows: int,
+) -> Any:  # pragma: no cover - compiled
+    """Steps 1-4 of locate.associate in one call: seeds (sorted, deduplicated), refine, choose.
+
+    Returns (status, candidates, chosen): status 0 done, 1 more than ``max_rows``
+    seed rows (nothing else meaningful), 2 tied weights (the caller chooses from
+    ``candidates`` = refined (echo, use, positions, covariances, chi2, converged,
+    amplitude_chi2) with the reference); ``chosen`` as :func:`choose` returns it
+    after its flag.
+    """
+    sorted_paths, sorted_index = sort_within_channels(paths, offset)
+    capacity = 4096
+    while True:
+        echo, use, points, count, overflow = seed_candidates(
+            transmitters,
+            receivers,
+            transmitter_axes,
+            receiver_axes,
+            boresight,
+            required,
+            paths,
+            sigmas,
+            offset,
+            sorted_paths,
+            sorted_index,
+            seeds,
+            window_low,
+            window_high,
+            cos_fov,
+            k_gate,
+            merge_reach,
+            min_own,
+            capacity,
+        )
+        if not overflow or capacity >= max_rows:
+            break
+        capacity *= 4
+    # The same object comes from several seeds: keep one of each echo set (none on overflow).
+    first = first_of_each(echo, use, 0 if overflow else count)
+    candidates = refine(
+        transmitters,
+        receivers,
+        transmitter_axes,
+        receiver_axes,
+        boresight,
+        required,
+        paths,
+        sigmas,
+        amplitudes,
+        offset,
+        echo[first],
+        use[first],
+        points[first],
+        merge_sigma,
+        gates,
+        check_beams,
+        cos_fov,
+        min_own,
+        6,
+        amplitude_log_sigma,
+    )
+    chosen = choose(
+        transmitters,
+        receivers,
+        transmitter_axes,
+        receiver_axes,
+        boresight,
+        required,
+        paths,
+        sigmas,
+        amplitudes,
+        offset,
+        candidates[0],
+        candidates[1],
+        candidates[2],
+        candidates[4],
+        candidates[6],
+        merge_sigma,
+        merge_reach,
+        gates,
+        check_beams,
+        cos_fov,
+        min_own,
+        sharing_rounds,
+        amplitude_log_sigma,
+        node_limit,
+    )
+    return 1 if overflow else 0 if chosen[0] else 2, candidates, chosen

@@ -475,11 +475,14 @@ def associate(
         [sigmas[c] for c in active],
         None if amplitudes is None else [amplitudes[c] for c in active],
     )
-    candidates = _seed_candidates(geometry, echoes, options)
-    if len(candidates.echo) == 0:
-        return []
-    candidates = _refine(geometry, candidates, echoes, options)
-    chosen = _choose(geometry, candidates, echoes, options)
+    if _COMPILED:
+        chosen = _associate_compiled(geometry, echoes, options)
+    else:
+        candidates = _seed_candidates(geometry, echoes, options)
+        if len(candidates.echo) == 0:
+            return []
+        candidates = _refine(geometry, candidates, echoes, options)
+        chosen = _choose(geometry, candidates, echoes, options)
     objects = [
         LocatedObject(
             position_m=obj.position_m,
@@ -532,7 +535,7 @@ def _setup(
         _key(transmitter_index),
         _key(receiver_index),
         _key(required),
-        options.boresight,
+        _key(options.boresight),
         _key(options.transmitter_axes),
         _key(options.receiver_axes),
     )
@@ -626,6 +629,80 @@ def _seed_sets_cached(tx_index: bytes, required: bytes, dim: int) -> list[tuple[
         for t in np.unique(index[must])
         for seed in combinations(np.flatnonzero((index == t) & must).tolist(), dim)
     ]
+
+
+def _associate_compiled(geometry: _Geometry, echoes: _Echoes, options: LocateOptions) -> list[_Chosen]:
+    """Steps 1-4 of :func:`associate` in one compiled call (:func:`_seed_candidates`,
+    :func:`_refine` and :func:`_choose` in turn, without the calls between them)."""
+    from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
+
+    dim = geometry.dim
+    kernel: Any = kernels.associate  # (its options come as one tuple)
+    status, refined, chosen = kernel(
+        geometry.transmitters_m,
+        geometry.receivers_m,
+        geometry.transmitter_axes,
+        geometry.receiver_axes,
+        geometry.boresight,
+        geometry.required,
+        echoes.paths,
+        echoes.sigmas,
+        _NO_AMPLITUDES if echoes.amplitudes is None else echoes.amplitudes,
+        echoes.offset,
+        _seed_array(geometry),
+        *_kernel_options(options, dim, geometry.n),
+        _NODE_LIMIT,
+        _MAX_SEED_ROWS,
+    )
+    if status == 1:
+        warnings.warn(
+            f"frame skipped: more than {_MAX_SEED_ROWS} echo combinations to associate; "
+            "raise the detection threshold",
+            LocateWarning,
+            stacklevel=4,
+        )
+        return []
+    if status == 2:
+        echo, use, position, covariance, chi2, converged, amplitude_chi2 = refined
+        candidates = _Candidates(echo, use, Solution(position, covariance, chi2, converged), amplitude_chi2)
+        return _choose_reference(geometry, candidates, echoes, options)
+    return _chosen(geometry, *chosen[1:])
+
+
+def _kernel_options(options: LocateOptions, dim: int, n_channels: int) -> tuple[Any, ...]:
+    """The options as the compiled association takes them (window .. amplitude sigma)."""
+    beams = _checks_beams(options)  # from the axes too, which the options' hash leaves out
+    try:
+        return _kernel_options_cached(options, dim, n_channels, beams)
+    except TypeError:  # options holding unhashable values (a list for a tuple)
+        return _kernel_options_cached.__wrapped__(options, dim, n_channels, beams)
+
+
+@lru_cache(maxsize=64)
+def _kernel_options_cached(options: LocateOptions, dim: int, n_channels: int, beams: bool) -> tuple[Any, ...]:
+    low, high = options.window_m
+    return (
+        float(low),
+        float(high),
+        float(np.cos(np.radians(options.field_of_view_deg))),
+        float(np.sqrt(_chi2_gate(options.gate_probability, 1))),
+        _merge_reach(options),
+        -1.0 if options.resolution_m is None else _merge_sigma(options.resolution_m),
+        _gates(options.gate_probability, dim, n_channels),
+        beams,
+        max(options.min_receivers, dim),
+        _SHARING_ROUNDS if options.resolution_m is not None else 0,
+        AMPLITUDE_LOG_SIGMA,
+    )
+
+
+def _seed_array(geometry: _Geometry) -> NDArray[np.int64]:
+    return _seed_array_cached(geometry.transmitter_index.tobytes(), geometry.required.tobytes(), geometry.dim)
+
+
+@lru_cache(maxsize=32)
+def _seed_array_cached(tx_index: bytes, required: bytes, dim: int) -> NDArray[np.int64]:
+    return np.array(_seed_sets_cached(tx_index, required, dim), dtype=np.int64).reshape(-1, dim)
 
 
 def _seed_candidates(geometry: _Geometry, echoes: _Echoes, options: LocateOptions) -> _Candidates:
@@ -955,7 +1032,7 @@ def _choose(
         return _choose_reference(geometry, candidates, echoes, options)
     from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
 
-    done, echo, use, position, covariance, chi2, _, good = kernels.choose(
+    done, echo, use, position, covariance, chi2, converged, good = kernels.choose(
         geometry.transmitters_m,
         geometry.receivers_m,
         geometry.transmitter_axes,
@@ -983,6 +1060,20 @@ def _choose(
     )
     if not done:
         return _choose_reference(geometry, candidates, echoes, options)
+    return _chosen(geometry, echo, use, position, covariance, chi2, converged, good)
+
+
+def _chosen(
+    geometry: _Geometry,
+    echo: NDArray[np.int64],
+    use: NDArray[np.int8],
+    position: NDArray[np.float64],
+    covariance: NDArray[np.float64],
+    chi2: NDArray[np.float64],
+    converged: NDArray[np.bool_],
+    good: NDArray[np.bool_],
+) -> list[_Chosen]:
+    """The compiled choice's surviving rows, with their scores."""
     rows = np.flatnonzero(good)
     if len(rows) == 0:
         return []
