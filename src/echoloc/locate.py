@@ -487,11 +487,11 @@ def associate(
         LocatedObject(
             position_m=obj.position_m,
             covariance_m2=obj.covariance_m2,
-            receivers=tuple(receiver_of[c] for c in obj.receivers),
+            receivers=tuple([receiver_of[c] for c in obj.receivers]),
             echo_indices=obj.echo_indices,
             chi2=obj.chi2,
             score=obj.score * len(obj.receivers) / n_ch,
-            transmitters=tuple(transmitter_of[c] for c in obj.receivers),
+            transmitters=tuple([transmitter_of[c] for c in obj.receivers]),
             shared=obj.shared,
         )
         for obj in chosen
@@ -1082,17 +1082,20 @@ def _chosen(
     dof = n_used - geometry.dim
     score = np.where(dof > 0, special.chdtrc(np.maximum(dof, 1), chi2[rows]), 1.0).tolist()
     result = []
-    for k, (echo_row, use_row) in enumerate(zip(echo[rows].tolist(), use.tolist(), strict=True)):
+    rows_chi2 = chi2[rows].tolist()
+    for k, (row, echo_row, use_row) in enumerate(
+        zip(rows.tolist(), echo[rows].tolist(), use.tolist(), strict=True)
+    ):
         channels = [c for c, u in enumerate(use_row) if u != _NONE]
         result.append(
             _Chosen(
-                position[rows[k]],
-                covariance[rows[k]],
+                position[row],
+                covariance[row],
                 tuple(channels),
-                tuple(echo_row[c] for c in channels),
-                float(chi2[rows[k]]),
-                float(score[k]),
-                sum(1 for u in use_row if u == _SHARED),
+                tuple([echo_row[c] for c in channels]),
+                rows_chi2[k],
+                score[k],
+                use_row.count(_SHARED),
             )
         )
     return result
