@@ -27,7 +27,7 @@ import math
 import warnings
 from dataclasses import dataclass, field
 from functools import lru_cache
-from itertools import combinations, pairwise
+from itertools import combinations
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -467,7 +467,7 @@ def associate(
     receivers = np.asarray(receivers_m, dtype=float)
     n_ch, dim = receivers.shape
     setup = _setup(transmitter_m, receivers, usable, transmitter_index, receiver_index, required, options)
-    geometry, active, origin, receiver_of, transmitter_of = setup
+    active = setup[1]
     if len(active) < max(options.min_receivers, dim):
         return []
     echoes = _flatten(
@@ -475,6 +475,12 @@ def associate(
         [sigmas[c] for c in active],
         None if amplitudes is None else [amplitudes[c] for c in active],
     )
+    return _objects(setup, echoes, options, n_ch)
+
+
+def _objects(setup: _Setup, echoes: _Echoes, options: LocateOptions, n_ch: int) -> list[LocatedObject]:
+    """Steps 1-4 of :func:`associate` on the usable channels' echoes, as located objects."""
+    geometry, _, origin, receiver_of, transmitter_of = setup
     if _COMPILED:
         chosen = _associate_compiled(geometry, echoes, options)
     else:
@@ -1352,16 +1358,24 @@ def locate_frame(
     c = frame_echoes.speed_of_sound_m_s
     channels = frame_echoes.channels
     if _COMPILED and channels:
-        # Every channel at once (the same element-wise arithmetic, fewer numpy calls).
-        bounds = np.cumsum([0] + [len(ch.tof_s) for ch in channels]).tolist()
-        all_paths = np.concatenate([ch.tof_s for ch in channels]) * c
-        all_sigmas = path_sigmas_m(np.concatenate([ch.snr_db for ch in channels]), c, options)
-        spans = list(pairwise(bounds))
-        paths = [all_paths[lo:hi] for lo, hi in spans]
-        sigmas = [all_sigmas[lo:hi] for lo, hi in spans]
-    else:
-        paths = [ch.tof_s * c for ch in channels]
-        sigmas = [path_sigmas_m(ch.snr_db, c, options) for ch in channels]
+        # Every channel at once (the same element-wise arithmetic as associate's, fewer
+        # numpy calls), straight to its flat echoes when every channel is usable.
+        receivers = np.asarray(receivers_m, dtype=float)
+        n_ch, dim = receivers.shape
+        setup = _setup(transmitter_m, receivers, usable, None, None, None, options)
+        if len(setup[1]) == n_ch == len(channels) and n_ch >= max(options.min_receivers, dim):
+            offset = np.zeros(n_ch + 1, dtype=np.int64)
+            offset[1:] = np.cumsum([len(ch.tof_s) for ch in channels])
+            echoes = _Echoes(
+                offset,
+                (np.concatenate([ch.tof_s for ch in channels]) * c).astype(float),
+                path_sigmas_m(np.concatenate([ch.snr_db for ch in channels]), c, options).astype(float),
+                np.concatenate([ch.amplitude for ch in channels]).astype(float),
+            )
+            objects = _objects(setup, echoes, options, n_ch)
+            return FrameObjects(frame_echoes.frame, frame_echoes.time_s, tuple(objects))
+    paths = [ch.tof_s * c for ch in channels]
+    sigmas = [path_sigmas_m(ch.snr_db, c, options) for ch in channels]
     amplitudes = [ch.amplitude for ch in channels]
     objects = associate(transmitter_m, receivers_m, paths, sigmas, options, usable, amplitudes)
     return FrameObjects(frame_echoes.frame, frame_echoes.time_s, tuple(objects))
