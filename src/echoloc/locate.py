@@ -1079,32 +1079,26 @@ def _chosen(
     converged: NDArray[np.bool_],
     good: NDArray[np.bool_],
 ) -> list[_Chosen]:
-    """The compiled choice's surviving rows, with their scores."""
-    rows = np.flatnonzero(good)
-    if len(rows) == 0:
+    """The compiled choice's surviving rows, with their scores (as _choose_reference's)."""
+    rows = np.flatnonzero(good).tolist()
+    if not rows:
         return []
-    use = use[rows]
-    n_used = np.sum(use != _NONE, axis=1)
-    dof = n_used - geometry.dim
-    score = np.where(dof > 0, special.chdtrc(np.maximum(dof, 1), chi2[rows]), 1.0).tolist()
-    result = []
-    rows_chi2 = chi2[rows].tolist()
-    for k, (row, echo_row, use_row) in enumerate(
-        zip(rows.tolist(), echo[rows].tolist(), use.tolist(), strict=True)
-    ):
-        channels = [c for c, u in enumerate(use_row) if u != _NONE]
-        result.append(
-            _Chosen(
-                position[row],
-                covariance[row],
-                tuple(channels),
-                tuple([echo_row[c] for c in channels]),
-                rows_chi2[k],
-                score[k],
-                use_row.count(_SHARED),
-            )
+    echo_rows, use_rows, chi2_rows = echo.tolist(), use.tolist(), chi2.tolist()
+    channels = [[c for c, u in enumerate(use_rows[k]) if u != _NONE] for k in rows]
+    dof = [len(used) - geometry.dim for used in channels]
+    tail = special.chdtrc([max(d, 1) for d in dof], [chi2_rows[k] for k in rows]).tolist()
+    return [
+        _Chosen(
+            position[k],
+            covariance[k],
+            tuple(used),
+            tuple([echo_rows[k][c] for c in used]),
+            chi2_rows[k],
+            tail[i] if dof[i] > 0 else 1.0,
+            use_rows[k].count(_SHARED),
         )
-    return result
+        for i, (k, used) in enumerate(zip(rows, channels, strict=True))
+    ]
 
 
 _NODE_LIMIT = 50_000
@@ -1368,9 +1362,11 @@ def locate_frame(
             offset[1:] = np.cumsum([len(ch.tof_s) for ch in channels])
             echoes = _Echoes(
                 offset,
-                (np.concatenate([ch.tof_s for ch in channels]) * c).astype(float),
-                path_sigmas_m(np.concatenate([ch.snr_db for ch in channels]), c, options).astype(float),
-                np.concatenate([ch.amplitude for ch in channels]).astype(float),
+                (np.concatenate([ch.tof_s for ch in channels]) * c).astype(float, copy=False),
+                path_sigmas_m(np.concatenate([ch.snr_db for ch in channels]), c, options).astype(
+                    float, copy=False
+                ),
+                np.concatenate([ch.amplitude for ch in channels]).astype(float, copy=False),
             )
             objects = _objects(setup, echoes, options, n_ch)
             return FrameObjects(frame_echoes.frame, frame_echoes.time_s, tuple(objects))
