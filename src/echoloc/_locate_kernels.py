@@ -87,7 +87,7 @@ def _exact(t: Any, receivers: Any, paths: Any, points: Any) -> int:  # pragma: n
     return _exact_work(t, receivers, paths, points, np.empty((4 * d + 4, d + 1)))
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _exact_work(t: Any, receivers: Any, paths: Any, points: Any, work: Any) -> int:  # pragma: no cover
     """:func:`_exact` in the scratch rows ``work`` (4 D + 4, D + 1): no allocation per combination."""
     d = paths.shape[0]
@@ -425,7 +425,7 @@ def gauss_newton(
     return positions, covariances, chi2, converged
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _gauss_newton_row(
     transmitters: Any,
     receivers: Any,
@@ -1032,7 +1032,7 @@ def choose(
             check_beams,
             cos_fov,
             min_own,
-            6,
+            np.int64(6),
             amplitude_log_sigma,
         )
         m = s_echo.shape[0]
@@ -1116,7 +1116,15 @@ def choose(
     for i in range(n_chosen):
         _measure(paths, sigmas, offset, f_echo[i], f_use[i], merge_sigma, measured, row_weights)
         f_chi2[i], f_converged[i] = _gauss_newton_row(
-            transmitters, receivers, measured, row_weights, starts[i], 4, f_position[i], f_covariance[i], work
+            transmitters,
+            receivers,
+            measured,
+            row_weights,
+            starts[i],
+            np.int64(4),
+            f_position[i],
+            f_covariance[i],
+            work,
         )
         good[i] = f_converged[i] and np.all(np.isfinite(f_covariance[i]))
     # Objects that repeat a better one (paths within a merge's reach everywhere) go.
@@ -1263,7 +1271,7 @@ def associate(
     after its flag.
     """
     sorted_paths, sorted_index = sort_within_channels(paths, offset)
-    capacity = 4096
+    capacity = np.int64(4096)  # typed, not a literal: one compiled seed kernel
     while True:
         echo, use, points, count, overflow = seed_candidates(
             transmitters,
@@ -1310,7 +1318,7 @@ def associate(
         check_beams,
         cos_fov,
         min_own,
-        6,
+        np.int64(6),
         amplitude_log_sigma,
     )
     chosen = choose(
