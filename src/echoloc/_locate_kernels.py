@@ -207,7 +207,7 @@ def seed_candidates(
     k_gate: float,
     merge_reach: float,
     min_own: int,
-    capacity: int,
+    capacity: Any,
 ) -> Any:  # pragma: no cover - compiled
     """Steps 1-2 of locate.associate for every seed: (echo, use, points, count, overflow).
 
@@ -432,7 +432,7 @@ def _gauss_newton_row(
     paths: Any,
     weights: Any,
     start: Any,
-    iterations: int,
+    iterations: Any,
     position: Any,
     covariance: Any,
     work: Any,
@@ -520,7 +520,7 @@ def _fit_row(
     gates: Any,
     check_beams: bool,
     cos_fov: float,
-    iterations: int,
+    iterations: Any,
     measured: Any,
     weights: Any,
     position: Any,
@@ -572,7 +572,7 @@ def refine(
     check_beams: bool,
     cos_fov: float,
     min_own: int,
-    iterations: int,
+    iterations: Any,
     amplitude_log_sigma: float,
 ) -> Any:  # pragma: no cover - compiled
     """Step 3 of locate.associate (locate._refine_reference): every candidate fitted and gated,
