@@ -1,13 +1,19 @@
-"""Compiled inner loops of :mod:`echoloc.locate` (numba): seeds, attachment and Gauss-Newton.
+"""Compiled inner loops of :mod:`echoloc.locate` (numba): the whole association.
 
 Association touches hundreds of tiny systems per frame (3x3 solves, one per echo
-combination). As numpy calls each costs microseconds of overhead, which kept a
-frame of five objects at ~2.5 ms; compiled, the same arithmetic takes tens of
-microseconds. The formulas are those documented in :mod:`echoloc.locate`; this
-module holds only their loops. Every function works in D = 2 or 3 dimensions.
+combination) and then packs a few dozen candidates into objects. As numpy calls
+and Python sets each cost microseconds of overhead, which kept a frame of five
+objects at ~2.5 ms, then ~0.6 ms with only the seeds and Gauss-Newton compiled;
+:func:`associate` runs every step (seeds, refinement, choice) in one call, about
+0.13 ms. The formulas are those documented in :mod:`echoloc.locate`, whose numpy
+and Python references (``locate._COMPILED = False``) the tests hold these loops to;
+this module holds only the loops, with the same arithmetic in the same order.
+Every function works in D = 2 or 3 dimensions. Small helpers are inlined
+(``inline="always"``): called, each passed its array views through reference
+counting, which cost a quarter of the seed loop.
 
 ``cache=True`` keeps the machine code in ``__pycache__``: the first call in a fresh
-environment compiles (a few seconds), later processes load it.
+environment compiles (about half a minute), later processes load it (about 1 s).
 """
 
 from __future__ import annotations
@@ -15,7 +21,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from numba import njit
+from numba import njit, objmode
 
 OWN, SHARED, NONE = 0, 1, 2
 
@@ -23,9 +29,13 @@ OWN, SHARED, NONE = 0, 1, 2
 @njit(cache=True)
 def _solve(a: Any, b: Any, x: Any) -> bool:  # pragma: no cover - compiled
     """Solve the small system a x = b by Gaussian elimination with partial pivoting; False if singular."""
-    n = a.shape[0]
-    m = a.copy()
-    v = b.copy()
+    return _solve_in_place(a.copy(), b.copy(), x)
+
+
+@njit(cache=True, inline="always")
+def _solve_in_place(m: Any, v: Any, x: Any) -> bool:  # pragma: no cover - compiled
+    """:func:`_solve` overwriting ``m`` and ``v`` (no allocation: called per echo combination)."""
+    n = m.shape[0]
     for col in range(n):
         pivot = col
         for row in range(col + 1, n):
@@ -50,7 +60,7 @@ def _solve(a: Any, b: Any, x: Any) -> bool:  # pragma: no cover - compiled
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _det(a: Any) -> float:  # pragma: no cover - compiled
     """Determinant of a 1x1, 2x2 or 3x3 matrix."""
     n = a.shape[0]
@@ -65,7 +75,7 @@ def _det(a: Any) -> float:  # pragma: no cover - compiled
     )
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _well_conditioned(normal: Any) -> bool:  # pragma: no cover - compiled
     """det > 1e-12 x product of the diagonal (Hadamard's bound): not near-singular."""
     bound = 1.0
@@ -80,8 +90,21 @@ def _well_conditioned(normal: Any) -> bool:  # pragma: no cover - compiled
 def _exact(t: Any, receivers: Any, paths: Any, points: Any) -> int:  # pragma: no cover - compiled
     """Points meeting D paths exactly (locate.exact_solutions for one row); returns how many (0-2)."""
     d = paths.shape[0]
-    m = np.empty((d, d + 1))
-    b = np.empty(d)
+    return _exact_work(t, receivers, paths, points, np.empty((4 * d + 4, d + 1)))
+
+
+@njit(cache=True)
+def _exact_work(t: Any, receivers: Any, paths: Any, points: Any, work: Any) -> int:  # pragma: no cover
+    """:func:`_exact` in the scratch rows ``work`` (4 D + 4, D + 1): no allocation per combination."""
+    d = paths.shape[0]
+    m = work[:d, :]
+    b = work[d, :d]
+    v = work[d + 1, :]
+    minor = work[d + 2 : 2 * d + 2, :d]
+    gram = work[2 * d + 2 : 3 * d + 2, :d]
+    y = work[3 * d + 2, :d]
+    u0 = work[3 * d + 3, :]
+    scratch = work[3 * d + 4 : 4 * d + 4, :d]
     for i in range(d):
         norm2 = 0.0
         for j in range(d):
@@ -91,8 +114,6 @@ def _exact(t: Any, receivers: Any, paths: Any, points: Any) -> int:  # pragma: n
         m[i, d] = -2.0 * paths[i]
         b[i] = norm2 - paths[i] * paths[i]
     # Null vector: v_j = (-1)^j det(M without column j).
-    v = np.empty(d + 1)
-    minor = np.empty((d, d))
     for j in range(d + 1):
         for i in range(d):
             k = 0
@@ -100,18 +121,29 @@ def _exact(t: Any, receivers: Any, paths: Any, points: Any) -> int:  # pragma: n
                 if col != j:
                     minor[i, k] = m[i, col]
                     k += 1
-        v[j] = (-1.0) ** j * _det(minor)
+        v[j] = (1.0 if j % 2 == 0 else -1.0) * _det(minor)
     # Particular solution u0 = M^T (M M^T)^-1 b.
-    gram = m @ m.T
+    for i in range(d):
+        for k in range(d):
+            s = 0.0
+            for j in range(d + 1):
+                s += m[i, j] * m[k, j]
+            gram[i, k] = s
     trace = 0.0
     for i in range(d):
         trace += gram[i, i]
     if not abs(_det(gram)) > 1e-18 * max(trace, 1e-30) ** d:
         return 0
-    y = np.empty(d)
-    if not _solve(gram, b, y):
+    scratch[:, :] = gram
+    rhs = minor[0]  # the minors are done with: one row holds a copy of b
+    rhs[:] = b
+    if not _solve_in_place(scratch, rhs, y):
         return 0
-    u0 = m.T @ y
+    for j in range(d + 1):
+        s = 0.0
+        for i in range(d):
+            s += m[i, j] * y[i]
+        u0[j] = s
     qa = -v[d] * v[d]
     qb = -u0[d] * v[d]
     qc = -u0[d] * u0[d]
@@ -150,7 +182,7 @@ def _exact(t: Any, receivers: Any, paths: Any, points: Any) -> int:  # pragma: n
     return found
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _in_beam(point: Any, origin: Any, axis: Any, cos_fov: float) -> bool:  # pragma: no cover - compiled
     along = 0.0
     dist2 = 0.0
@@ -181,7 +213,7 @@ def seed_candidates(
     k_gate: float,
     merge_reach: float,
     min_own: int,
-    capacity: int,
+    capacity: Any,
 ) -> Any:  # pragma: no cover - compiled
     """Steps 1-2 of locate.associate for every seed: (echo, use, points, count, overflow).
 
@@ -211,9 +243,14 @@ def seed_candidates(
     row_echo = np.empty(n_ch, dtype=np.int64)
     row_use = np.empty(n_ch, dtype=np.int8)
     gain = np.empty(d)
+    normal = np.empty((d, d))
+    lhs = np.empty((d, d))
+    column = np.empty(d)
+    work = np.empty((4 * d + 4, d + 1))
+    sizes = np.empty(d, dtype=np.int64)
+    pair_reach = np.zeros((d, d))
     for s_index in range(seeds.shape[0]):
         seed = seeds[s_index]
-        sizes = np.empty(d, dtype=np.int64)
         empty = False
         for k in range(d):
             sizes[k] = offset[seed[k] + 1] - offset[seed[k]]
@@ -226,126 +263,140 @@ def seed_candidates(
         for k in range(d):
             for j in range(d):
                 seed_rx[k, j] = receivers[seed[k], j]
-        while True:
-            # One combination of echoes on the seed channels: triangle-inequality pruning.
-            feasible = True
-            for k in range(d):
-                c = seed[k]
-                seed_paths[k] = flat_paths[offset[c] + choice[k]]
-                seed_sigmas[k] = flat_sigmas[offset[c] + choice[k]]
-                if seed_paths[k] < direct[c] - 4.0 * seed_sigmas[k]:
-                    feasible = False
-            if feasible:
+        for k in range(d):
+            for q in range(k):
+                a, b = seed[k], seed[q]
+                span = 0.0
+                span_t = 0.0
+                for j in range(d):
+                    span += (receivers[a, j] - receivers[b, j]) ** 2
+                    span_t += (transmitters[a, j] - transmitters[b, j]) ** 2
+                pair_reach[k, q] = np.sqrt(span) + np.sqrt(span_t)
+        # Combinations of one echo per seed channel, depth first (the last channel's echo
+        # changing fastest); triangle-inequality pruning on each prefix skips every
+        # combination that shares an infeasible one.
+        level = 0
+        while level >= 0:
+            if choice[level] == sizes[level]:
+                choice[level] = 0
+                level -= 1
+                if level >= 0:
+                    choice[level] += 1
+                continue
+            c = seed[level]
+            seed_paths[level] = flat_paths[offset[c] + choice[level]]
+            seed_sigmas[level] = flat_sigmas[offset[c] + choice[level]]
+            feasible = not seed_paths[level] < direct[c] - 4.0 * seed_sigmas[level]
+            for q in range(level):
+                tol = 4.0 * np.sqrt(seed_sigmas[level] ** 2 + seed_sigmas[q] ** 2)
+                feasible = (
+                    feasible and not abs(seed_paths[level] - seed_paths[q]) > pair_reach[level, q] + tol
+                )
+            if not feasible:
+                choice[level] += 1
+                continue
+            if level < d - 1:
+                level += 1
+                continue
+            n_points = _exact_work(t, seed_rx, seed_paths, points, work)
+            for r in range(n_points):
+                p = points[r]
+                ahead = 0.0
+                for j in range(d):
+                    ahead += (p[j] - transmitters[0, j]) * boresight[j]
+                if not ahead > 0.0:
+                    continue
+                ok = True
                 for k in range(d):
-                    for q in range(k):
-                        a, b = seed[k], seed[q]
-                        span = 0.0
-                        span_t = 0.0
-                        for j in range(d):
-                            span += (receivers[a, j] - receivers[b, j]) ** 2
-                            span_t += (transmitters[a, j] - transmitters[b, j]) ** 2
-                        tol = 4.0 * np.sqrt(seed_sigmas[k] ** 2 + seed_sigmas[q] ** 2)
-                        if abs(seed_paths[k] - seed_paths[q]) > np.sqrt(span) + np.sqrt(span_t) + tol:
-                            feasible = False
-            if feasible:
-                n_points = _exact(t, seed_rx, seed_paths, points)
-                for r in range(n_points):
-                    p = points[r]
-                    ahead = 0.0
+                    c = seed[k]
+                    ok = ok and _in_beam(p, transmitters[c], transmitter_axes[c], cos_fov)
+                    ok = ok and _in_beam(p, receivers[c], receiver_axes[c], cos_fov)
+                if not ok:
+                    continue
+                for c in range(n_ch):
+                    r_t = 0.0
+                    r_r = 0.0
                     for j in range(d):
-                        ahead += (p[j] - transmitters[0, j]) * boresight[j]
-                    if not ahead > 0.0:
-                        continue
-                    ok = True
-                    for k in range(d):
-                        c = seed[k]
-                        ok = ok and _in_beam(p, transmitters[c], transmitter_axes[c], cos_fov)
-                        ok = ok and _in_beam(p, receivers[c], receiver_axes[c], cos_fov)
-                    if not ok:
-                        continue
-                    for c in range(n_ch):
-                        r_t = 0.0
-                        r_r = 0.0
-                        for j in range(d):
-                            r_t += (p[j] - transmitters[c, j]) ** 2
-                            r_r += (p[j] - receivers[c, j]) ** 2
-                        r_t = np.sqrt(r_t)
-                        r_r = np.sqrt(r_r)
-                        predicted[c] = r_t + r_r
-                        for j in range(d):
-                            jac[c, j] = (p[j] - transmitters[c, j]) / r_t + (p[j] - receivers[c, j]) / r_r
-                    for k in range(d):
-                        for j in range(d):
-                            seed_jac[k, j] = jac[seed[k], j]
-                    if not _well_conditioned(seed_jac.T @ seed_jac):
-                        continue
-                    n_own = 0
-                    keep = True
-                    for c in range(n_ch):
-                        in_seed = -1
+                        r_t += (p[j] - transmitters[c, j]) ** 2
+                        r_r += (p[j] - receivers[c, j]) ** 2
+                    r_t = np.sqrt(r_t)
+                    r_r = np.sqrt(r_r)
+                    predicted[c] = r_t + r_r
+                    for j in range(d):
+                        jac[c, j] = (p[j] - transmitters[c, j]) / r_t + (p[j] - receivers[c, j]) / r_r
+                for k in range(d):
+                    for j in range(d):
+                        seed_jac[k, j] = jac[seed[k], j]
+                for i in range(d):
+                    for j in range(d):
+                        acc = 0.0
                         for k in range(d):
-                            if seed[k] == c:
-                                in_seed = k
-                        if in_seed >= 0:
-                            row_echo[c] = choice[in_seed]
+                            acc += seed_jac[k, i] * seed_jac[k, j]
+                        normal[i, j] = acc
+                if not _well_conditioned(normal):
+                    continue
+                n_own = 0
+                keep = True
+                for c in range(n_ch):
+                    in_seed = -1
+                    for k in range(d):
+                        if seed[k] == c:
+                            in_seed = k
+                    if in_seed >= 0:
+                        row_echo[c] = choice[in_seed]
+                        row_use[c] = OWN
+                        n_own += 1
+                        continue
+                    row_echo[c] = -1
+                    row_use[c] = NONE
+                    visible = _in_beam(p, transmitters[c], transmitter_axes[c], cos_fov)
+                    visible = visible and _in_beam(p, receivers[c], receiver_axes[c], cos_fov)
+                    outside = predicted[c] < window_low or predicted[c] > window_high
+                    if not visible or outside:
+                        continue  # this channel cannot see the point: no echo, none needed
+                    # Prediction variance from the seed: g_c J_s^-1, squared, times sigma^2.
+                    for i in range(d):
+                        column[i] = jac[c, i]
+                        for j in range(d):
+                            lhs[i, j] = seed_jac[j, i]
+                    if not _solve_in_place(lhs, column, gain):
+                        keep = False
+                        break
+                    var = 0.0
+                    for k in range(d):
+                        var += gain[k] ** 2 * seed_sigmas[k] ** 2
+                    lo, hi = offset[c], offset[c + 1]
+                    if hi > lo:
+                        pos = lo + np.searchsorted(sorted_paths[lo:hi], predicted[c])
+                        best = -1
+                        gap = np.inf
+                        for cand in (pos - 1, pos):
+                            if lo <= cand < hi and abs(sorted_paths[cand] - predicted[c]) < gap:
+                                gap = abs(sorted_paths[cand] - predicted[c])
+                                best = cand
+                        echo_index = sorted_index[best]
+                        reach = k_gate * np.sqrt(var + flat_sigmas[lo + echo_index] ** 2)
+                        if gap <= reach:
+                            row_echo[c] = echo_index
                             row_use[c] = OWN
                             n_own += 1
-                            continue
-                        row_echo[c] = -1
-                        row_use[c] = NONE
-                        visible = _in_beam(p, transmitters[c], transmitter_axes[c], cos_fov)
-                        visible = visible and _in_beam(p, receivers[c], receiver_axes[c], cos_fov)
-                        outside = predicted[c] < window_low or predicted[c] > window_high
-                        if not visible or outside:
-                            continue  # this channel cannot see the point: no echo, none needed
-                        # Prediction variance from the seed: g_c J_s^-1, squared, times sigma^2.
-                        if not _solve(seed_jac.T, jac[c].copy(), gain):
-                            keep = False
-                            break
-                        var = 0.0
-                        for k in range(d):
-                            var += gain[k] ** 2 * seed_sigmas[k] ** 2
-                        lo, hi = offset[c], offset[c + 1]
-                        if hi > lo:
-                            pos = lo + np.searchsorted(sorted_paths[lo:hi], predicted[c])
-                            best = -1
-                            gap = np.inf
-                            for cand in (pos - 1, pos):
-                                if lo <= cand < hi and abs(sorted_paths[cand] - predicted[c]) < gap:
-                                    gap = abs(sorted_paths[cand] - predicted[c])
-                                    best = cand
-                            echo_index = sorted_index[best]
-                            reach = k_gate * np.sqrt(var + flat_sigmas[lo + echo_index] ** 2)
-                            if gap <= reach:
-                                row_echo[c] = echo_index
-                                row_use[c] = OWN
-                                n_own += 1
-                            elif required[c] and gap <= merge_reach + reach:
-                                # A merged peak; on an optional channel (an older frame) a
-                                # larger gap means the reflector moved: no support there.
-                                row_echo[c] = echo_index
-                                row_use[c] = SHARED
-                        if row_use[c] == NONE and required[c]:
-                            # A required channel that can see the point must show its echo.
-                            keep = False
-                            break
-                    if keep and n_own >= min_own:
-                        if count == capacity:
-                            return echo_out, use_out, points_out, count, True
-                        echo_out[count] = row_echo
-                        use_out[count] = row_use
-                        points_out[count] = p
-                        count += 1
-            # Next combination (odometer over the seed channels).
-            k = d - 1
-            while k >= 0:
-                choice[k] += 1
-                if choice[k] < sizes[k]:
-                    break
-                choice[k] = 0
-                k -= 1
-            if k < 0:
-                break
+                        elif required[c] and gap <= merge_reach + reach:
+                            # A merged peak; on an optional channel (an older frame) a
+                            # larger gap means the reflector moved: no support there.
+                            row_echo[c] = echo_index
+                            row_use[c] = SHARED
+                    if row_use[c] == NONE and required[c]:
+                        # A required channel that can see the point must show its echo.
+                        keep = False
+                        break
+                if keep and n_own >= min_own:
+                    if count == capacity:
+                        return echo_out, use_out, points_out, count, True
+                    echo_out[count] = row_echo
+                    use_out[count] = row_use
+                    points_out[count] = p
+                    count += 1
+            choice[level] += 1
     return echo_out, use_out, points_out, count, False
 
 
@@ -358,68 +409,948 @@ def gauss_newton(
     Returns (positions, covariances, chi2, converged); a singular or non-finite
     system leaves NaN.
     """
-    n, n_ch = paths.shape
+    n = paths.shape[0]
     d = receivers.shape[1]
     positions = np.full((n, d), np.nan)
     covariances = np.full((n, d, d), np.nan)
     chi2 = np.full(n, np.nan)
     converged = np.zeros(n, dtype=np.bool_)
-    normal = np.empty((d, d))
-    rhs = np.empty(d)
-    delta = np.empty(d)
-    jac = np.empty(d)
-    column = np.empty(d)
-    unit = np.empty(d)
+    work = np.empty((2 * d + 6, d))
     for row in range(n):
-        p = start[row].copy()
-        step = np.inf
-        ok = True
-        for it in range(iterations + 1):
-            normal[:] = 0.0
-            rhs[:] = 0.0
+        chi2[row], converged[row] = _gauss_newton_row(
+            transmitters,
+            receivers,
+            paths[row],
+            weights[row],
+            start[row],
+            iterations,
+            positions[row],
+            covariances[row],
+            work,
+        )
+    return positions, covariances, chi2, converged
+
+
+@njit(cache=True)
+def _gauss_newton_row(
+    transmitters: Any,
+    receivers: Any,
+    paths: Any,
+    weights: Any,
+    start: Any,
+    iterations: Any,
+    position: Any,
+    covariance: Any,
+    work: Any,
+) -> Any:  # pragma: no cover - compiled
+    """One row of :func:`gauss_newton` into ``position`` (D,) and ``covariance`` (D, D), which
+    stay as given (NaN) when the system is singular; returns (chi2, converged).
+    ``work`` is scratch of (2 D + 6, D)."""
+    n_ch = paths.shape[0]
+    d = receivers.shape[1]
+    normal = work[:d]
+    lhs = work[d : 2 * d]
+    p = work[2 * d]
+    rhs = work[2 * d + 1]
+    delta = work[2 * d + 2]
+    jac = work[2 * d + 3]
+    column = work[2 * d + 4]
+    unit = work[2 * d + 5]
+    for j in range(d):
+        p[j] = start[j]
+    chi2 = np.nan
+    step = np.inf
+    for it in range(iterations + 1):
+        normal[:] = 0.0
+        rhs[:] = 0.0
+        total = 0.0
+        for c in range(n_ch):
+            w = weights[c]
+            if w == 0.0:
+                continue
+            r_t = 0.0
+            r_r = 0.0
+            for j in range(d):
+                r_t += (p[j] - transmitters[c, j]) ** 2
+                r_r += (p[j] - receivers[c, j]) ** 2
+            r_t = np.sqrt(r_t)
+            r_r = np.sqrt(r_r)
+            for j in range(d):
+                jac[j] = (p[j] - transmitters[c, j]) / r_t + (p[j] - receivers[c, j]) / r_r
+            residual = paths[c] - r_t - r_r
+            total += w * residual * residual
+            for i in range(d):
+                rhs[i] += w * jac[i] * residual
+                for j in range(d):
+                    normal[i, j] += w * jac[i] * jac[j]
+        if not _well_conditioned(normal):
+            return np.nan, False
+        if it == iterations or step < 1e-9:
+            # Converged (or out of iterations): covariance and chi-square at p.
+            for j in range(d):
+                for i in range(d):
+                    unit[i] = 1.0 if i == j else 0.0
+                lhs[:, :] = normal
+                _solve_in_place(lhs, unit, column)
+                for i in range(d):
+                    covariance[i, j] = column[i]
+            chi2 = total
+            break
+        lhs[:, :] = normal
+        if not _solve_in_place(lhs, rhs, delta):
+            return np.nan, False
+        step = 0.0
+        for j in range(d):
+            p[j] += delta[j]
+            step += delta[j] ** 2
+        step = np.sqrt(step)
+    for j in range(d):
+        position[j] = p[j]
+    return chi2, bool(step < 1e-6 and np.isfinite(chi2))
+
+
+@njit(cache=True)
+def _fit_row(
+    transmitters: Any,
+    receivers: Any,
+    transmitter_axes: Any,
+    receiver_axes: Any,
+    boresight: Any,
+    paths: Any,
+    sigmas: Any,
+    offset: Any,
+    echo: Any,
+    use: Any,
+    start: Any,
+    merge_sigma: float,
+    gates: Any,
+    check_beams: bool,
+    cos_fov: float,
+    iterations: Any,
+    measured: Any,
+    weights: Any,
+    position: Any,
+    covariance: Any,
+    work: Any,
+) -> Any:  # pragma: no cover - compiled
+    """locate._fit_and_gate for one candidate: (chi2, converged, passes the gate and is in view).
+
+    ``merge_sigma`` < 0: no merged peaks (resolution None).
+    """
+    n_ch = echo.shape[0]
+    n_used = _measure(paths, sigmas, offset, echo, use, merge_sigma, measured, weights)
+    position[:] = np.nan
+    covariance[:, :] = np.nan
+    chi2, converged = _gauss_newton_row(
+        transmitters, receivers, measured, weights, start, iterations, position, covariance, work
+    )
+    ok = converged and chi2 <= gates[n_used]
+    if ok:
+        ahead = 0.0
+        for j in range(position.shape[0]):
+            ahead += (position[j] - transmitters[0, j]) * boresight[j]
+        ok = ahead > 0.0
+    if ok and check_beams:
+        for c in range(n_ch):
+            if use[c] != NONE:
+                ok = ok and _in_beam(position, transmitters[c], transmitter_axes[c], cos_fov)
+                ok = ok and _in_beam(position, receivers[c], receiver_axes[c], cos_fov)
+    return chi2, converged, ok
+
+
+@njit(cache=True)
+def refine(
+    transmitters: Any,
+    receivers: Any,
+    transmitter_axes: Any,
+    receiver_axes: Any,
+    boresight: Any,
+    required: Any,
+    paths: Any,
+    sigmas: Any,
+    amplitudes: Any,
+    offset: Any,
+    echo: Any,
+    use: Any,
+    start: Any,
+    merge_sigma: float,
+    gates: Any,
+    check_beams: bool,
+    cos_fov: float,
+    min_own: int,
+    iterations: Any,
+    amplitude_log_sigma: float,
+) -> Any:  # pragma: no cover - compiled
+    """Step 3 of locate.associate (locate._refine_reference): every candidate fitted and gated,
+    again without its optional channels when it fails with them; the amplitude chi-square
+    of those kept (``amplitudes`` empty: none). Returns the kept rows:
+    (echo, use, positions, covariances, chi2, converged, amplitude_chi2)."""
+    n, n_ch = echo.shape
+    d = receivers.shape[1]
+    echo_out = np.empty((n, n_ch), dtype=np.int64)
+    use_out = np.empty((n, n_ch), dtype=np.int8)
+    positions = np.empty((n, d))
+    covariances = np.empty((n, d, d))
+    chi2_out = np.empty(n)
+    converged_out = np.empty(n, dtype=np.bool_)
+    amplitude_chi2 = np.zeros(n)
+    measured = np.empty(n_ch)
+    weights = np.empty(n_ch)
+    row_echo = np.empty(n_ch, dtype=np.int64)
+    row_use = np.empty(n_ch, dtype=np.int8)
+    log_strength = np.empty(n_ch)
+    work = np.empty((2 * d + 6, d))
+    kept = 0
+    for row in range(n):
+        position = positions[kept]
+        covariance = covariances[kept]
+        optional = False
+        for c in range(n_ch):
+            row_echo[c] = echo[row, c]
+            row_use[c] = use[row, c]
+            optional = optional or (use[row, c] != NONE and not required[c])
+        args = (transmitters, receivers, transmitter_axes, receiver_axes, boresight, paths, sigmas, offset)
+        fit = (start[row], merge_sigma, gates, check_beams, cos_fov, iterations)
+        scratch = (measured, weights, position, covariance, work)
+        chi2, converged, ok = _fit_row(*args, row_echo, row_use, *fit, *scratch)
+        if not ok and optional:
+            own = 0
+            for c in range(n_ch):
+                if not required[c]:
+                    row_use[c] = NONE
+                if row_use[c] == NONE:
+                    row_echo[c] = -1
+                own += row_use[c] == OWN
+            if own >= min_own:
+                chi2, converged, ok = _fit_row(*args, row_echo, row_use, *fit, *scratch)
+        if not ok:
+            continue
+        echo_out[kept] = row_echo
+        use_out[kept] = row_use
+        chi2_out[kept] = chi2
+        converged_out[kept] = converged
+        if amplitudes.shape[0] > 0:
+            count = 0
             total = 0.0
             for c in range(n_ch):
-                w = weights[row, c]
-                if w == 0.0:
+                log_strength[c] = 0.0
+                if row_use[c] != OWN:
                     continue
+                count += 1
                 r_t = 0.0
                 r_r = 0.0
                 for j in range(d):
-                    r_t += (p[j] - transmitters[c, j]) ** 2
-                    r_r += (p[j] - receivers[c, j]) ** 2
-                r_t = np.sqrt(r_t)
-                r_r = np.sqrt(r_r)
+                    r_t += (position[j] - transmitters[c, j]) ** 2
+                    r_r += (position[j] - receivers[c, j]) ** 2
+                spread = np.sqrt(r_t) * np.sqrt(r_r)
+                log_strength[c] = np.log(abs(amplitudes[offset[c] + row_echo[c]]) * spread)
+                total += log_strength[c]
+            count = max(count, 1)
+            mean = total / count
+            spread2 = 0.0
+            for c in range(n_ch):
+                if row_use[c] == OWN:
+                    spread2 += (log_strength[c] - mean) ** 2
+            value = spread2 / amplitude_log_sigma**2 / count
+            amplitude_chi2[kept] = 1e3 if np.isnan(value) or value == np.inf else value
+        kept += 1
+    return (
+        echo_out[:kept],
+        use_out[:kept],
+        positions[:kept],
+        covariances[:kept],
+        chi2_out[:kept],
+        converged_out[:kept],
+        amplitude_chi2[:kept],
+    )
+
+
+@njit(cache=True)
+def _weights(use: Any, chi2: Any, amplitude_chi2: Any, gates: Any, out: Any) -> bool:  # pragma: no cover
+    """locate._weights into ``out``; False when two weights tie or one is NaN (order undefined)."""
+    n, n_ch = use.shape
+    for row in range(n):
+        n_used = 0
+        n_shared = 0
+        for c in range(n_ch):
+            n_used += use[row, c] != NONE
+            n_shared += use[row, c] == SHARED
+        gate = gates[n_used]
+        gate = max(gate, 1.0) if np.isfinite(gate) else 1.0
+        tie = chi2[row] / gate + amplitude_chi2[row] / max(n_used, 1) + 0.5 * n_shared
+        if np.isnan(tie):
+            return False
+        out[row] = 1.0 - 1e-3 * min(tie, 100.0)
+    return True
+
+
+@njit(cache=True)
+def _has_tie(values: Any, members: Any) -> bool:  # pragma: no cover - compiled
+    for a in range(members.shape[0]):
+        for b in range(a):
+            if values[members[a]] == values[members[b]]:
+                return True
+    return False
+
+
+@njit(cache=True)
+def _order_by_weight(weights: Any, members: Any) -> None:  # pragma: no cover - compiled
+    """Sort ``members`` heaviest first (insertion sort; callers rule out ties)."""
+    for a in range(1, members.shape[0]):
+        item = members[a]
+        b = a - 1
+        while b >= 0 and weights[members[b]] < weights[item]:
+            members[b + 1] = members[b]
+            b -= 1
+        members[b + 1] = item
+
+
+@njit(cache=True)
+def _pack_group(
+    group: Any, ids: Any, weights: Any, n_echo: int, node_limit: int, out: Any
+) -> int:  # pragma: no cover
+    """locate._pack_group: branch and bound over ``group`` (sorted heaviest first); the chosen
+    members into ``out`` in group order, returns how many. ``ids`` (n, C): flat echo ids, -1 none."""
+    m = group.shape[0]
+    n_ch = ids.shape[1]
+    # Local echo numbers within the group.
+    local = np.full(n_echo, -1, dtype=np.int64)
+    q = 0
+    per_echo = -np.inf
+    for k in range(m):
+        size = 0
+        for c in range(n_ch):
+            e = ids[group[k], c]
+            if e >= 0:
+                size += 1
+                if local[e] < 0:
+                    local[e] = q
+                    q += 1
+        per_echo = max(per_echo, weights[group[k]] / max(size, 1))
+    per_echo = max(per_echo, 0.0)
+    reachable = np.zeros((m + 1, q), dtype=np.bool_)
+    for k in range(m - 1, -1, -1):
+        reachable[k] = reachable[k + 1]
+        for c in range(n_ch):
+            e = ids[group[k], c]
+            if e >= 0:
+                reachable[k, local[e]] = True
+    used = np.zeros(q, dtype=np.bool_)
+    best = np.empty(m, dtype=np.int64)
+    n_best = 0
+    best_weight = 0.0
+    for k in range(m):  # the greedy incumbent
+        if weights[group[k]] > 0 and _disjoint(ids[group[k]], local, used):
+            best[n_best] = k
+            n_best += 1
+            _mark(ids[group[k]], local, used, True)
+    for i in range(n_best):
+        best_weight += weights[group[best[i]]]
+    used[:] = False
+    picked = np.empty(m, dtype=np.int64)
+    n_picked = 0
+    steps = 0
+    # Depth-first, "take item k" before "leave it", as the recursion of the reference.
+    stack_k = np.empty(m + 2, dtype=np.int64)
+    stack_total = np.empty(m + 2)
+    stack_state = np.empty(m + 2, dtype=np.int64)
+    depth = 1
+    stack_k[0] = 0
+    stack_total[0] = 0.0
+    stack_state[0] = 0
+    while depth > 0:
+        top = depth - 1
+        k = stack_k[top]
+        total = stack_total[top]
+        if stack_state[top] == 0:
+            steps += 1
+            if total > best_weight + 1e-12:
+                best[:n_picked] = picked[:n_picked]
+                n_best = n_picked
+                best_weight = total
+            if k == m or steps > node_limit:
+                depth -= 1
+                continue
+            free = 0
+            for i in range(q):
+                free += reachable[k, i] and not used[i]
+            if total + per_echo * free <= best_weight + 1e-12:
+                depth -= 1
+                continue
+            w = weights[group[k]]
+            if w > 0 and _disjoint(ids[group[k]], local, used):
+                stack_state[top] = 1
+                picked[n_picked] = k
+                n_picked += 1
+                _mark(ids[group[k]], local, used, True)
+                total += w
+            else:
+                stack_state[top] = 2
+        elif stack_state[top] == 1:
+            n_picked -= 1
+            _mark(ids[group[k]], local, used, False)
+            stack_state[top] = 2
+        else:
+            depth -= 1
+            continue
+        stack_k[depth] = k + 1
+        stack_total[depth] = total
+        stack_state[depth] = 0
+        depth += 1
+    for i in range(n_best):
+        out[i] = group[best[i]]
+    return n_best
+
+
+@njit(cache=True, inline="always")
+def _disjoint(ids: Any, local: Any, used: Any) -> bool:  # pragma: no cover - compiled
+    """Whether no echo of a candidate (flat ids, -1 none) is marked in ``used`` (by ``local`` number)."""
+    free = True
+    for c in range(ids.shape[0]):
+        free = free and not (ids[c] >= 0 and used[local[ids[c]]])
+    return free
+
+
+@njit(cache=True, inline="always")
+def _mark(ids: Any, local: Any, used: Any, value: bool) -> None:  # pragma: no cover - compiled
+    for c in range(ids.shape[0]):
+        if ids[c] >= 0:
+            used[local[ids[c]]] = value
+
+
+@njit(cache=True)
+def best_disjoint(
+    members: Any, ids: Any, weights: Any, n_echo: int, node_limit: int, out: Any
+) -> Any:  # pragma: no cover - compiled
+    """locate._best_disjoint over the candidates ``members`` (rows of ``ids``/``weights``):
+    the chosen rows into ``out`` in the reference's order; returns (how many, True), or
+    (0, False) when weights tie within a group (the reference's order is then undefined)."""
+    n = members.shape[0]
+    n_ch = ids.shape[1]
+    # Which members hold each echo (CSR), for the connected groups of conflicting members.
+    start = np.zeros(n_echo + 1, dtype=np.int64)
+    for i in range(n):
+        for c in range(n_ch):
+            e = ids[members[i], c]
+            if e >= 0:
+                start[e + 1] += 1
+    for e in range(n_echo):
+        start[e + 1] += start[e]
+    holder = np.empty(start[n_echo], dtype=np.int64)
+    fill = start[:-1].copy()
+    for i in range(n):
+        for c in range(n_ch):
+            e = ids[members[i], c]
+            if e >= 0:
+                holder[fill[e]] = i
+                fill[e] += 1
+    seen = np.zeros(n, dtype=np.bool_)
+    queue = np.empty(n, dtype=np.int64)
+    count = 0
+    for root in range(n):
+        if seen[root]:
+            continue
+        seen[root] = True
+        queue[0] = root
+        size = 1
+        head = 0
+        while head < size:
+            node = queue[head]
+            head += 1
+            for c in range(n_ch):
+                e = ids[members[node], c]
+                if e < 0:
+                    continue
+                for h in range(start[e], start[e + 1]):
+                    other = holder[h]
+                    if not seen[other]:
+                        seen[other] = True
+                        queue[size] = other
+                        size += 1
+        if size == 1:
+            out[count] = members[root]
+            count += 1
+            continue
+        group = members[queue[:size]]
+        if _has_tie(weights, group):
+            return 0, False
+        _order_by_weight(weights, group)
+        count += _pack_group(group, ids, weights, n_echo, node_limit, out[count:])
+    return count, True
+
+
+@njit(cache=True)
+def _attach_ids(echo: Any, use: Any, offset: Any, ids: Any) -> None:  # pragma: no cover - compiled
+    """Flat echo id (offset[c] + echo) of every echo a candidate uses, -1 where none."""
+    for row in range(echo.shape[0]):
+        for c in range(echo.shape[1]):
+            ids[row, c] = offset[c] + echo[row, c] if use[row, c] != NONE else -1
+
+
+@njit(cache=True)
+def choose(
+    transmitters: Any,
+    receivers: Any,
+    transmitter_axes: Any,
+    receiver_axes: Any,
+    boresight: Any,
+    required: Any,
+    paths: Any,
+    sigmas: Any,
+    amplitudes: Any,
+    offset: Any,
+    echo: Any,
+    use: Any,
+    position: Any,
+    chi2: Any,
+    amplitude_chi2: Any,
+    merge_sigma: float,
+    merge_reach: float,
+    gates: Any,
+    check_beams: bool,
+    cos_fov: float,
+    min_own: int,
+    sharing_rounds: int,
+    amplitude_log_sigma: float,
+    node_limit: int,
+) -> Any:  # pragma: no cover - compiled
+    """Step 4 of locate.associate (locate._choose_reference) up to the scores.
+
+    Returns (done, echo, use, positions, covariances, chi2, converged, good): the
+    chosen objects' rows and which survive (converged, finite, no duplicate).
+    ``done`` False: weights tie where the reference's order decides; nothing else
+    is meaningful then and the caller runs the reference. ``merge_sigma`` < 0: no
+    merged peaks (resolution None).
+    """
+    n, n_ch = echo.shape
+    d = receivers.shape[1]
+    n_echo = offset[n_ch]
+    min_own_sharing = min_own - 1
+    cap = 2 * n + 1
+    chosen_echo = np.empty((cap, n_ch), dtype=np.int64)
+    chosen_use = np.empty((cap, n_ch), dtype=np.int8)
+    starts = np.empty((cap, d))
+    failed = (
+        False,
+        np.empty((0, n_ch), dtype=np.int64),
+        np.empty((0, n_ch), dtype=np.int8),
+        np.empty((0, d)),
+        np.empty((0, d, d)),
+        np.empty(0),
+        np.empty(0, dtype=np.bool_),
+        np.empty(0, dtype=np.bool_),
+    )
+    weights = np.empty(n)
+    if not _weights(use, chi2, amplitude_chi2, gates, weights):
+        return failed
+    ids = np.empty((n, n_ch), dtype=np.int64)
+    _attach_ids(echo, use, offset, ids)
+    has_shared = np.zeros(n, dtype=np.bool_)
+    for row in range(n):
+        for c in range(n_ch):
+            has_shared[row] = has_shared[row] or use[row, c] == SHARED
+    # First pass: candidates whose echoes are all their own; each echo used once.
+    picked = np.empty(n, dtype=np.int64)
+    count, ok = best_disjoint(np.flatnonzero(~has_shared), ids, weights, n_echo, node_limit, picked)
+    if not ok:
+        return failed
+    # Then candidates with a merged-looking echo no chosen object uses.
+    taken = np.zeros(n_echo, dtype=np.bool_)
+    for i in range(count):
+        for c in range(n_ch):
+            if ids[picked[i], c] >= 0:
+                taken[ids[picked[i], c]] = True
+    second_pass = np.empty(n, dtype=np.int64)
+    n_second = 0
+    identity = np.arange(n_echo)
+    for row in range(n):
+        if has_shared[row] and _disjoint(ids[row], identity, taken):
+            second_pass[n_second] = row
+            n_second += 1
+    more, ok = best_disjoint(second_pass[:n_second], ids, weights, n_echo, node_limit, picked[count:])
+    if not ok:
+        return failed
+    count += more
+    n_chosen = count
+    done = np.zeros(n, dtype=np.bool_)
+    for i in range(count):
+        chosen_echo[i] = echo[picked[i]]
+        chosen_use[i] = use[picked[i]]
+        starts[i] = position[picked[i]]
+        done[picked[i]] = True
+    # Sharing rounds: candidates that lost echoes to chosen objects, with enough left.
+    claimed = np.zeros(n_echo, dtype=np.bool_)
+    retry = np.empty(n, dtype=np.int64)
+    row_ids = np.empty(n_ch, dtype=np.int64)
+    for _ in range(sharing_rounds):
+        claimed[:] = False
+        for i in range(n_chosen):
+            for c in range(n_ch):
+                if chosen_use[i, c] != NONE:
+                    claimed[offset[c] + chosen_echo[i, c]] = True
+        n_retry = 0
+        for row in range(n):
+            if done[row]:
+                continue
+            shared_claimed = True
+            any_shared = False
+            own_claimed = False
+            own_free = 0
+            for c in range(n_ch):
+                e = ids[row, c]
+                if e < 0:
+                    continue
+                if use[row, c] == OWN:
+                    own_claimed = own_claimed or claimed[e]
+                    own_free += not claimed[e]
+                else:
+                    any_shared = True
+                    shared_claimed = shared_claimed and claimed[e]
+            if shared_claimed and (any_shared or own_claimed) and own_free >= min_own_sharing:
+                retry[n_retry] = row
+                n_retry += 1
+        if n_retry == 0:
+            break
+        rows = retry[:n_retry]
+        done[rows] = True
+        new_use = use[rows].copy()
+        for i in range(n_retry):
+            for c in range(n_ch):
+                e = ids[rows[i], c]
+                if e >= 0 and claimed[e]:
+                    new_use[i, c] = SHARED
+        s_echo, s_use, s_position, _, s_chi2, _, s_amplitude = refine(
+            transmitters,
+            receivers,
+            transmitter_axes,
+            receiver_axes,
+            boresight,
+            required,
+            paths,
+            sigmas,
+            amplitudes,
+            offset,
+            echo[rows],
+            new_use,
+            position[rows],
+            merge_sigma,
+            gates,
+            check_beams,
+            cos_fov,
+            min_own,
+            np.int64(6),
+            amplitude_log_sigma,
+        )
+        m = s_echo.shape[0]
+        s_weights = np.empty(m)
+        order = np.arange(m)
+        if not _weights(s_use, s_chi2, s_amplitude, gates, s_weights):
+            return failed
+        if _has_tie(s_weights, order):
+            # Ties: the order is numpy's (the reference's), whatever its sort does with them.
+            with objmode(order="int64[:]"):
+                order = np.argsort(-s_weights).astype(np.int64)
+        else:
+            _order_by_weight(s_weights, order)
+        taken[:] = False
+        added = False
+        for k in order:
+            clash = False
+            for c in range(n_ch):
+                if s_use[k, c] == NONE:
+                    row_ids[c] = -1
+                    continue
+                row_ids[c] = offset[c] + s_echo[k, c]
+                if s_use[k, c] == SHARED:
+                    clash = clash or not claimed[row_ids[c]]
+                else:
+                    clash = clash or claimed[row_ids[c]] or taken[row_ids[c]]
+            if clash:
+                continue
+            for c in range(n_ch):
+                if s_use[k, c] == OWN:
+                    taken[row_ids[c]] = True
+            chosen_echo[n_chosen] = s_echo[k]
+            chosen_use[n_chosen] = s_use[k]
+            starts[n_chosen] = s_position[k]
+            n_chosen += 1
+            added = True
+        if not added:
+            break
+    # An object must keep echoes no other object explains (else a ghost): worst first.
+    users = np.zeros(n_echo, dtype=np.int64)
+    for i in range(n_chosen):
+        for c in range(n_ch):
+            if chosen_use[i, c] != NONE:
+                users[offset[c] + chosen_echo[i, c]] += 1
+    while n_chosen > 0:
+        worst = -1
+        fewest = n_ch + 1
+        for i in range(n_chosen):
+            exclusive = 0
+            for c in range(n_ch):
+                if chosen_use[i, c] != NONE:
+                    exclusive += users[offset[c] + chosen_echo[i, c]] == 1
+            if exclusive < fewest:
+                fewest = exclusive
+                worst = i
+        if fewest >= min_own_sharing:
+            break
+        for c in range(n_ch):
+            if chosen_use[worst, c] != NONE:
+                users[offset[c] + chosen_echo[worst, c]] -= 1
+        for i in range(worst, n_chosen - 1):
+            chosen_echo[i] = chosen_echo[i + 1]
+            chosen_use[i] = chosen_use[i + 1]
+            starts[i] = starts[i + 1]
+        n_chosen -= 1
+    # Every echo that serves two objects is a merged peak for all of them: re-solve.
+    f_echo = chosen_echo[:n_chosen].copy()
+    f_use = chosen_use[:n_chosen].copy()
+    for i in range(n_chosen):
+        for c in range(n_ch):
+            if f_use[i, c] != NONE and users[offset[c] + f_echo[i, c]] > 1:
+                f_use[i, c] = SHARED
+    f_position = np.full((n_chosen, d), np.nan)
+    f_covariance = np.full((n_chosen, d, d), np.nan)
+    f_chi2 = np.empty(n_chosen)
+    f_converged = np.empty(n_chosen, dtype=np.bool_)
+    good = np.empty(n_chosen, dtype=np.bool_)
+    measured = np.empty(n_ch)
+    row_weights = np.empty(n_ch)
+    work = np.empty((2 * d + 6, d))
+    for i in range(n_chosen):
+        _measure(paths, sigmas, offset, f_echo[i], f_use[i], merge_sigma, measured, row_weights)
+        f_chi2[i], f_converged[i] = _gauss_newton_row(
+            transmitters,
+            receivers,
+            measured,
+            row_weights,
+            starts[i],
+            np.int64(4),
+            f_position[i],
+            f_covariance[i],
+            work,
+        )
+        good[i] = f_converged[i] and np.all(np.isfinite(f_covariance[i]))
+    # Objects that repeat a better one (paths within a merge's reach everywhere) go.
+    if merge_sigma >= 0.0 and n_chosen >= 2:
+        model = np.empty((n_chosen, n_ch))
+        rank = np.empty(n_chosen)
+        for i in range(n_chosen):
+            for c in range(n_ch):
+                r_t = 0.0
+                r_r = 0.0
                 for j in range(d):
-                    jac[j] = (p[j] - transmitters[c, j]) / r_t + (p[j] - receivers[c, j]) / r_r
-                residual = paths[row, c] - r_t - r_r
-                total += w * residual * residual
-                for i in range(d):
-                    rhs[i] += w * jac[i] * residual
-                    for j in range(d):
-                        normal[i, j] += w * jac[i] * jac[j]
-            if not _well_conditioned(normal):
-                ok = False
+                    r_t += (f_position[i, j] - transmitters[c, j]) ** 2
+                    r_r += (f_position[i, j] - receivers[c, j]) ** 2
+                model[i, c] = np.sqrt(r_t) + np.sqrt(r_r)
+            n_shared = 0
+            for c in range(n_ch):
+                n_shared += f_use[i, c] == SHARED
+            value = f_chi2[i]
+            if np.isnan(value):
+                value = 1e6
+            elif np.isinf(value):
+                value = np.finfo(np.float64).max if value > 0 else -np.finfo(np.float64).max
+            rank[i] = n_shared * 1e6 + value
+        drop = np.zeros(n_chosen, dtype=np.bool_)
+        for i in range(n_chosen):
+            for j in range(i + 1, n_chosen):
+                close = True
+                for c in range(n_ch):
+                    close = close and abs(model[i, c] - model[j, c]) <= merge_reach
+                if close and not (drop[i] or drop[j]):
+                    drop[i if rank[i] > rank[j] else j] = True
+        good &= ~drop
+    return True, f_echo, f_use, f_position, f_covariance, f_chi2, f_converged, good
+
+
+@njit(cache=True, inline="always")
+def _measure(
+    paths: Any, sigmas: Any, offset: Any, echo: Any, use: Any, merge_sigma: float, measured: Any, weights: Any
+) -> int:  # pragma: no cover - compiled
+    """locate._measurements for one candidate into ``measured``/``weights``; returns the channels used."""
+    n_used = 0
+    for c in range(echo.shape[0]):
+        if use[c] == NONE:
+            measured[c] = 0.0
+            weights[c] = 0.0
+            continue
+        n_used += 1
+        k = offset[c] + echo[c]
+        sigma = sigmas[k]
+        if merge_sigma >= 0.0 and use[c] == SHARED:
+            sigma = np.hypot(sigma, merge_sigma)
+        measured[c] = paths[k]
+        weights[c] = 1.0 / sigma**2
+    return n_used
+
+
+@njit(cache=True)
+def sort_within_channels(paths: Any, offset: Any) -> Any:  # pragma: no cover - compiled
+    """Each channel's paths sorted, and their echo indices: np.lexsort((paths, channel)) of
+    locate._seed_candidates (stable insertion sort, NaN last)."""
+    sorted_paths = paths.copy()
+    sorted_index = np.empty(paths.shape[0], dtype=np.int64)
+    for c in range(offset.shape[0] - 1):
+        lo = offset[c]
+        for i in range(lo, offset[c + 1]):
+            value = paths[i]
+            j = i - 1
+            while j >= lo and (
+                sorted_paths[j] > value or (np.isnan(sorted_paths[j]) and not np.isnan(value))
+            ):
+                sorted_paths[j + 1] = sorted_paths[j]
+                sorted_index[j + 1] = sorted_index[j]
+                j -= 1
+            sorted_paths[j + 1] = value
+            sorted_index[j + 1] = i - lo
+    return sorted_paths, sorted_index
+
+
+@njit(cache=True)
+def first_of_each(echo: Any, use: Any, count: int) -> Any:  # pragma: no cover - compiled
+    """Indices (ascending) of the first of every distinct (echo, use) row among the first ``count``."""
+    n_ch = echo.shape[1]
+    size = 1
+    while size < 2 * count + 1:
+        size *= 2
+    table = np.full(size, -1, dtype=np.int64)
+    first = np.empty(count, dtype=np.int64)
+    n_first = 0
+    for row in range(count):
+        h = 1469598103934665603
+        for c in range(n_ch):
+            h = (h ^ (echo[row, c] + 1)) * 1099511628211
+            h = (h ^ use[row, c]) * 1099511628211
+        slot = h & (size - 1)
+        while True:
+            other = table[slot]
+            if other < 0:
+                table[slot] = row
+                first[n_first] = row
+                n_first += 1
                 break
-            if it == iterations or step < 1e-9:
-                # Converged (or out of iterations): covariance and chi-square at p.
-                for j in range(d):
-                    for i in range(d):
-                        unit[i] = 1.0 if i == j else 0.0
-                    _solve(normal, unit, column)
-                    for i in range(d):
-                        covariances[row, i, j] = column[i]
-                chi2[row] = total
+            same = True
+            for c in range(n_ch):
+                same = same and echo[other, c] == echo[row, c] and use[other, c] == use[row, c]
+            if same:
                 break
-            if not _solve(normal, rhs, delta):
-                ok = False
-                break
-            step = 0.0
-            for j in range(d):
-                p[j] += delta[j]
-                step += delta[j] ** 2
-            step = np.sqrt(step)
-        if ok:
-            for j in range(d):
-                positions[row, j] = p[j]
-            converged[row] = step < 1e-6 and np.isfinite(chi2[row])
-    return positions, covariances, chi2, converged
+            slot = (slot + 1) & (size - 1)
+    return first[:n_first]
+
+
+@njit(cache=True)
+def associate(
+    transmitters: Any,
+    receivers: Any,
+    transmitter_axes: Any,
+    receiver_axes: Any,
+    boresight: Any,
+    required: Any,
+    paths: Any,
+    sigmas: Any,
+    amplitudes: Any,
+    offset: Any,
+    seeds: Any,
+    window_low: float,
+    window_high: float,
+    cos_fov: float,
+    k_gate: float,
+    merge_reach: float,
+    merge_sigma: float,
+    gates: Any,
+    check_beams: bool,
+    min_own: int,
+    sharing_rounds: int,
+    amplitude_log_sigma: float,
+    node_limit: int,
+    max_rows: int,
+) -> Any:  # pragma: no cover - compiled
+    """Steps 1-4 of locate.associate in one call: seeds (sorted, deduplicated), refine, choose.
+
+    Returns (status, candidates, chosen): status 0 done, 1 more than ``max_rows``
+    seed rows (nothing else meaningful), 2 tied weights (the caller chooses from
+    ``candidates`` = refined (echo, use, positions, covariances, chi2, converged,
+    amplitude_chi2) with the reference); ``chosen`` as :func:`choose` returns it
+    after its flag.
+    """
+    sorted_paths, sorted_index = sort_within_channels(paths, offset)
+    capacity = np.int64(4096)  # typed, not a literal: one compiled seed kernel
+    while True:
+        echo, use, points, count, overflow = seed_candidates(
+            transmitters,
+            receivers,
+            transmitter_axes,
+            receiver_axes,
+            boresight,
+            required,
+            paths,
+            sigmas,
+            offset,
+            sorted_paths,
+            sorted_index,
+            seeds,
+            window_low,
+            window_high,
+            cos_fov,
+            k_gate,
+            merge_reach,
+            min_own,
+            capacity,
+        )
+        if not overflow or capacity >= max_rows:
+            break
+        capacity *= 4
+    # The same object comes from several seeds: keep one of each echo set (none on overflow).
+    first = first_of_each(echo, use, 0 if overflow else count)
+    candidates = refine(
+        transmitters,
+        receivers,
+        transmitter_axes,
+        receiver_axes,
+        boresight,
+        required,
+        paths,
+        sigmas,
+        amplitudes,
+        offset,
+        echo[first],
+        use[first],
+        points[first],
+        merge_sigma,
+        gates,
+        check_beams,
+        cos_fov,
+        min_own,
+        np.int64(6),
+        amplitude_log_sigma,
+    )
+    chosen = choose(
+        transmitters,
+        receivers,
+        transmitter_axes,
+        receiver_axes,
+        boresight,
+        required,
+        paths,
+        sigmas,
+        amplitudes,
+        offset,
+        candidates[0],
+        candidates[1],
+        candidates[2],
+        candidates[4],
+        candidates[6],
+        merge_sigma,
+        merge_reach,
+        gates,
+        check_beams,
+        cos_fov,
+        min_own,
+        sharing_rounds,
+        amplitude_log_sigma,
+        node_limit,
+    )
+    return 1 if overflow else 0 if chosen[0] else 2, candidates, chosen

@@ -23,11 +23,12 @@ transmitter's place (a transducer that both sends and receives).
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass, field
 from functools import lru_cache
 from itertools import combinations
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -465,6 +466,105 @@ def associate(
     """
     receivers = np.asarray(receivers_m, dtype=float)
     n_ch, dim = receivers.shape
+    setup = _setup(transmitter_m, receivers, usable, transmitter_index, receiver_index, required, options)
+    active = setup[1]
+    if len(active) < max(options.min_receivers, dim):
+        return []
+    echoes = _flatten(
+        [paths[c] for c in active],
+        [sigmas[c] for c in active],
+        None if amplitudes is None else [amplitudes[c] for c in active],
+    )
+    return _objects(setup, echoes, options, n_ch)
+
+
+def _objects(setup: _Setup, echoes: _Echoes, options: LocateOptions, n_ch: int) -> list[LocatedObject]:
+    """Steps 1-4 of :func:`associate` on the usable channels' echoes, as located objects."""
+    geometry, _, origin, receiver_of, transmitter_of = setup
+    if _COMPILED:
+        chosen = _associate_compiled(geometry, echoes, options)
+    else:
+        candidates = _seed_candidates(geometry, echoes, options)
+        if len(candidates.echo) == 0:
+            return []
+        candidates = _refine(geometry, candidates, echoes, options)
+        chosen = _choose(geometry, candidates, echoes, options)
+    objects = [
+        LocatedObject(
+            position_m=obj.position_m,
+            covariance_m2=obj.covariance_m2,
+            receivers=tuple([receiver_of[c] for c in obj.receivers]),
+            echo_indices=obj.echo_indices,
+            chi2=obj.chi2,
+            score=obj.score * len(obj.receivers) / n_ch,
+            transmitters=tuple([transmitter_of[c] for c in obj.receivers]),
+            shared=obj.shared,
+        )
+        for obj in chosen
+    ]
+    objects.sort(key=lambda o: _distance(o.position_m - origin))
+    return objects
+
+
+def _distance(offset: NDArray[np.float64]) -> float:
+    """np.linalg.norm of a vector, as it computes it (sqrt of the dot product), without its overhead."""
+    return math.sqrt(float(offset.dot(offset)))
+
+
+_Setup = tuple[_Geometry, list[int], NDArray[np.float64], list[int], list[int]]
+_SETUPS: dict[tuple[Any, ...], _Setup] = {}
+
+
+def _key(a: Any) -> tuple[Any, ...] | None:
+    """Hashable value of an array argument (None stays None)."""
+    if a is None:
+        return None
+    a = np.asarray(a)
+    return (a.shape, a.dtype.str, a.tobytes())
+
+
+def _setup(
+    transmitter_m: NDArray[np.float64],
+    receivers: NDArray[np.float64],
+    usable: NDArray[np.bool_] | None,
+    transmitter_index: NDArray[np.int64] | None,
+    receiver_index: NDArray[np.int64] | None,
+    required: NDArray[np.bool_] | None,
+    options: LocateOptions,
+) -> _Setup:
+    """The geometry of the usable channels, their indices, the origin of the objects' order,
+    and each channel's receiver and transmitter: the same for every frame of a stream (cached)."""
+    key = (
+        _key(transmitter_m),
+        _key(receivers),
+        _key(usable),
+        _key(transmitter_index),
+        _key(receiver_index),
+        _key(required),
+        _key(options.boresight),
+        _key(options.transmitter_axes),
+        _key(options.receiver_axes),
+    )
+    setup = _SETUPS.get(key)
+    if setup is None:
+        if len(_SETUPS) >= 64:
+            _SETUPS.clear()
+        setup = _SETUPS[key] = _make_setup(
+            transmitter_m, receivers, usable, transmitter_index, receiver_index, required, options
+        )
+    return setup
+
+
+def _make_setup(
+    transmitter_m: NDArray[np.float64],
+    receivers: NDArray[np.float64],
+    usable: NDArray[np.bool_] | None,
+    transmitter_index: NDArray[np.int64] | None,
+    receiver_index: NDArray[np.int64] | None,
+    required: NDArray[np.bool_] | None,
+    options: LocateOptions,
+) -> _Setup:
+    n_ch, dim = receivers.shape
     usable_mask = np.ones(n_ch, dtype=bool) if usable is None else np.asarray(usable, dtype=bool)
     tx = np.broadcast_to(np.asarray(transmitter_m, dtype=float), (n_ch, dim))
     tx_index = (
@@ -475,39 +575,11 @@ def associate(
         _, tx_index = np.unique(tx, axis=0, return_inverse=True)
         tx_index = tx_index.reshape(-1)
     active = np.flatnonzero(usable_mask)
-    if len(active) < max(options.min_receivers, dim):
-        return []
     must = np.ones(n_ch, dtype=bool) if required is None else np.asarray(required, dtype=bool)
     geometry = _geometry(
         tx[active], receivers[active], tx_index[active], rx_index[active], must[active], options, dim
     )
-    echoes = _flatten(
-        [paths[c] for c in active],
-        [sigmas[c] for c in active],
-        None if amplitudes is None else [amplitudes[c] for c in active],
-    )
-    candidates = _seed_candidates(geometry, echoes, options)
-    if len(candidates.echo) == 0:
-        return []
-    candidates = _refine(geometry, candidates, echoes, options)
-    chosen = _choose(geometry, candidates, echoes, options)
-    receiver_of = rx_index[active].tolist()
-    transmitter_of = tx_index[active].tolist()
-    objects = [
-        LocatedObject(
-            position_m=obj.position_m,
-            covariance_m2=obj.covariance_m2,
-            receivers=tuple(receiver_of[c] for c in obj.receivers),
-            echo_indices=obj.echo_indices,
-            chi2=obj.chi2,
-            score=obj.score * len(obj.receivers) / n_ch,
-            transmitters=tuple(transmitter_of[c] for c in obj.receivers),
-            shared=obj.shared,
-        )
-        for obj in chosen
-    ]
-    objects.sort(key=lambda o: float(np.linalg.norm(o.position_m - tx[0])))
-    return objects
+    return geometry, active.tolist(), tx[0].copy(), rx_index[active].tolist(), tx_index[active].tolist()
 
 
 def _geometry(
@@ -528,15 +600,21 @@ def _geometry(
         a = np.asarray(given, dtype=float)[index][:, -dim:]
         return np.asarray(a / np.linalg.norm(a, axis=1, keepdims=True))
 
+    # C-ordered, writeable arrays: what the compiled stages take as they are.
     return _Geometry(
-        tx,
-        rx,
-        tx_index,
-        rx_index,
-        required,
-        axes(options.transmitter_axes, tx_index),
-        axes(options.receiver_axes, rx_index),
-        boresight,
+        *(
+            np.array(a, order="C")
+            for a in (
+                tx,
+                rx,
+                tx_index,
+                rx_index,
+                required,
+                axes(options.transmitter_axes, tx_index),
+                axes(options.receiver_axes, rx_index),
+                boresight,
+            )
+        )
     )
 
 
@@ -559,6 +637,80 @@ def _seed_sets_cached(tx_index: bytes, required: bytes, dim: int) -> list[tuple[
     ]
 
 
+def _associate_compiled(geometry: _Geometry, echoes: _Echoes, options: LocateOptions) -> list[_Chosen]:
+    """Steps 1-4 of :func:`associate` in one compiled call (:func:`_seed_candidates`,
+    :func:`_refine` and :func:`_choose` in turn, without the calls between them)."""
+    from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
+
+    dim = geometry.dim
+    kernel: Any = kernels.associate  # (its options come as one tuple)
+    status, refined, chosen = kernel(
+        geometry.transmitters_m,
+        geometry.receivers_m,
+        geometry.transmitter_axes,
+        geometry.receiver_axes,
+        geometry.boresight,
+        geometry.required,
+        echoes.paths,
+        echoes.sigmas,
+        _NO_AMPLITUDES if echoes.amplitudes is None else echoes.amplitudes,
+        echoes.offset,
+        _seed_array(geometry),
+        *_kernel_options(options, dim, geometry.n),
+        _NODE_LIMIT,
+        _MAX_SEED_ROWS,
+    )
+    if status == 1:
+        warnings.warn(
+            f"frame skipped: more than {_MAX_SEED_ROWS} echo combinations to associate; "
+            "raise the detection threshold",
+            LocateWarning,
+            stacklevel=4,
+        )
+        return []
+    if status == 2:
+        echo, use, position, covariance, chi2, converged, amplitude_chi2 = refined
+        candidates = _Candidates(echo, use, Solution(position, covariance, chi2, converged), amplitude_chi2)
+        return _choose_reference(geometry, candidates, echoes, options)
+    return _chosen(geometry, *chosen[1:])
+
+
+def _kernel_options(options: LocateOptions, dim: int, n_channels: int) -> tuple[Any, ...]:
+    """The options as the compiled association takes them (window .. amplitude sigma)."""
+    beams = _checks_beams(options)  # from the axes too, which the options' hash leaves out
+    try:
+        return _kernel_options_cached(options, dim, n_channels, beams)
+    except TypeError:  # options holding unhashable values (a list for a tuple)
+        return _kernel_options_cached.__wrapped__(options, dim, n_channels, beams)
+
+
+@lru_cache(maxsize=64)
+def _kernel_options_cached(options: LocateOptions, dim: int, n_channels: int, beams: bool) -> tuple[Any, ...]:
+    low, high = options.window_m
+    return (
+        float(low),
+        float(high),
+        float(np.cos(np.radians(options.field_of_view_deg))),
+        float(np.sqrt(_chi2_gate(options.gate_probability, 1))),
+        _merge_reach(options),
+        -1.0 if options.resolution_m is None else _merge_sigma(options.resolution_m),
+        _gates(options.gate_probability, dim, n_channels),
+        beams,
+        max(options.min_receivers, dim),
+        _SHARING_ROUNDS if options.resolution_m is not None else 0,
+        AMPLITUDE_LOG_SIGMA,
+    )
+
+
+def _seed_array(geometry: _Geometry) -> NDArray[np.int64]:
+    return _seed_array_cached(geometry.transmitter_index.tobytes(), geometry.required.tobytes(), geometry.dim)
+
+
+@lru_cache(maxsize=32)
+def _seed_array_cached(tx_index: bytes, required: bytes, dim: int) -> NDArray[np.int64]:
+    return np.array(_seed_sets_cached(tx_index, required, dim), dtype=np.int64).reshape(-1, dim)
+
+
 def _seed_candidates(geometry: _Geometry, echoes: _Echoes, options: LocateOptions) -> _Candidates:
     """Steps 1-2 of :func:`associate`: seeds solved exactly, the other channels attached.
 
@@ -566,27 +718,27 @@ def _seed_candidates(geometry: _Geometry, echoes: _Echoes, options: LocateOption
     """
     dim, n_ch = geometry.dim, geometry.n
     seeds = np.array(_seed_sets(geometry), dtype=np.int64).reshape(-1, dim)
-    # Sorted within each channel: by channel first, then by path.
-    channel = np.repeat(np.arange(n_ch), np.diff(echoes.offset))
-    order = np.lexsort((echoes.paths, channel))
-    sorted_paths = echoes.paths[order]
-    sorted_index = order - echoes.offset[channel[order]]
-    low, high = options.window_m
-    capacity = 4096
     from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
 
+    # Sorted within each channel: by channel first, then by path.
+    if _COMPILED:
+        sorted_paths, sorted_index = kernels.sort_within_channels(echoes.paths, echoes.offset)
+    else:
+        channel = np.repeat(np.arange(n_ch), np.diff(echoes.offset))
+        order = np.lexsort((echoes.paths, channel))
+        sorted_paths = echoes.paths[order]
+        sorted_index = order - echoes.offset[channel[order]]
+    low, high = options.window_m
+    capacity = 4096
+
     while True:
-
-        def contiguous(a: NDArray[Any]) -> NDArray[Any]:
-            return np.array(a, order="C")
-
         echo, use, points, count, overflow = kernels.seed_candidates(
-            contiguous(geometry.transmitters_m),
-            contiguous(geometry.receivers_m),
-            contiguous(geometry.transmitter_axes),
-            contiguous(geometry.receiver_axes),
-            contiguous(geometry.boresight),
-            contiguous(geometry.required),
+            geometry.transmitters_m,
+            geometry.receivers_m,
+            geometry.transmitter_axes,
+            geometry.receiver_axes,
+            geometry.boresight,
+            geometry.required,
             echoes.paths,
             echoes.sigmas,
             echoes.offset,
@@ -613,15 +765,23 @@ def _seed_candidates(geometry: _Geometry, echoes: _Echoes, options: LocateOption
             return _no_candidates(n_ch, dim)
         capacity *= 4
     # The same object comes from several seeds: keep one of each echo set.
-    seen: set[tuple[int, ...]] = set()
-    first = []
-    for k, row in enumerate(np.concatenate([echo[:count], use[:count].astype(np.int64)], axis=1).tolist()):
-        if tuple(row) not in seen:
-            seen.add(tuple(row))
-            first.append(k)
+    first = (
+        kernels.first_of_each(echo, use, count) if _COMPILED else _first_of_each(echo[:count], use[:count])
+    )
     return _Candidates(
         echo[first], use[first], _empty_solution(len(first), dim, points[first]), np.zeros(len(first))
     )
+
+
+def _first_of_each(echo: NDArray[np.int64], use: NDArray[np.int8]) -> list[int]:
+    """Rows that are the first of their (echo, use) (numpy reference of the compiled one)."""
+    seen: set[tuple[int, ...]] = set()
+    first = []
+    for k, row in enumerate(np.concatenate([echo, use.astype(np.int64)], axis=1).tolist()):
+        if tuple(row) not in seen:
+            seen.add(tuple(row))
+            first.append(k)
+    return first
 
 
 def _no_candidates(n_ch: int, dim: int) -> _Candidates:
@@ -676,7 +836,56 @@ def _refine(
 
     A candidate that fails with echoes on optional channels (older frames of other
     transmitters, whose reflector may have moved since) is fitted again without them.
+    Runs compiled (:func:`echoloc._locate_kernels.refine`); :func:`_refine_reference`
+    is the same in numpy.
     """
+    if not _COMPILED:
+        return _refine_reference(geometry, candidates, echoes, options)
+    from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
+
+    echo, use, position, covariance, chi2, converged, amplitude_chi2 = kernels.refine(
+        geometry.transmitters_m,
+        geometry.receivers_m,
+        geometry.transmitter_axes,
+        geometry.receiver_axes,
+        geometry.boresight,
+        geometry.required,
+        echoes.paths,
+        echoes.sigmas,
+        _NO_AMPLITUDES if echoes.amplitudes is None else echoes.amplitudes,
+        echoes.offset,
+        np.ascontiguousarray(candidates.echo, dtype=np.int64),
+        np.ascontiguousarray(candidates.use, dtype=np.int8),
+        np.ascontiguousarray(candidates.solution.position_m, dtype=float),
+        -1.0 if options.resolution_m is None else _merge_sigma(options.resolution_m),
+        _gates(options.gate_probability, geometry.dim, geometry.n),
+        _checks_beams(options),
+        float(np.cos(np.radians(options.field_of_view_deg))),
+        max(options.min_receivers, geometry.dim),
+        6,
+        AMPLITUDE_LOG_SIGMA,
+    )
+    return _Candidates(echo, use, Solution(position, covariance, chi2, converged), amplitude_chi2)
+
+
+_COMPILED = True
+"""Whether association runs its compiled stages (False: the numpy references, for tests)."""
+_NO_AMPLITUDES = np.zeros(0)
+
+
+def _checks_beams(options: LocateOptions) -> bool:
+    """Whether solutions are held to the beams (a narrower field of view, or axes of their own)."""
+    return bool(
+        options.field_of_view_deg < 90
+        or options.transmitter_axes is not None
+        or options.receiver_axes is not None
+    )
+
+
+def _refine_reference(
+    geometry: _Geometry, candidates: _Candidates, echoes: _Echoes, options: LocateOptions
+) -> _Candidates:
+    """:func:`_refine` in numpy."""
     echo, use = candidates.echo, candidates.use
     solution, ok = _fit_and_gate(geometry, echo, use, candidates.solution.position_m, echoes, options)
     optional = (use != _NONE) & ~geometry.required
@@ -718,11 +927,7 @@ def _fit_and_gate(
     if np.any(ok):
         points = solution.position_m[ok]
         inside = _ahead(geometry, points)
-        if (
-            options.field_of_view_deg < 90
-            or options.transmitter_axes is not None
-            or options.receiver_axes is not None
-        ):
+        if _checks_beams(options):
             supported = use[ok] != _NONE
             cos_fov = np.cos(np.radians(options.field_of_view_deg))
             inside &= np.all(_in_beams(geometry, points, cos_fov) | ~supported, axis=1)
@@ -791,8 +996,9 @@ def _amplitude_chi2(
     return np.asarray(np.nan_to_num(spread2 / AMPLITUDE_LOG_SIGMA**2 / count, nan=1e3, posinf=1e3))
 
 
-@dataclass(frozen=True, eq=False)
-class _Chosen:
+class _Chosen(NamedTuple):
+    """One chosen object (a named tuple: built per object and frame, so cheaply)."""
+
     position_m: NDArray[np.float64]
     covariance_m2: NDArray[np.float64]
     receivers: tuple[int, ...]  # channel indices (mapped to receivers by associate)
@@ -822,7 +1028,86 @@ def _weights(candidates: _Candidates, options: LocateOptions, dim: int) -> NDArr
 def _choose(
     geometry: _Geometry, candidates: _Candidates, echoes: _Echoes, options: LocateOptions
 ) -> list[_Chosen]:
-    """Step 4: the heaviest disjoint set, then rounds that share merged echoes, a final re-solve."""
+    """Step 4: the heaviest disjoint set, then rounds that share merged echoes, a final re-solve.
+
+    Runs compiled (:func:`echoloc._locate_kernels.choose`) but for the scores;
+    :func:`_choose_reference` is the same in Python and numpy, and takes over when
+    packing weights tie (its order, from set iteration, then decides).
+    """
+    if not _COMPILED:
+        return _choose_reference(geometry, candidates, echoes, options)
+    from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
+
+    done, echo, use, position, covariance, chi2, converged, good = kernels.choose(
+        geometry.transmitters_m,
+        geometry.receivers_m,
+        geometry.transmitter_axes,
+        geometry.receiver_axes,
+        geometry.boresight,
+        geometry.required,
+        echoes.paths,
+        echoes.sigmas,
+        _NO_AMPLITUDES if echoes.amplitudes is None else echoes.amplitudes,
+        echoes.offset,
+        candidates.echo,
+        candidates.use,
+        candidates.solution.position_m,
+        candidates.solution.chi2,
+        candidates.amplitude_chi2,
+        -1.0 if options.resolution_m is None else _merge_sigma(options.resolution_m),
+        _merge_reach(options),
+        _gates(options.gate_probability, geometry.dim, geometry.n),
+        _checks_beams(options),
+        float(np.cos(np.radians(options.field_of_view_deg))),
+        max(options.min_receivers, geometry.dim),
+        _SHARING_ROUNDS if options.resolution_m is not None else 0,
+        AMPLITUDE_LOG_SIGMA,
+        _NODE_LIMIT,
+    )
+    if not done:
+        return _choose_reference(geometry, candidates, echoes, options)
+    return _chosen(geometry, echo, use, position, covariance, chi2, converged, good)
+
+
+def _chosen(
+    geometry: _Geometry,
+    echo: NDArray[np.int64],
+    use: NDArray[np.int8],
+    position: NDArray[np.float64],
+    covariance: NDArray[np.float64],
+    chi2: NDArray[np.float64],
+    converged: NDArray[np.bool_],
+    good: NDArray[np.bool_],
+) -> list[_Chosen]:
+    """The compiled choice's surviving rows, with their scores (as _choose_reference's)."""
+    rows = np.flatnonzero(good).tolist()
+    if not rows:
+        return []
+    echo_rows, use_rows, chi2_rows = echo.tolist(), use.tolist(), chi2.tolist()
+    channels = [[c for c, u in enumerate(use_rows[k]) if u != _NONE] for k in rows]
+    dof = [len(used) - geometry.dim for used in channels]
+    tail = special.chdtrc([max(d, 1) for d in dof], [chi2_rows[k] for k in rows]).tolist()
+    return [
+        _Chosen(
+            position[k],
+            covariance[k],
+            tuple(used),
+            tuple([echo_rows[k][c] for c in used]),
+            chi2_rows[k],
+            tail[i] if dof[i] > 0 else 1.0,
+            use_rows[k].count(_SHARED),
+        )
+        for i, (k, used) in enumerate(zip(rows, channels, strict=True))
+    ]
+
+
+_NODE_LIMIT = 50_000
+
+
+def _choose_reference(
+    geometry: _Geometry, candidates: _Candidates, echoes: _Echoes, options: LocateOptions
+) -> list[_Chosen]:
+    """:func:`_choose` in Python and numpy."""
     weights = _weights(candidates, options, geometry.dim).tolist()
     echo_rows: list[list[int]] = candidates.echo.tolist()
     use_rows: list[list[int]] = candidates.use.tolist()
@@ -977,7 +1262,7 @@ def _rows(solution: Solution, rows: list[int]) -> Solution:
     )
 
 
-def _best_disjoint(candidates: list[_Candidate], node_limit: int = 50_000) -> list[int]:
+def _best_disjoint(candidates: list[_Candidate], node_limit: int = _NODE_LIMIT) -> list[int]:
     """Indices of the heaviest set of candidates that share no echo (weighted set packing).
 
     Solved exactly by branch and bound on each connected group of conflicting
@@ -1065,9 +1350,29 @@ def locate_frame(
 ) -> FrameObjects:
     """Objects of one frame from its echoes (one transmitter, one channel per receiver)."""
     c = frame_echoes.speed_of_sound_m_s
-    paths = [ch.tof_s * c for ch in frame_echoes.channels]
-    sigmas = [path_sigmas_m(ch.snr_db, c, options) for ch in frame_echoes.channels]
-    amplitudes = [ch.amplitude for ch in frame_echoes.channels]
+    channels = frame_echoes.channels
+    if _COMPILED and channels:
+        # Every channel at once (the same element-wise arithmetic as associate's, fewer
+        # numpy calls), straight to its flat echoes when every channel is usable.
+        receivers = np.asarray(receivers_m, dtype=float)
+        n_ch, dim = receivers.shape
+        setup = _setup(transmitter_m, receivers, usable, None, None, None, options)
+        if len(setup[1]) == n_ch == len(channels) and n_ch >= max(options.min_receivers, dim):
+            offset = np.zeros(n_ch + 1, dtype=np.int64)
+            offset[1:] = np.cumsum([len(ch.tof_s) for ch in channels])
+            echoes = _Echoes(
+                offset,
+                (np.concatenate([ch.tof_s for ch in channels]) * c).astype(float, copy=False),
+                path_sigmas_m(np.concatenate([ch.snr_db for ch in channels]), c, options).astype(
+                    float, copy=False
+                ),
+                np.concatenate([ch.amplitude for ch in channels]).astype(float, copy=False),
+            )
+            objects = _objects(setup, echoes, options, n_ch)
+            return FrameObjects(frame_echoes.frame, frame_echoes.time_s, tuple(objects))
+    paths = [ch.tof_s * c for ch in channels]
+    sigmas = [path_sigmas_m(ch.snr_db, c, options) for ch in channels]
+    amplitudes = [ch.amplitude for ch in channels]
     objects = associate(transmitter_m, receivers_m, paths, sigmas, options, usable, amplitudes)
     return FrameObjects(frame_echoes.frame, frame_echoes.time_s, tuple(objects))
 
