@@ -301,6 +301,7 @@ def test_an_unaligned_floor_plan_still_gives_one_octomap_voxel_per_cell(tmp_path
     [
         (["-o", "map.txt"], "choose the format by extension"),
         (["-o", "map.png", "--3d", "--height-m", "0.1"], "--height-m"),
+        (["-o", "map.png", "--method", "backprojection"], "--method backprojection"),
         (["-o", "nowhere/map.png"], "does not exist"),
         (["-o", "map.png", "--cell-m", "0"], "--cell-m"),
         (["-o", "map.png", "--extent-m", "1,2,3"], "--extent-m"),

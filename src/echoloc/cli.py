@@ -817,6 +817,11 @@ def map_command(
                 "--height-m sets the floor plan's height; a --3d grid takes --extent-m instead"
             )
     _check_writable(output_path)
+    if processing.method != "association":
+        raise EchoLocError(
+            "map reads every receiver's echoes and the association's objects; "
+            "--method backprojection is for locate, evaluate, export and image"
+        )
     extent = _extent_option(extent_text, 3 if three_d else 2)
     trajectory = read_trajectory(trajectory_path) if trajectory_path is not None else None
     recording, chain, frames = processing.open()
