@@ -249,6 +249,30 @@ def channel_update(
 
 
 @njit(cache=True)
+def add_supported_evidence(
+    cells: np.ndarray,
+    evidence: np.ndarray,
+    occupied: np.ndarray,
+    support: np.ndarray,
+    stamp: np.ndarray,
+    frame_id: int,
+    touched: np.ndarray,
+    n_touched: int,
+) -> int:
+    """Add occupied evidence that needs no arcs to meet (a located object: several channels
+    already agree on it) to ``cells``; values of 1e-6 or less are skipped. Returns the new
+    count of touched cells."""
+    for n in range(cells.shape[0]):
+        if evidence[n] <= 1e-6:
+            continue
+        cell = cells[n]
+        n_touched = _touch(cell, stamp, frame_id, touched, n_touched)
+        occupied[cell] += evidence[n]
+        support[cell] = 255
+    return n_touched
+
+
+@njit(cache=True)
 def apply_frame(
     log_odds: np.ndarray,
     updates: np.ndarray,

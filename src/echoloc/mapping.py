@@ -549,7 +549,6 @@ class MapAccumulator:
         model: SensorModel | None = None,
         *,
         blind_path_m: float = 0.0,
-        window_path_m: float | None = None,
         usable_receivers: NDArray[np.bool_] | None = None,
     ) -> None:
         from echoloc import _mapping_kernels
@@ -575,7 +574,6 @@ class MapAccumulator:
         self._touched = np.zeros(n, dtype=np.int32)
         self._frames = 0
         self._blind_m = float(blind_path_m)
-        self._window_m = window_path_m
         self._usable = None if usable_receivers is None else np.asarray(usable_receivers, dtype=bool)
         self._tx_axes = (
             _unit(np.asarray(recording.transmitter_axes, dtype=float))
@@ -615,25 +613,16 @@ class MapAccumulator:
         *,
         transmitter: int = 0,
         objects: FrameObjects | None = None,
-        usable_receivers: NDArray[np.bool_] | None = None,
     ) -> None:
-        """Integrate one frame: every channel's reading, then the located objects, at ``pose``.
-
-        ``usable_receivers`` (default: the accumulator's) leaves the others out.
-        """
-        if usable_receivers is None:
-            usable_receivers = self._usable
+        """Integrate one frame: every usable channel's reading, then the located objects, at ``pose``."""
+        usable_receivers = self._usable
         pose_row = np.asarray(pose, dtype=float).reshape(7)
         rotation = Rotation.from_quat(pose_row[3:]).as_matrix()
         translation = pose_row[:3]
         tx_world = rotation @ self.recording.transmitters_m[transmitter] + translation
         tx_axis = rotation @ self._tx_axes[transmitter]
         c = echoes.speed_of_sound_m_s
-        window = (
-            self._window_m
-            if self._window_m is not None
-            else self.recording.n_samples / self.recording.sample_rate_hz * c
-        )
+        window = self.recording.n_samples / self.recording.sample_rate_hz * c
         clear_m = (
             self.model.no_echo_clear_m
             if self.model.no_echo_clear_m is not None
@@ -743,16 +732,16 @@ class MapAccumulator:
             d2 = np.einsum("ni,ij,nj->n", offset, np.linalg.inv(covariance), offset)
             p = 0.5 + (self.model.object_probability - 0.5) * np.exp(-0.5 * d2)
             cells = (index[:, 0] * ny + index[:, 1]) * nz + index[:, 2]
-            for cell, value in zip(cells, np.log(p / (1 - p)), strict=True):
-                if value <= 1e-6:
-                    continue
-                if self._stamp[cell] != frame_id:
-                    self._stamp[cell] = frame_id
-                    self._touched[n_touched] = cell
-                    n_touched += 1
-                self._occupied[cell] += value
-                # A located object is already supported by several channels.
-                self._support[cell] = 255
+            n_touched = self._kernels.add_supported_evidence(
+                cells,
+                np.log(p / (1 - p)),
+                self._occupied,
+                self._support,
+                self._stamp,
+                frame_id,
+                self._touched,
+                n_touched,
+            )
         return n_touched
 
     def grid(self) -> OccupancyGrid:
