@@ -128,26 +128,14 @@ def check_locatable(chain: Chain) -> None:
 def frame_echoes(chain: Chain, index: int) -> FrameEchoes:
     """Echoes of frame ``index``."""
     recording = chain.recording
-    frame = condition_frame(recording.frames[index], recording, chain.conditioning, index)
-    channels = chain.estimator(frame)
-    echoes = FrameEchoes(index, frame_time_s(recording, index), chain.speed_of_sound_m_s, tuple(channels))
-    if chain.calibration is not None:
-        echoes = apply_calibration(echoes, chain.calibration)
-        return replace(echoes, speed_of_sound_m_s=chain.speed_of_sound_m_s)
-    return echoes
+    return samples_echoes(chain, recording.frames[index], index, frame_time_s(recording, index))
 
 
 def frame_objects(chain: Chain, echoes: FrameEchoes) -> FrameObjects:
     """Objects of one frame from its echoes."""
     recording = chain.recording
     tx_index = 0 if recording.frame_transmitter is None else int(recording.frame_transmitter[echoes.frame])
-    return locate_frame(
-        echoes,
-        recording.transmitters_m[tx_index],
-        recording.receivers_m,
-        chain.locate_options,
-        chain.usable_receivers,
-    )
+    return transmitter_objects(chain, echoes, tx_index)
 
 
 def combines_transmitters(chain: Chain) -> bool:
@@ -175,20 +163,9 @@ def run(chain: Chain, frames: Iterable[int] | None = None) -> Iterator[tuple[Fra
         if not combine:
             yield echoes, frame_objects(chain, echoes)
             continue
-        recording = chain.recording
-        assert recording.frame_transmitter is not None
-        latest[int(recording.frame_transmitter[index])] = echoes
-        # Only the last n_tx frames: a transmitter that stopped firing (or frames
-        # skipped) must not lend old echoes.
-        n_tx = len(recording.transmitters_m)
-        latest = {t: e for t, e in latest.items() if 0 <= index - e.frame < n_tx}
-        objects = combine_frames(
-            sorted(latest.items()),
-            recording.transmitters_m,
-            recording.receivers_m,
-            chain.locate_options,
-            chain.usable_receivers,
-        )
+        transmitter = chain.recording.frame_transmitter
+        assert transmitter is not None
+        latest, objects = combine_latest(chain, latest, echoes, int(transmitter[index]))
         yield echoes, objects
 
 
