@@ -295,3 +295,23 @@ def test_geometry_file_replaces_the_session_message(recording):
     assert items[0].header.n_frames == 0
     assert [f.index for f in items[1:]] == [0, 1, 2]
     assert listener.counters()["rejected"] == 0
+
+
+def test_garbage_bytes_on_tcp_are_counted_as_malformed_not_dropped_silently():
+    with Listener(Endpoint("127.0.0.1", 0, "tcp"), FrameQueue(16)) as listener:
+        with socket.create_connection(("127.0.0.1", listener.address.port), timeout=5) as client:
+            client.sendall(b"not a message at all " * 11)
+        deadline = time.monotonic() + 5
+        while listener.counters()["malformed"] == 0 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        counters = listener.counters()
+    assert counters["malformed"] >= 1
+    assert listener.bytes_skipped > 0
+    assert counters["received"] == 0
+
+
+def test_the_listeners_address_outlives_its_socket():
+    listener = Listener(Endpoint("127.0.0.1", 0, "udp"), FrameQueue(4)).start()
+    port = listener.address.port
+    listener.stop()
+    assert listener.address.port == port > 0

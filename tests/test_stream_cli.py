@@ -138,7 +138,14 @@ def test_stream_with_the_live_view_and_its_map_changes_nothing_it_prints(recordi
     assert sent.returncode == 0, sent.stderr
     code, stdout = stream.finish()
     assert code == 0, stream.lines
-    assert len(stdout.splitlines()) == 15
+    located = subprocess.run(
+        [*ECHOLOC, "locate", str(recording_path), "--json"],
+        capture_output=True,
+        text=True,
+        timeout=TIMEOUT_S,
+        check=True,
+    )
+    assert stdout == located.stdout
     assert "received 15, processed 15, lost 0, dropped 0" in stream.lines[-1]
 
 
@@ -284,6 +291,8 @@ def test_bench_reports_both_chains_and_the_physics():
         (["record", "x.h5", "--udp", "--listen", "127.0.0.1:99999"], "outside 0..65535"),
         (["send", "/no/such.h5"], "no such file"),
         (["send", "x.h5", "--rate", "0"], None),
+        (["stream", "--listen", "127.0.0.1:0", "--duration", "-1"], "--duration"),
+        (["record", "x.h5", "--listen", "127.0.0.1:0", "--batch-seconds", "0"], "--batch-seconds"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(capsys, tmp_path, recording_path, args, message):
@@ -298,6 +307,19 @@ def test_bad_input_is_one_line_and_exit_2(capsys, tmp_path, recording_path, args
     assert err.startswith("echoloc: error: ")
     if message is not None:
         assert message in err
+
+
+def test_record_with_no_sender_says_so_and_writes_nothing(capsys, tmp_path):
+    from echoloc import cli
+
+    out = tmp_path / "nothing.h5"
+    with pytest.raises(SystemExit) as info:
+        cli.main(["record", str(out), "--listen", "127.0.0.1:0", "--duration", "0.3"])
+    _, err = capsys.readouterr()
+    assert info.value.code == 2
+    assert re.search(r"echoloc: error: .*nothing\.h5: no session arrived on tcp://127\.0\.0\.1:\d+", err)
+    assert "Traceback" not in err
+    assert not out.exists()
 
 
 def test_a_busy_port_is_one_line_and_exit_2(capsys):

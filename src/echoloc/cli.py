@@ -1879,6 +1879,7 @@ def stream_command(
 
     if record_path is not None:
         Recorder.check_path(record_path)
+    _finite("--duration", duration_s, positive=True)
     listener = _open_listener(listen_text, udp, geometry_path, queue_frames, block)
     warm_kernels(estimator)
     session = _LiveStream(listener, make_chain, deadline_ms / 1e3, as_json, record_path)
@@ -1985,8 +1986,9 @@ class _LiveStream:
         if self.as_json:
             click.echo(json_line(objects_record(result.objects)))
         now = item.arrival_s
-        if self.view is not None:
-            self.view.publish(result, item.samples, self.stats())
+        # The live map takes only the frames the view shows (at most 20 a second): it
+        # costs about twice the chain per frame, and the view must never slow the chain.
+        if self.view is not None and self.view.publish(result, item.samples, self.stats()):
             self._map(result, now)
         if self.live is not None:
             if now - self._last_table > 0.2:
@@ -1997,7 +1999,7 @@ class _LiveStream:
             self._say(self.stats().summary())
 
     def _map(self, result: Any, now: float) -> None:
-        """Add the frame to the live floor plan (the sensor frame's x-z plane); publish it twice a second."""
+        """Add a shown frame to the live floor plan (x-z); publish it twice a second."""
         from echoloc.map_export import floor_plan_cells, floor_plan_pose
 
         if self.mapper is None:
@@ -2109,6 +2111,8 @@ def record_command(
             )
 
     Recorder.check_path(output)
+    _finite("--duration", duration_s, positive=True)
+    _finite("--batch-seconds", batch_s, positive=True)
     listener = _open_listener(listen_text, udp, geometry_path, queue_frames, block)
     recorder: Recorder | None = None
     interrupted = False

@@ -152,6 +152,8 @@ class Listener:
         except OSError as error:
             self._socket.close()
             raise EchoLocError(f"cannot listen on {endpoint}: {error.strerror or error}") from None
+        # Kept: the socket's own name is gone once stop() has closed it.
+        self._address = replace(endpoint, port=int(self._socket.getsockname()[1]))
         if self.geometry is not None:
             self._set_session(self.geometry)
         self._thread = threading.Thread(target=self._run, name=f"echoloc-listener {endpoint}", daemon=True)
@@ -159,7 +161,7 @@ class Listener:
     @property
     def address(self) -> Endpoint:
         """The bound endpoint (with the port the system chose for port 0)."""
-        return replace(self.endpoint, port=int(self._socket.getsockname()[1]))
+        return self._address
 
     def start(self) -> Listener:
         self._thread.start()
@@ -240,6 +242,10 @@ class Listener:
                     self.bytes_skipped += skipped
                     for error in errors:
                         self._complain("malformed", f"{self.endpoint}: {error}")
+                    if skipped and not errors:
+                        self._complain(
+                            "malformed", f"{self.endpoint}: skipped {skipped} bytes that began no message"
+                        )
                     for header, payload in messages:
                         self._message(header, payload)
             if not self._stop.is_set():
