@@ -1214,8 +1214,15 @@ def _append_batches(
 
 
 def _stream_hdf5(
-    tmp: Path, source: str, header: Recording, batches: Iterable[FrameBatch], storage: np.dtype[Any]
+    tmp: Path,
+    source: str,
+    header: Recording,
+    batches: Iterable[FrameBatch],
+    storage: np.dtype[Any],
+    *,
+    durable: bool = False,
 ) -> None:
+    """Write the header, then append every batch; ``durable`` flushes to disk after each."""
     attrs, data = _file_items(header)
     del data["frames"]
     with _write_errors(source):
@@ -1226,8 +1233,18 @@ def _stream_hdf5(
                 file.attrs[name] = value
             for name, arr in data.items():
                 file.create_dataset(name, data=arr)
+            if durable:
+                _durable(file)
         sink = _Hdf5Sink(file)
-        _append_batches(source, header, batches, storage, sink.append)
+
+        def flushed(batches: Iterable[FrameBatch]) -> Iterator[FrameBatch]:
+            for batch in batches:
+                yield batch
+                # Back here once the batch is appended, before the next is made.
+                with _write_errors(source):
+                    _durable(file)
+
+        _append_batches(source, header, flushed(batches) if durable else batches, storage, sink.append)
         with _write_errors(source):
             sink.finish()
 
@@ -1355,29 +1372,7 @@ def append_recording_stream(
         raise _error(source, f"directory {str(target.parent)!r} does not exist")
     validate_header(header)
     storage = _storage_dtype(source, frames_dtype, header.frames.dtype.kind == "c")
-    attrs, data = _file_items(header)
-    del data["frames"]
-    with _write_errors(source):
-        file = h5py.File(target, "w")
-    with file:
-        with _write_errors(source):
-            for name, value in attrs.items():
-                file.attrs[name] = value
-            for name, arr in data.items():
-                file.create_dataset(name, data=arr)
-            _durable(file)
-        sink = _Hdf5Sink(file)
-
-        def flushed(batches: Iterable[FrameBatch]) -> Iterator[FrameBatch]:
-            for batch in batches:
-                yield batch
-                # Back here once the batch is appended, before the next is made.
-                with _write_errors(source):
-                    _durable(file)
-
-        _append_batches(source, header, flushed(batches), storage, sink.append)
-        with _write_errors(source):
-            sink.finish()
+    _stream_hdf5(target, source, header, batches, storage, durable=True)
     _fsync(target.parent, directory=True)
     return target
 
