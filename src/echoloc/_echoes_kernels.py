@@ -158,16 +158,9 @@ def median(values: Any) -> float:  # pragma: no cover - compiled
 
 
 @njit(cache=True)
-def _solve(a: Any, b: Any) -> Any:  # pragma: no cover - compiled
-    """x with a x = b (small): Gaussian elimination with partial pivoting; NaN if singular."""
-    x = np.zeros(a.shape[0])
-    _solve_in_place(a.copy(), b.copy(), x)
-    return x
-
-
-@njit(cache=True)
 def _solve_in_place(m: Any, v: Any, x: Any) -> None:  # pragma: no cover - compiled
-    """:func:`_solve` into ``x``, overwriting ``m`` and ``v`` (no allocation: it runs every fit step)."""
+    """x with m x = v (small) by Gaussian elimination with partial pivoting, into ``x``,
+    overwriting ``m`` and ``v`` (no allocation: it runs every fit step); NaN if singular."""
     n = m.shape[0]
     for col in range(n):
         pivot = col

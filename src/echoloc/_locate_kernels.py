@@ -5,8 +5,9 @@ combination) and then packs a few dozen candidates into objects. As numpy calls
 and Python sets each cost microseconds of overhead, which kept a frame of five
 objects at ~2.5 ms, then ~0.6 ms with only the seeds and Gauss-Newton compiled;
 :func:`associate` runs every step (seeds, refinement, choice) in one call, about
-0.13 ms. The formulas are those documented in :mod:`echoloc.locate`, whose numpy
-and Python references (``locate._COMPILED = False``) the tests hold these loops to;
+0.15 ms. The formulas are those documented in :mod:`echoloc.locate`, whose numpy
+and Python references (``locate._COMPILED = False``; they share the seed search and
+Gauss-Newton kernels with the compiled path) the tests hold these loops to;
 this module holds only the loops, with the same arithmetic in the same order.
 Every function works in D = 2 or 3 dimensions. Small helpers are inlined
 (``inline="always"``): called, each passed its array views through reference
@@ -26,15 +27,10 @@ from numba import njit, objmode
 OWN, SHARED, NONE = 0, 1, 2
 
 
-@njit(cache=True)
-def _solve(a: Any, b: Any, x: Any) -> bool:  # pragma: no cover - compiled
-    """Solve the small system a x = b by Gaussian elimination with partial pivoting; False if singular."""
-    return _solve_in_place(a.copy(), b.copy(), x)
-
-
 @njit(cache=True, inline="always")
 def _solve_in_place(m: Any, v: Any, x: Any) -> bool:  # pragma: no cover - compiled
-    """:func:`_solve` overwriting ``m`` and ``v`` (no allocation: called per echo combination)."""
+    """Solve the small system m x = v by Gaussian elimination with partial pivoting, overwriting
+    ``m`` and ``v`` (no allocation: called per echo combination); False if singular."""
     n = m.shape[0]
     for col in range(n):
         pivot = col

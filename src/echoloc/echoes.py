@@ -886,8 +886,8 @@ def matched_filter_batch(
 
     The correlation of every channel is computed at once in single precision; then
     every channel goes through the batch path (:func:`_isolated_echoes`, run as
-    compiled loops by :func:`_compiled_echoes`), which fits isolated echoes as CLEAN
-    does and clusters of echoes within two main lobes jointly. A channel whose echoes
+    compiled loops by :func:`_compiled_batch` and :func:`_finish_batch`), which fits
+    isolated echoes as CLEAN does and clusters of echoes within two main lobes jointly. A channel whose echoes
     it cannot vouch for (echoes within a quarter main lobe, anything left in the
     correlation that its echoes do not explain, a stretch CLEAN's split test would
     look at) is handed to CLEAN (:class:`_Clean`) on its double-precision correlation.

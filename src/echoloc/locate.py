@@ -488,7 +488,7 @@ def _objects(setup: _Setup, echoes: _Echoes, options: LocateOptions, n_ch: int) 
         if len(candidates.echo) == 0:
             return []
         candidates = _refine(geometry, candidates, echoes, options)
-        chosen = _choose(geometry, candidates, echoes, options)
+        chosen = _choose_reference(geometry, candidates, echoes, options)
     objects = [
         LocatedObject(
             position_m=obj.position_m,
@@ -1023,50 +1023,6 @@ def _weights(candidates: _Candidates, options: LocateOptions, dim: int) -> NDArr
     n_shared = np.sum(candidates.use == _SHARED, axis=1)
     tie = candidates.solution.chi2 / gate + candidates.amplitude_chi2 / np.maximum(n_used, 1) + 0.5 * n_shared
     return np.asarray(1.0 - 1e-3 * np.minimum(tie, 100.0))
-
-
-def _choose(
-    geometry: _Geometry, candidates: _Candidates, echoes: _Echoes, options: LocateOptions
-) -> list[_Chosen]:
-    """Step 4: the heaviest disjoint set, then rounds that share merged echoes, a final re-solve.
-
-    Runs compiled (:func:`echoloc._locate_kernels.choose`) but for the scores;
-    :func:`_choose_reference` is the same in Python and numpy, and takes over when
-    packing weights tie (its order, from set iteration, then decides).
-    """
-    if not _COMPILED:
-        return _choose_reference(geometry, candidates, echoes, options)
-    from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
-
-    done, echo, use, position, covariance, chi2, converged, good = kernels.choose(
-        geometry.transmitters_m,
-        geometry.receivers_m,
-        geometry.transmitter_axes,
-        geometry.receiver_axes,
-        geometry.boresight,
-        geometry.required,
-        echoes.paths,
-        echoes.sigmas,
-        _NO_AMPLITUDES if echoes.amplitudes is None else echoes.amplitudes,
-        echoes.offset,
-        candidates.echo,
-        candidates.use,
-        candidates.solution.position_m,
-        candidates.solution.chi2,
-        candidates.amplitude_chi2,
-        -1.0 if options.resolution_m is None else _merge_sigma(options.resolution_m),
-        _merge_reach(options),
-        _gates(options.gate_probability, geometry.dim, geometry.n),
-        _checks_beams(options),
-        float(np.cos(np.radians(options.field_of_view_deg))),
-        max(options.min_receivers, geometry.dim),
-        _SHARING_ROUNDS if options.resolution_m is not None else 0,
-        AMPLITUDE_LOG_SIGMA,
-        _NODE_LIMIT,
-    )
-    if not done:
-        return _choose_reference(geometry, candidates, echoes, options)
-    return _chosen(geometry, echo, use, position, covariance, chi2, converged, good)
 
 
 def _chosen(
