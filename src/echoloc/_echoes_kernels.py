@@ -100,7 +100,14 @@ def _model(
 
 @njit(cache=True)
 def _median(values: Any) -> float:  # pragma: no cover - compiled
-    """The median (mean of the two middle values for an even count), by quickselect.
+    """The median (mean of the two middle values for an even count), by quickselect."""
+    scratch = np.empty((3, len(values)), dtype=values.dtype)
+    return _median_in(values, scratch[0], scratch[1], scratch[2])
+
+
+@njit(cache=True)
+def _median_in(values: Any, a: Any, below: Any, above: Any) -> float:  # pragma: no cover - compiled
+    """:func:`_median` with scratch ``a``, ``below``, ``above`` (at least ``len(values)`` each).
 
     The partitions are branch-free (every element is written, the write position advances
     by the comparison): on noise the comparisons are unpredictable, and a quickselect that
@@ -108,9 +115,7 @@ def _median(values: Any) -> float:  # pragma: no cover - compiled
     """
     n = len(values)
     k = n // 2
-    a = values.copy()
-    below = np.empty(n, dtype=values.dtype)
-    above = np.empty(n, dtype=values.dtype)
+    a[:n] = values
     lo, hi = 0, n  # the k-th smallest lies in a[lo:hi], all of a[:lo] below it, a[hi:] above
     upper = a[0]
     while True:
@@ -428,6 +433,7 @@ def _fit_peak(
     half: int,
     rate: float,
     corr: Any,
+    n: int,
     peak: int,
     fit_half: int,
     grid_b: Any,
@@ -435,20 +441,23 @@ def _fit_peak(
     amps: Any,
     count: int,
     skip: int,
+    window: Any,
 ) -> tuple[float, complex]:  # pragma: no cover - compiled
-    """One echo as echoes._fit_peaks fits it, the other echoes' model (all but ``skip``) taken out."""
-    n = len(corr) // 2
+    """One echo as echoes._fit_peaks fits it, the other echoes' model (all but ``skip``) taken out.
+
+    ``corr`` holds the channel's first ``n`` correlation samples (real, imaginary side by
+    side); ``window`` is scratch for the 2 fit_half + 1 samples around the peak, each
+    computed once (the peak's neighbours are among them).
+    """
+    for i in range(2 * fit_half + 1):
+        s = peak - fit_half + i
+        if 0 <= s < n:
+            window[i] = complex(corr[2 * s], corr[2 * s + 1]) - _model(
+                table, half, grid_b, grid_w, amps, count, s, skip, skip + 1
+            )
     # The peak and its neighbours, as scalars (three-element arrays here cost two allocations a fit).
     s0, s1, s2 = min(max(peak - 1, 0), n - 1), min(max(peak, 0), n - 1), min(max(peak + 1, 0), n - 1)
-    v0 = complex(corr[2 * s0], corr[2 * s0 + 1]) - _model(
-        table, half, grid_b, grid_w, amps, count, s0, skip, skip + 1
-    )
-    v1 = complex(corr[2 * s1], corr[2 * s1 + 1]) - _model(
-        table, half, grid_b, grid_w, amps, count, s1, skip, skip + 1
-    )
-    v2 = complex(corr[2 * s2], corr[2 * s2 + 1]) - _model(
-        table, half, grid_b, grid_w, amps, count, s2, skip, skip + 1
-    )
+    v0, v1, v2 = window[s0 - peak + fit_half], window[s1 - peak + fit_half], window[s2 - peak + fit_half]
     a, b, c = abs(v0), abs(v1), abs(v2)
     curvature = a - 2 * b + c
     offset = 0.0
@@ -473,18 +482,31 @@ def _fit_peak(
         s = peak - fit_half + i
         if s < 0 or s >= n:
             continue
-        value = complex(corr[2 * s], corr[2 * s + 1]) - _model(
-            table, half, grid_b, grid_w, amps, count, s, skip, skip + 1
-        )
         shape, _ = _at(table, half, b0, r0, b1, r1, wt, s)
-        num += shape.conjugate() * value
+        num += shape.conjugate() * window[i]
         den += shape.real * shape.real + shape.imag * shape.imag
     return tof, num / max(den, 1e-300)
+
+
+@njit(cache=True, inline="always")
+def _sort_descending(keys: Any, values: Any, count: int) -> None:  # pragma: no cover - compiled
+    """Sort keys[:count] (and values alongside) largest first, equal keys in their order (stable).
+
+    Insertion sort: a channel has a handful of candidates, and np.argsort would allocate.
+    """
+    for i in range(1, count):
+        key, value = keys[i], values[i]
+        j = i
+        while j > 0 and keys[j - 1] < key:
+            keys[j], values[j] = keys[j - 1], values[j - 1]
+            j -= 1
+        keys[j], values[j] = key, value
 
 
 @njit(cache=True)
 def batch_echoes(
     corr: Any,
+    n: int,
     table: Any,
     u: int,
     half: int,
@@ -508,14 +530,31 @@ def batch_echoes(
 ) -> None:  # pragma: no cover - compiled
     """Echoes of every channel of ``corr`` this path can vouch for (echoes._isolated_echoes).
 
-    ``corr`` is the complex correlation (n_ch, n) viewed as (n_ch, 2 n) reals.
+    ``corr`` is the complex correlation (n_ch, >= n) viewed as (n_ch, >= 2 n) reals, of
+    which the first ``n`` samples of each row are read (the rows of a longer FFT output can
+    be passed as they are). Scratch is allocated once a call, not once a channel.
     """
-    n_ch, n = corr.shape[0], corr.shape[1] // 2
+    n_ch = corr.shape[0]
     fit_half = max(1, int(np.round(mainlobe / 2)))
     span = math.ceil(mainlobe)
     power_map = np.zeros(n)
     maxima = np.zeros(n + 1, dtype=np.int64)
-    noise = np.zeros((n + noise_step - 1) // noise_step)
+    n_noise = (n + noise_step - 1) // noise_step
+    noise = np.zeros(n_noise)
+    median_scratch = np.zeros((3, n_noise))
+    cand_k = np.zeros(max_candidates, dtype=np.int64)
+    cand_a = np.zeros(max_candidates)
+    accepted = np.zeros(max_candidates, dtype=np.bool_)
+    peaks = np.zeros(max_candidates, dtype=np.int64)
+    tofs = np.zeros(max_candidates)
+    amps = np.zeros(max_candidates, dtype=np.complex128)
+    new_tofs = np.zeros(max_candidates)
+    new_amps = np.zeros(max_candidates, dtype=np.complex128)
+    fitted_tofs = np.zeros(max_candidates)
+    fitted_amps = np.zeros(max_candidates, dtype=np.complex128)
+    grid_b = np.zeros((max_candidates, 4), dtype=np.int64)
+    grid_w = np.zeros(max_candidates)
+    window = np.zeros(2 * max(fit_half, span) + 1, dtype=np.complex128)
     for ch in range(n_ch):
         out_count[ch] = 0
         out_status[ch] = OK
@@ -523,9 +562,10 @@ def batch_echoes(
         for k in range(n):
             re, im = float(row[2 * k]), float(row[2 * k + 1])
             power_map[k] = re * re + im * im
-        for i in range(len(noise)):
+        for i in range(n_noise):
             noise[i] = power_map[i * noise_step]
-        power = max(_median(noise) / math.log(2.0), 1e-300)
+        noise_median = _median_in(noise, median_scratch[0], median_scratch[1], median_scratch[2])
+        power = max(noise_median / math.log(2.0), 1e-300)
         out_power[ch] = power
         threshold = threshold_factor * power
         # Candidates: local maxima above the threshold, within the dynamic range. The test of a
@@ -543,24 +583,22 @@ def batch_echoes(
                 strongest = max(strongest, pk * local_max)
         if n_cand == 0:
             continue
-        cand_k = np.zeros(n_cand, dtype=np.int64)
-        cand_a = np.zeros(n_cand)
         m = 0
         for i in range(n_cand):
             k = maxima[i]
             pk = power_map[k]
             if pk >= strongest * dynamic_range:
+                if m == max_candidates:
+                    m += 1
+                    break
                 cand_k[m] = k
                 cand_a[m] = math.sqrt(pk)
                 m += 1
         if m > max_candidates:
             out_status[ch] = TOO_MANY
             continue
-        order = np.argsort(-cand_a[:m], kind="mergesort")
-        cand_k = cand_k[:m][order]
-        cand_a = cand_a[:m][order]
+        _sort_descending(cand_a, cand_k, m)
         # Strongest first, a candidate is an echo unless the accepted echoes' sidelobes explain it.
-        accepted = np.zeros(m, dtype=np.bool_)
         n_echo = 0
         for j in range(m):
             bound = 0.0
@@ -571,44 +609,36 @@ def batch_echoes(
                         bound += dilated[gap] * cand_a[i]
             accepted[j] = cand_a[j] > 1.5 * bound and cand_a[j] > 0
             if accepted[j]:
+                peaks[n_echo] = cand_k[j]
                 n_echo += 1
-        peaks = np.zeros(n_echo, dtype=np.int64)
-        e = 0
-        for j in range(m):
-            if accepted[j]:
-                peaks[e] = cand_k[j]
-                e += 1
         # Each echo alone, then twice with the others' model taken out (all updated together).
-        tofs = np.zeros(n_echo)
-        amps = np.zeros(n_echo, dtype=np.complex128)
-        grid_b = np.zeros((n_echo, 4), dtype=np.int64)
-        grid_w = np.zeros(n_echo)
-        new_tofs = np.zeros(n_echo)
-        new_amps = np.zeros(n_echo, dtype=np.complex128)
         for e in range(n_echo):
             tofs[e], amps[e] = _fit_peak(
-                table, u, half, rate, row, peaks[e], fit_half, grid_b, grid_w, amps, 0, 0
+                table, u, half, rate, row, n, peaks[e], fit_half, grid_b, grid_w, amps, 0, 0, window
             )
         for _ in range(2):
-            _prepare(u, tofs, grid_b, grid_w)
+            _prepare(u, tofs[:n_echo], grid_b, grid_w)
             for e in range(n_echo):
                 new_tofs[e], new_amps[e] = _fit_peak(
-                    table, u, half, rate, row, peaks[e], fit_half, grid_b, grid_w, amps, n_echo, e
+                    table, u, half, rate, row, n, peaks[e], fit_half, grid_b, grid_w, amps, n_echo, e, window
                 )
-            tofs[:] = new_tofs
-            amps[:] = new_amps
-        # Sort by delay; clusters of echoes within two main lobes are fitted jointly.
-        order = np.argsort(tofs, kind="mergesort")
-        tofs = tofs[order]
-        amps = amps[order]
-        peaks = peaks[order]
+            tofs[:n_echo] = new_tofs[:n_echo]
+            amps[:n_echo] = new_amps[:n_echo]
+        # Sort by delay (stable); clusters of echoes within two main lobes are fitted jointly.
+        for i in range(1, n_echo):
+            t, a, pk = tofs[i], amps[i], peaks[i]
+            j = i
+            while j > 0 and tofs[j - 1] > t:
+                tofs[j], amps[j], peaks[j] = tofs[j - 1], amps[j - 1], peaks[j - 1]
+                j -= 1
+            tofs[j], amps[j], peaks[j] = t, a, pk
         status = OK
         for e in range(1, n_echo):
             if tofs[e] - tofs[e - 1] < mainlobe / 4:
                 status = CLOSE
-        _prepare(u, tofs, grid_b, grid_w)
-        fitted_tofs = tofs.copy()
-        fitted_amps = amps.copy()
+        _prepare(u, tofs[:n_echo], grid_b, grid_w)
+        fitted_tofs[:n_echo] = tofs[:n_echo]
+        fitted_amps[:n_echo] = amps[:n_echo]
         start = 0
         while start < n_echo and status == OK:
             stop = start + 1
@@ -642,49 +672,51 @@ def batch_echoes(
         if status != OK:
             out_status[ch] = status
             continue
-        tofs = fitted_tofs
-        amps = fitted_amps
-        _prepare(u, tofs, grid_b, grid_w)
+        _prepare(u, fitted_tofs[:n_echo], grid_b, grid_w)
         # Checks: the model explains the main lobe around each echo's peak, every rejected
-        # candidate, and (CLEAN's split test) two main lobes around each echo.
+        # candidate, and (CLEAN's split test) two main lobes around each echo. The first
+        # failed check decides; the residual around an echo is computed once for the two
+        # windows around it (its peak's main lobe lies within the two main lobes).
         for e in range(n_echo):
+            centre = int(np.round(fitted_tofs[e]))
+            lo = min(centre - span, peaks[e] - fit_half)
+            hi = max(centre + span, peaks[e] + fit_half)
+            for s in range(max(lo, 0), min(hi, n - 1) + 1):
+                window_r = complex(row[2 * s], row[2 * s + 1]) - _model(
+                    table, half, grid_b, grid_w, fitted_amps, n_echo, s, 0, 0
+                )
+                power_map[s] = window_r.real * window_r.real + window_r.imag * window_r.imag
             for i in range(2 * fit_half + 1):
                 s = min(max(peaks[e] - fit_half + i, 0), n - 1)
-                r = complex(row[2 * s], row[2 * s + 1]) - _model(
-                    table, half, grid_b, grid_w, amps, n_echo, s, 0, 0
-                )
-                if r.real * r.real + r.imag * r.imag > threshold:
+                if power_map[s] > threshold:
                     status = LEFT_OVER
-        for j in range(m):
-            if not accepted[j]:
-                s = cand_k[j]
-                r = complex(row[2 * s], row[2 * s + 1]) - _model(
-                    table, half, grid_b, grid_w, amps, n_echo, s, 0, 0
-                )
-                if r.real * r.real + r.imag * r.imag > threshold:
-                    status = LEFT_OVER
-        for e in range(n_echo):
-            centre = int(np.round(tofs[e]))
             cost = 0.0
             inside = 0
             for i in range(2 * span + 1):
                 s = centre - span + i
                 if 0 <= s < n:
-                    r = complex(row[2 * s], row[2 * s + 1]) - _model(
-                        table, half, grid_b, grid_w, amps, n_echo, s, 0, 0
-                    )
-                    cost += r.real * r.real + r.imag * r.imag
+                    cost += power_map[s]
                     inside += 1
-            magnitude = abs(amps[e])
+            magnitude = abs(fitted_amps[e])
             if cost >= 3.0 * power * inside and cost >= 0.003 * magnitude * magnitude * acf_energy:
                 status = UNEXPLAINED
+            if status != OK:
+                break
+        for j in range(m):
+            if status == OK and not accepted[j]:
+                s = cand_k[j]
+                r = complex(row[2 * s], row[2 * s + 1]) - _model(
+                    table, half, grid_b, grid_w, fitted_amps, n_echo, s, 0, 0
+                )
+                if r.real * r.real + r.imag * r.imag > threshold:
+                    status = LEFT_OVER
         out_status[ch] = status
         if status != OK:
             continue
         count = min(n_echo, out_tof.shape[1])
         for e in range(count):
-            out_tof[ch, e] = tofs[e]
-            out_amp[ch, e] = abs(amps[e])
+            out_tof[ch, e] = fitted_tofs[e]
+            out_amp[ch, e] = abs(fitted_amps[e])
         out_count[ch] = count
 
 

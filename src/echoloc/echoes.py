@@ -252,10 +252,14 @@ class MatchedFilter:
         40 dB weaker (the dynamic range kept); the fits read the samples they need in
         double precision.
         """
+        return self.correlate_single_rows(frames)[..., : self.n_samples]
+
+    def correlate_single_rows(self, frames: NDArray[np.floating]) -> NDArray[np.complex64]:
+        """:meth:`correlate_single` as the FFT leaves it: rows of ``n_fft`` lags, of which the
+        first ``n_samples`` are the correlation (the rest wraps around), C-contiguous."""
         spectrum = scipy.fft.rfft(np.asarray(frames, np.float32), self.n_fft, axis=-1)
         spectrum *= self._spectrum_single
-        full = scipy.fft.ifft(spectrum, self.n_fft, axis=-1, overwrite_x=True)
-        return np.asarray(full[..., : self.n_samples])
+        return np.asarray(scipy.fft.ifft(spectrum, self.n_fft, axis=-1, overwrite_x=True))
 
 
 def noise_power(values: NDArray[Any]) -> float:
@@ -894,8 +898,8 @@ def matched_filter_batch(
     """
     frames = np.asarray(frames)
     n_frames, n_rx, _ = frames.shape
-    correlation = mf.correlate_single(frames).reshape(n_frames * n_rx, -1)
-    channels = _finish_batch(_compiled_batch(correlation, mf, options), mf, options)
+    correlation = mf.correlate_single_rows(frames).reshape(n_frames * n_rx, -1)
+    channels = _finish_batch(_compiled_batch(correlation, mf, options, n_samples=mf.n_samples), mf, options)
     if any(c is None for c in channels):
         clean = _Clean(mf, options)
         rows = frames.reshape(n_frames * n_rx, -1)
@@ -1128,8 +1132,13 @@ def _compiled_batch(
     mf: MatchedFilter,
     options: EchoOptions,
     noise_step: int = _NOISE_STEP,
+    n_samples: int | None = None,
 ) -> _BatchOutput:
-    """Run the compiled batch path (:func:`echoloc._echoes_kernels.batch_echoes`) on every channel."""
+    """Run the compiled batch path (:func:`echoloc._echoes_kernels.batch_echoes`) on every channel.
+
+    ``correlation`` is (n_channels, lags); only its first ``n_samples`` lags are read (None:
+    all), so the FFT's longer rows (:meth:`MatchedFilter.correlate_single_rows`) go in uncopied.
+    """
     from echoloc import _echoes_kernels as kernels  # numba: imported (and compiled) on first use
 
     n_ch = correlation.shape[0]
@@ -1139,8 +1148,12 @@ def _compiled_batch(
     out_count = np.zeros(n_ch, dtype=np.int64)
     out_power = np.zeros(n_ch)
     out_status = np.zeros(n_ch, dtype=np.int64)
+    n = correlation.shape[-1] if n_samples is None else n_samples
+    if not 0 < n <= correlation.shape[-1]:
+        raise ValueError(f"{n} samples asked of correlation rows of {correlation.shape[-1]}")
     kernels.batch_echoes(
         np.ascontiguousarray(correlation, dtype=np.complex64).view(np.float32),
+        n,
         mf.acf_table,
         mf.oversample,
         mf.half_width,
