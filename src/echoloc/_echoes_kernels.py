@@ -619,6 +619,15 @@ def batch_echoes(
         for _ in range(2):
             _prepare(u, tofs[:n_echo], grid_b, grid_w)
             for e in range(n_echo):
+                # An echo none of whose neighbours reaches its window refits to what it is
+                # (their model there is exactly zero): it keeps its fit.
+                alone = True
+                for j in range(n_echo):
+                    if j != e and abs(peaks[e] - grid_b[j, 0]) <= half + fit_half + 1:
+                        alone = False
+                if alone:
+                    new_tofs[e], new_amps[e] = tofs[e], amps[e]
+                    continue
                 new_tofs[e], new_amps[e] = _fit_peak(
                     table, u, half, rate, row, n, peaks[e], fit_half, grid_b, grid_w, amps, n_echo, e, window
                 )
