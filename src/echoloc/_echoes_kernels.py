@@ -253,12 +253,14 @@ def joint_fit(
     converge: bool = False,
     rotation: float = 0.0,
     tolerance: float = 1e-6,
+    gain: float = 0.0,
 ) -> float:  # pragma: no cover - compiled
     """Levenberg-Marquardt of sum_k a_k R(s - tau_k) to data (w, 2), in place; the final cost.
 
     As echoes._joint_fit_batch does for one row: ``iterations`` steps, or with
     ``converge`` at most that many, stopping once a step moves no delay by more than
-    ``tolerance`` samples or the damping has grown past 1e8 (no step lowers the cost).
+    ``tolerance`` samples, or lowers the cost by less than the fraction ``gain`` of it,
+    or the damping has grown past 1e8 (no step lowers the cost).
 
     With complex amplitudes and a ``rotation`` (the carrier's rate, rad/sample), the
     amplitudes are stepped in the frame that turns with the carrier, ``b_k = a_k
@@ -287,6 +289,7 @@ def joint_fit(
         converge,
         rotation,
         tolerance,
+        gain,
         work,
         new_amps,
     )
@@ -314,6 +317,7 @@ def _joint_fit_into(
     converge: bool,
     rotation: float,
     tolerance: float,
+    gain: float,
     work: Any,
     new_amps: Any,
 ) -> float:  # pragma: no cover - compiled
@@ -389,10 +393,11 @@ def _joint_fit_into(
             shapes, trial_shapes = trial_shapes, shapes
             slopes, trial_slopes = trial_slopes, slopes
             residual, trial_residual = trial_residual, residual
+            lowered = cost - trial
             cost = trial
             stale = True
             damping /= 4
-            if converge and moved < tolerance:
+            if converge and (moved < tolerance or lowered < gain * cost):
                 break
         else:
             damping *= 8
@@ -985,6 +990,7 @@ def clean_fit_models(
     real_iterations: int,
     rotation: float,
     tolerance: float,
+    gain: float,
     cost: Any,
 ) -> None:  # pragma: no cover - compiled
     """_Clean._try_models' fits: each row's active echoes fitted jointly (complex amplitudes,
@@ -1036,13 +1042,29 @@ def clean_fit_models(
             True,
             rotation,
             tolerance,
+            gain,
             work,
             new_amps,
         )
         for i in range(size):
             a[i] = abs(a[i]) if a[i].real >= 0 else -abs(a[i])
         _joint_fit_into(
-            table, u, half, data, first, valid, t, a, True, real_iterations, True, 0.0, 1e-6, work, new_amps
+            table,
+            u,
+            half,
+            data,
+            first,
+            valid,
+            t,
+            a,
+            True,
+            real_iterations,
+            True,
+            0.0,
+            1e-6,
+            0.0,
+            work,
+            new_amps,
         )
         _prepare(u, t, grid_b, grid_w)
         total = 0.0
