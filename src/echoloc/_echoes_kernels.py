@@ -1077,3 +1077,298 @@ def clean_fit_models(
             if active[row, slot]:
                 fit_tof[row, slot], fit_amp[row, slot] = t[m], a[m]
                 m += 1
+
+
+@njit(cache=True)
+def _clean_plausible(tofs: Any, amps: Any, mainlobe: float) -> bool:  # pragma: no cover - compiled
+    """_Clean._plausible: no two echoes within a main lobe of opposite signs, or one below a
+    quarter of its neighbour."""
+    order = np.argsort(tofs, kind="mergesort")
+    for i in range(len(order) - 1):
+        first, second = order[i], order[i + 1]
+        if tofs[second] - tofs[first] >= mainlobe:
+            continue
+        a, b = amps[first].real, amps[second].real
+        if a * b < 0 or min(abs(a), abs(b)) < 0.25 * max(abs(a), abs(b)):
+            return False
+    return True
+
+
+@njit(cache=True)
+def _clean_window_cost(values: Any, lo: int, hi: int) -> float:  # pragma: no cover - compiled
+    """_Clean._window_cost: ``sum |values[lo:hi]|^2``."""
+    total = 0.0
+    for s in range(lo, hi):
+        total += values[s].real * values[s].real + values[s].imag * values[s].imag
+    return total
+
+
+@njit(cache=True)
+def clean_try_models(
+    table: Any,
+    u: int,
+    half: int,
+    fit_half: int,
+    mainlobe: float,
+    merge_samples: float,
+    acf_energy: float,
+    threshold: float,
+    residual: Any,
+    tofs: Any,
+    amps: Any,
+    count: int,
+    start_tof: Any,
+    start_amp: Any,
+    active: Any,
+    split: bool,
+    complex_iterations: int,
+    real_iterations: int,
+    rotation: float,
+    tolerance: float,
+    gain: float,
+) -> int:  # pragma: no cover - compiled
+    """_Clean._try_models of the group ``tofs``/``amps[:count]`` (sorted by delay) against the
+    candidate rows (``start_tof``/``start_amp``/``active``); ``split``: keep only fits with more
+    echoes than the group, none below a quarter of the strongest (_choose_order's ``keep``).
+
+    The winner replaces the group in ``residual`` and in ``tofs``/``amps`` (sorted by delay; room
+    for the largest candidate); returns its size, or -1 when the group stays.
+    """
+    n = len(residual)
+    n_rows, k = start_tof.shape
+    span = math.ceil(mainlobe)
+    lo = max(math.floor(tofs[:count].min()) - span, 0)
+    hi = min(math.ceil(tofs[:count].max()) + span + 1, n)
+    if n_rows == 0 or hi - lo < 2:
+        return -1
+    penalty = 0.5 * threshold * acf_energy
+    restored = residual.copy()
+    for i in range(count):  # the data: the residual with the group put back
+        clean_subtract(table, u, half, restored, tofs[i], -amps[i])
+    fit_tof = start_tof.copy()
+    fit_amp = start_amp.copy()
+    cost = np.empty(n_rows)
+    clean_fit_models(
+        table,
+        u,
+        half,
+        fit_half,
+        restored,
+        lo,
+        hi,
+        fit_tof,
+        fit_amp,
+        active,
+        complex_iterations,
+        real_iterations,
+        rotation,
+        tolerance,
+        gain,
+        cost,
+    )
+    best_score = _clean_window_cost(residual, lo, hi) + penalty * count
+    if not _clean_plausible(tofs[:count], amps[:count], mainlobe):
+        best_score = np.inf  # any plausible candidate replaces it
+    best_row = -1
+    best_size = 0
+    t = np.empty(k)
+    a = np.empty(k, dtype=np.complex128)
+    best_t = np.empty(k)
+    best_a = np.empty(k, dtype=np.complex128)
+    for row in range(n_rows):
+        size = 0
+        for slot in range(k):
+            if active[row, slot]:
+                t[size], a[size] = fit_tof[row, slot], fit_amp[row, slot].real
+                size += 1
+        score = cost[row] + penalty * size
+        if not score < best_score - 1e-12:
+            continue  # it could not replace the best so far, valid or not
+        order = np.argsort(t[:size], kind="mergesort")
+        ts, amp = t[:size][order], a[:size][order]
+        ok = np.isfinite(cost[row])
+        strongest, weakest = 0.0, np.inf
+        for i in range(size):
+            magnitude = abs(amp[i])
+            strongest, weakest = max(strongest, magnitude), min(weakest, magnitude)
+            if magnitude**2 < threshold or not lo <= ts[i] < hi:
+                ok = False
+            if i and ts[i] - ts[i - 1] < merge_samples:
+                ok = False
+        if split and not (size > count and weakest >= 0.25 * strongest):
+            ok = False
+        if not ok or not _clean_plausible(ts, amp, mainlobe):
+            continue
+        best_row, best_score, best_size = row, score, size
+        best_t[:size], best_a[:size] = ts, amp
+    if best_row < 0:
+        return -1
+    residual[:] = restored
+    for i in range(best_size):
+        tofs[i], amps[i] = best_t[i], best_a[i]
+        clean_subtract(table, u, half, residual, tofs[i], amps[i])
+    return best_size
+
+
+@njit(cache=True)
+def _candidate(
+    start_tof: Any, start_amp: Any, active: Any, row: int, tofs: Any, amps: Any, count: int, skip: int
+) -> int:  # pragma: no cover - compiled
+    """Write the group ``tofs``/``amps[:count]`` without member ``skip`` (-1: none) as candidate ``row``;
+    its size."""
+    slot = 0
+    for j in range(count):
+        if j != skip:
+            start_tof[row, slot], start_amp[row, slot] = tofs[j], amps[j]
+            active[row, slot] = True
+            slot += 1
+    return slot
+
+
+@njit(cache=True)
+def clean_choose_order(
+    table: Any,
+    u: int,
+    half: int,
+    rate: float,
+    fit_half: int,
+    mainlobe: float,
+    merge_samples: float,
+    acf_energy: float,
+    threshold: float,
+    power: float,
+    residual: Any,
+    tofs: Any,
+    amps: Any,
+    count: int,
+    complex_iterations: int,
+    real_iterations: int,
+    tolerance: float,
+    gain: float,
+) -> int:  # pragma: no cover - compiled
+    """_Clean._choose_order (with _choose_overlapping) of the group ``tofs``/``amps[:count]``,
+    sorted by delay, on ``residual``, in place: the chosen model into ``tofs``/``amps`` (room for
+    ``max(count, 2)``), its size returned. ``threshold`` is on |a|^2 (the factor times ``power``)."""
+    n = len(residual)
+    if count == 0:
+        return 0
+    if count == 1:
+        # The split test: the stretch holds one echo more than CLEAN found?
+        span = math.ceil(mainlobe)
+        lo = max(math.floor(tofs[0]) - span, 0)
+        hi = min(math.ceil(tofs[0]) + span + 1, n)
+        base_cost = _clean_window_cost(residual, lo, hi)
+        echo_energy = abs(amps[0]) ** 2 * acf_energy
+        if base_cost < 3.0 * power * (hi - lo) or base_cost < 0.003 * echo_energy:
+            return count
+        quarter = mainlobe / 4
+        start_tof = np.zeros((2, 2))
+        start_amp = np.zeros((2, 2), dtype=np.complex128)
+        active = np.ones((2, 2), dtype=np.bool_)
+        for row, offset in enumerate((quarter, 2 * quarter)):
+            start_tof[row, 0], start_tof[row, 1] = tofs[0] - offset, tofs[0] + offset
+            start_amp[row, 0] = start_amp[row, 1] = amps[0] / 2
+        new = clean_try_models(
+            table,
+            u,
+            half,
+            fit_half,
+            mainlobe,
+            merge_samples,
+            acf_energy,
+            threshold,
+            residual,
+            tofs,
+            amps,
+            count,
+            start_tof,
+            start_amp,
+            active,
+            True,
+            complex_iterations,
+            real_iterations,
+            rate,
+            tolerance,
+            gain,
+        )
+        return count if new < 0 else new
+    # _choose_overlapping: only where main lobes overlap by more than half.
+    delays = np.sort(tofs[:count])
+    close = False
+    for i in range(count - 1):
+        close |= delays[i + 1] - delays[i] < mainlobe
+    if not close:
+        return count
+    period = math.pi / rate
+    # The whole stretch read afresh as two echoes either side of its centroid.
+    weights = 0.0
+    weighted = 0.0
+    total = 0.0
+    for i in range(count):
+        weight = abs(amps[i]) ** 2
+        weights += weight
+        weighted += weight * tofs[i]
+        total += abs(amps[i])
+    centroid = weighted / max(weights, 1e-300)
+    half_amplitude = complex(total / 2)
+    for round_ in range(count):
+        g = count
+        # Rows: each member moved by half a cycle either way; the rest without it (if any); the
+        # rest with one other moved either way (if two or more remain); the fresh pair first.
+        per_member = 2 + (1 if g > 1 else 0) + (2 * (g - 1) if g > 2 else 0)
+        rows = (2 if round_ == 0 else 0) + g * per_member
+        k = max(g, 2) if round_ == 0 else g
+        start_tof = np.full((rows, k), tofs[0])
+        start_amp = np.zeros((rows, k), dtype=np.complex128)
+        active = np.zeros((rows, k), dtype=np.bool_)
+        row = 0
+        if round_ == 0:
+            for offset in (mainlobe / 4, mainlobe / 2):
+                start_tof[row, 0], start_tof[row, 1] = centroid - offset, centroid + offset
+                start_amp[row, 0] = start_amp[row, 1] = half_amplitude
+                active[row, 0] = active[row, 1] = True
+                row += 1
+        for i in range(g):
+            for step in (-period, period):
+                _candidate(start_tof, start_amp, active, row, tofs, amps, g, -1)
+                start_tof[row, i] += step
+                start_amp[row, i] = -amps[i]
+                row += 1
+            if g > 1:
+                rest = row
+                size = _candidate(start_tof, start_amp, active, row, tofs, amps, g, i)
+                row += 1
+                if size > 1:
+                    for j in range(size):
+                        for step in (-period, period):
+                            _candidate(start_tof, start_amp, active, row, tofs, amps, g, i)
+                            start_tof[row, j] = start_tof[rest, j] + step
+                            start_amp[row, j] = -start_amp[rest, j]
+                            row += 1
+        new = clean_try_models(
+            table,
+            u,
+            half,
+            fit_half,
+            mainlobe,
+            merge_samples,
+            acf_energy,
+            threshold,
+            residual,
+            tofs,
+            amps,
+            count,
+            start_tof,
+            start_amp,
+            active,
+            False,
+            complex_iterations,
+            real_iterations,
+            rate,
+            tolerance,
+            gain,
+        )
+        if new < 0:
+            break
+        count = new
+    return count

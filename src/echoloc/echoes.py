@@ -290,9 +290,10 @@ class _Clean:
     """CLEAN extraction and refinement on one channel's analytic correlation.
 
     With ``compiled`` (the default) the extraction loop (:meth:`_extract`: peak search,
-    fits, subtraction, successive refinement) and the fits of the candidate models
-    (:meth:`_try_models`) run as compiled loops (:mod:`echoloc._echoes_kernels`); without,
-    as the Python statements below, which the tests hold the compiled loops to.
+    fits, subtraction, successive refinement) and the model choice (:meth:`_choose_order`
+    with :meth:`_choose_overlapping`, :meth:`_try_models` and :meth:`_plausible`: candidates,
+    their fits, checks and scores) run as compiled loops (:mod:`echoloc._echoes_kernels`);
+    without, as the Python statements below, which the tests hold the compiled loops to.
     """
 
     def __init__(self, mf: MatchedFilter, options: EchoOptions, compiled: bool = True):
@@ -633,6 +634,10 @@ class _Clean:
         imperfections) and lowers the residual by more than a penalty per echo, half
         the energy an echo at the detection threshold puts into its main lobe.
         """
+        if not group:
+            return group
+        if self.compiled:
+            return self._choose_order_compiled(residual, group, power)
         if len(group) > 1:
             return self._choose_overlapping(residual, group, power)
         tofs = [c.tof_samples for c in group]
@@ -667,6 +672,39 @@ class _Clean:
             return len(fitted) > len(group) and min(magnitudes) >= 0.25 * max(magnitudes)
 
         return self._try_models(residual, group, candidates, power, keep)
+
+    def _choose_order_compiled(
+        self, residual: NDArray[np.complex128], group: list[_Component], power: float
+    ) -> list[_Component]:
+        """:meth:`_choose_order` in compiled loops (:func:`echoloc._echoes_kernels.clean_choose_order`)."""
+        from echoloc import _echoes_kernels as kernels
+
+        capacity = max(len(group), 2)  # no candidate has more echoes than this
+        tofs = np.zeros(capacity)
+        amplitudes = np.zeros(capacity, dtype=complex)
+        for i, c in enumerate(group):
+            tofs[i], amplitudes[i] = c.tof_samples, c.amplitude
+        count = kernels.clean_choose_order(
+            self.table,
+            self.mf.oversample,
+            self.half,
+            self.mf.phase_rate_rad_per_sample,
+            self.fit_half,
+            self.mf.mainlobe_samples,
+            self.merge_samples,
+            self.mf.acf_energy,
+            10 ** (self.options.threshold_db / 10) * power,
+            power,
+            residual,
+            tofs,
+            amplitudes,
+            len(group),
+            _CLEAN_COMPLEX_ITERATIONS,
+            _CLEAN_REAL_ITERATIONS,
+            _CLEAN_COMPLEX_TOLERANCE,
+            _CLEAN_COMPLEX_GAIN,
+        )
+        return [_Component(float(tofs[i]), complex(amplitudes[i])) for i in range(count)]
 
     def _plausible(self, components: list[_Component]) -> bool:
         """Whether echoes closer than a main lobe could be two reflectors rather than one echo's misfit.
@@ -725,8 +763,6 @@ class _Clean:
                 start_tof[row, slot] = member.tof_samples
                 start_amplitude[row, slot] = member.amplitude
                 active[row, slot] = True
-        # Each candidate as _joint_fit_batch fits a row (complex amplitudes, then real ones),
-        # in compiled loops: a few candidates a call would leave numpy's per-call overhead.
         from echoloc import _echoes_kernels as kernels
 
         # Each candidate is fitted as :meth:`_joint_fit` fits a cluster, over its own span (half
@@ -736,26 +772,7 @@ class _Clean:
         cost = np.full(n_rows, np.inf)
         rate = self.mf.phase_rate_rad_per_sample  # complex amplitudes are stepped turning with the carrier
         stretch = np.arange(lo, hi)
-        if self.compiled:
-            kernels.clean_fit_models(
-                self.mf.acf_table,
-                self.mf.oversample,
-                self.half,
-                self.fit_half,
-                restored,
-                lo,
-                hi,
-                fit_tof,
-                fit_amplitude,
-                active,
-                _CLEAN_COMPLEX_ITERATIONS,
-                _CLEAN_REAL_ITERATIONS,
-                rate,
-                _CLEAN_COMPLEX_TOLERANCE,
-                _CLEAN_COMPLEX_GAIN,
-                cost,
-            )
-        for row in range(0 if self.compiled else n_rows):
+        for row in range(n_rows):
             members = np.flatnonzero(active[row])
             if len(members) == 0:
                 continue
