@@ -152,12 +152,6 @@ def _median(values: Any) -> float:  # pragma: no cover - compiled
 
 
 @njit(cache=True)
-def median(values: Any) -> float:  # pragma: no cover - compiled
-    """:func:`_median`, for CLEAN's noise power (callable from Python)."""
-    return _median(values)
-
-
-@njit(cache=True)
 def _solve_in_place(m: Any, v: Any, x: Any) -> None:  # pragma: no cover - compiled
     """x with m x = v (small) by Gaussian elimination with partial pivoting, into ``x``,
     overwriting ``m`` and ``v`` (no allocation: it runs every fit step); NaN if singular."""
@@ -1372,3 +1366,208 @@ def clean_choose_order(
             break
         count = new
     return count
+
+
+@njit(cache=True)
+def _clean_noise_power(residual: Any) -> float:  # pragma: no cover - compiled
+    """echoes.noise_power: ``median(|c|^2) / ln 2``, at least the smallest normal float (the median
+    exact, and free of the mispredicted branches that make numpy's take 30 us on 2400 samples)."""
+    n = len(residual)
+    power = 0.0
+    if n:
+        values = np.empty(n)
+        for s in range(n):
+            magnitude = abs(residual[s])
+            values[s] = magnitude * magnitude
+        power = _median(values) / math.log(2.0)
+    return power if power > 0 else 2.2250738585072014e-308
+
+
+@njit(cache=True)
+def _clean_joint_fit(
+    table: Any,
+    u: int,
+    half: int,
+    fit_half: int,
+    merge_samples: float,
+    threshold: float,
+    residual: Any,
+    tofs: Any,
+    amps: Any,
+    count: int,
+    complex_iterations: int,
+    real_iterations: int,
+    rotation: float,
+    tolerance: float,
+    gain: float,
+) -> int:  # pragma: no cover - compiled
+    """_Clean._joint_fit of the cluster ``tofs``/``amps[:count]``, in place (sorted by delay); the
+    number of echoes kept. ``threshold`` is on |a|^2."""
+    n = len(residual)
+    for i in range(count):
+        clean_subtract(table, u, half, residual, tofs[i], -amps[i])
+    order = np.argsort(tofs[:count], kind="mergesort")
+    members_t = tofs[:count][order]
+    members_a = amps[:count][order]
+    size = count
+    for _ in range(count):
+        lo = max(math.floor(members_t[0]) - fit_half, 0)
+        hi = min(math.ceil(members_t[size - 1]) + fit_half + 1, n)
+        w = hi - lo
+        data = np.empty((w, 2))
+        for j in range(w):
+            data[j, 0] = residual[lo + j].real
+            data[j, 1] = residual[lo + j].imag
+        valid = np.ones(w, dtype=np.bool_)
+        t = members_t[:size].copy()
+        a = members_a[:size].copy()
+        joint_fit(
+            table, u, half, data, lo, valid, t, a, False, complex_iterations, True, rotation, tolerance, gain
+        )
+        for i in range(size):
+            a[i] = abs(a[i]) if a[i].real >= 0 else -abs(a[i])
+        joint_fit(table, u, half, data, lo, valid, t, a, True, real_iterations, True, 0.0, 1e-6, 0.0)
+        runaway = False
+        for i in range(size):
+            runaway |= not (np.isfinite(t[i]) and abs(t[i] - (lo + hi) / 2) < hi - lo)
+        if runaway:
+            break  # a fit that ran away from its window keeps what successive refinement found
+        fitted = np.argsort(t, kind="mergesort")
+        kept = 0
+        for i in fitted:
+            amplitude = a[i].real
+            if not (abs(amplitude) ** 2 >= threshold and lo <= t[i] < hi):
+                continue
+            if kept and t[i] - members_t[kept - 1] < merge_samples:
+                if abs(amplitude) > abs(members_a[kept - 1]):
+                    members_t[kept - 1], members_a[kept - 1] = t[i], amplitude
+                continue
+            members_t[kept], members_a[kept] = t[i], amplitude
+            kept += 1
+        done = kept == size or kept == 0
+        size = kept
+        if done:
+            break
+    for i in range(size):
+        tofs[i], amps[i] = members_t[i], members_a[i]
+        clean_subtract(table, u, half, residual, tofs[i], amps[i])
+    return size
+
+
+@njit(cache=True)
+def clean_run(
+    table: Any,
+    u: int,
+    half: int,
+    rate: float,
+    fit_half: int,
+    mainlobe: float,
+    merge_samples: float,
+    cluster_samples: float,
+    acf_energy: float,
+    threshold_factor: float,
+    floor: float,
+    first: int,
+    max_echoes: int,
+    refine_passes: int,
+    complex_iterations: int,
+    real_iterations: int,
+    tolerance: float,
+    gain: float,
+    residual: Any,
+    out_tof: Any,
+    out_amp: Any,
+    out_power: Any,
+) -> int:  # pragma: no cover - compiled
+    """_Clean.run on ``residual`` (the channel's correlation, taken apart in place): the echoes
+    into ``out_tof``/``out_amp`` (room for ``2 max_echoes``), the noise power into ``out_power[0]``;
+    returns how many echoes."""
+    tofs = np.zeros(max(max_echoes, 1))
+    amps = np.zeros(max(max_echoes, 1), dtype=np.complex128)
+    power = _clean_noise_power(residual)
+    args = (table, u, half, rate, fit_half, cluster_samples, residual, tofs, amps)
+    count = clean_extract(*args, 0, threshold_factor * power, floor, first, max_echoes, refine_passes)
+    # The first noise estimate includes the echoes' sidelobes; redo it on the residual.
+    power = _clean_noise_power(residual)
+    count = clean_extract(*args, count, threshold_factor * power, floor, first, max_echoes, refine_passes)
+    out_power[0] = power
+    threshold = threshold_factor * power
+    # _merge_close: fuse components closer than a quarter main lobe (one echo CLEAN split).
+    order = np.argsort(tofs[:count], kind="mergesort")
+    sorted_t = tofs[:count][order]
+    sorted_a = amps[:count][order]
+    merged = 0
+    for i in range(count):
+        if merged and sorted_t[i] - tofs[merged - 1] < merge_samples:
+            clean_subtract(table, u, half, residual, tofs[merged - 1], -amps[merged - 1])
+            clean_subtract(table, u, half, residual, sorted_t[i], -sorted_a[i])
+            if abs(sorted_a[i]) > abs(amps[merged - 1]):
+                tofs[merged - 1] = sorted_t[i]
+            amps[merged - 1] = 0j
+            clean_refit(table, u, half, rate, fit_half, residual, tofs, amps, merged - 1)
+            continue
+        tofs[merged], amps[merged] = sorted_t[i], sorted_a[i]
+        merged += 1
+    # _clusters (a stable sort by delay, chained closer than cluster_samples), each fitted jointly
+    # where main lobes overlap by more than half, then its model chosen.
+    order = np.argsort(tofs[:merged], kind="mergesort")
+    sorted_t = tofs[:merged][order]
+    sorted_a = amps[:merged][order]
+    group_t = np.zeros(max(merged, 2))
+    group_a = np.zeros(max(merged, 2), dtype=np.complex128)
+    found = 0
+    start = 0
+    while start < merged:
+        stop = start + 1
+        while stop < merged and sorted_t[stop] - sorted_t[stop - 1] < cluster_samples:
+            stop += 1
+        size = stop - start
+        group_t[:size] = sorted_t[start:stop]
+        group_a[:size] = sorted_a[start:stop]
+        if size > 1:
+            close = False
+            for i in range(start, stop - 1):
+                close |= sorted_t[i + 1] - sorted_t[i] < mainlobe
+            if close:
+                size = _clean_joint_fit(
+                    table,
+                    u,
+                    half,
+                    fit_half,
+                    merge_samples,
+                    threshold,
+                    residual,
+                    group_t,
+                    group_a,
+                    size,
+                    complex_iterations,
+                    real_iterations,
+                    rate,
+                    tolerance,
+                    gain,
+                )
+        size = clean_choose_order(
+            table,
+            u,
+            half,
+            rate,
+            fit_half,
+            mainlobe,
+            merge_samples,
+            acf_energy,
+            threshold,
+            power,
+            residual,
+            group_t,
+            group_a,
+            size,
+            complex_iterations,
+            real_iterations,
+            tolerance,
+            gain,
+        )
+        out_tof[found : found + size] = group_t[:size]
+        out_amp[found : found + size] = group_a[:size]
+        found += size
+        start = stop
+    return found

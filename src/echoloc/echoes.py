@@ -289,11 +289,11 @@ class _Component:
 class _Clean:
     """CLEAN extraction and refinement on one channel's analytic correlation.
 
-    With ``compiled`` (the default) the extraction loop (:meth:`_extract`: peak search,
-    fits, subtraction, successive refinement) and the model choice (:meth:`_choose_order`
-    with :meth:`_choose_overlapping`, :meth:`_try_models` and :meth:`_plausible`: candidates,
-    their fits, checks and scores) run as compiled loops (:mod:`echoloc._echoes_kernels`);
-    without, as the Python statements below, which the tests hold the compiled loops to.
+    With ``compiled`` (the default) :meth:`run` is one compiled call
+    (:func:`echoloc._echoes_kernels.clean_run`: noise power, extraction, merging, joint fits,
+    model choice); without, it runs the Python statements below (their fits of candidate
+    models call the compiled Levenberg-Marquardt, :func:`echoloc._echoes_kernels.joint_fit`),
+    which the tests hold the compiled loops to. The other methods are the statement only.
     """
 
     def __init__(self, mf: MatchedFilter, options: EchoOptions, compiled: bool = True):
@@ -438,37 +438,12 @@ class _Clean:
         return members
 
     def _take_out(self, residual: NDArray[np.complex128], tof_samples: float, amplitude: complex) -> None:
-        """Subtract an echo's correlation model ``amplitude R(m - tof)`` from ``residual`` (compiled:
-        :func:`echoloc._echoes_kernels.clean_subtract`, the same values)."""
-        if self.compiled:
-            from echoloc import _echoes_kernels as kernels
-
-            kernels.clean_subtract(
-                self.table, self.mf.oversample, self.half, residual, tof_samples, amplitude
-            )
-            return
+        """Subtract an echo's correlation model ``amplitude R(m - tof)`` from ``residual``."""
         shape, start = self._shape(tof_samples)
         _subtract(residual, shape, start, amplitude)
 
     def _refit(self, residual: NDArray[np.complex128], component: _Component) -> None:
         """Put the component back into the residual, fit it again alone, take it out again."""
-        if self.compiled:
-            from echoloc import _echoes_kernels as kernels
-
-            tofs, amplitudes = np.array([component.tof_samples]), np.array([component.amplitude])
-            kernels.clean_refit(
-                self.table,
-                self.mf.oversample,
-                self.half,
-                self.mf.phase_rate_rad_per_sample,
-                self.fit_half,
-                residual,
-                tofs,
-                amplitudes,
-                0,
-            )
-            component.tof_samples, component.amplitude = float(tofs[0]), complex(amplitudes[0])
-            return
         shape, start = self._shape(component.tof_samples)
         _subtract(residual, shape, start, -component.amplitude)
         centre = round(component.tof_samples)
@@ -505,8 +480,6 @@ class _Clean:
         threshold = 10 ** (self.options.threshold_db / 10)
         floor = 10 ** (-self.options.dynamic_range_db / 20)
         first = math.ceil(self.options.blanking_s * self.mf.sample_rate_hz)
-        if self.compiled:
-            return self._extract_compiled(residual, components, threshold * power, floor, first)
         strongest = max((abs(c.amplitude) for c in components), default=0.0)
         added = 0
         while len(components) < self.options.max_echoes:
@@ -528,47 +501,6 @@ class _Clean:
             if cluster:
                 self._refit_together([*cluster, component], residual)
             strongest = max(strongest, abs(component.amplitude))
-        return added
-
-    def _extract_compiled(
-        self,
-        residual: NDArray[np.complex128],
-        components: list[_Component],
-        threshold: float,
-        floor: float,
-        first: int,
-    ) -> int:
-        """:meth:`_extract` in compiled loops (:func:`echoloc._echoes_kernels.clean_extract`)."""
-        from echoloc import _echoes_kernels as kernels
-
-        capacity = max(self.options.max_echoes, len(components))
-        tofs = np.zeros(capacity)
-        amplitudes = np.zeros(capacity, dtype=complex)
-        for i, c in enumerate(components):
-            tofs[i], amplitudes[i] = c.tof_samples, c.amplitude
-        count = kernels.clean_extract(
-            self.table,
-            self.mf.oversample,
-            self.half,
-            self.mf.phase_rate_rad_per_sample,
-            self.fit_half,
-            self.cluster_samples,
-            residual,
-            tofs,
-            amplitudes,
-            len(components),
-            threshold,
-            floor,
-            first,
-            self.options.max_echoes,
-            self.options.refine_passes,
-        )
-        for i, c in enumerate(components):  # refits move earlier components, as _refit does
-            c.tof_samples, c.amplitude = float(tofs[i]), complex(amplitudes[i])
-        added = count - len(components)
-        components.extend(
-            _Component(float(tofs[i]), complex(amplitudes[i])) for i in range(len(components), count)
-        )
         return added
 
     def _refit_together(self, cluster: list[_Component], residual: NDArray[np.complex128]) -> None:
@@ -594,12 +526,14 @@ class _Clean:
         refinement. Clusters whose members are closer than one main lobe are then
         fitted jointly (:meth:`_joint_fit`).
         """
+        if self.compiled:
+            return self._run_compiled(correlation)
         residual = correlation.copy()
         components: list[_Component] = []
-        power = self._noise_power(residual)
+        power = noise_power(residual)
         self._extract(residual, components, power)
         # The first noise estimate includes the echoes' sidelobes; redo it on the residual.
-        power = self._noise_power(residual)
+        power = noise_power(residual)
         self._extract(residual, components, power)
         merged: list[_Component] = []
         for group in _clusters(self._merge_close(residual, components), self.cluster_samples):
@@ -607,15 +541,39 @@ class _Clean:
             merged.extend(self._choose_order(residual, fitted, power))
         return merged, power
 
-    def _noise_power(self, residual: NDArray[np.complex128]) -> float:
-        """:func:`noise_power`; compiled, with the batch path's median (exact, and free of the
-        mispredicted branches that make numpy's take 30 us on 2400 samples)."""
-        if not self.compiled or not len(residual):
-            return noise_power(residual)
+    def _run_compiled(self, correlation: NDArray[np.complex128]) -> tuple[list[_Component], float]:
+        """:meth:`run` in one compiled call (:func:`echoloc._echoes_kernels.clean_run`)."""
         from echoloc import _echoes_kernels as kernels
 
-        power = float(kernels.median(np.abs(residual) ** 2)) / _LN2
-        return power if power > 0 else float(np.finfo(float).tiny)
+        options = self.options
+        tofs = np.zeros(2 * max(options.max_echoes, 1))  # a split adds at most one echo per group
+        amplitudes = np.zeros(len(tofs), dtype=complex)
+        power = np.zeros(1)
+        count = kernels.clean_run(
+            self.table,
+            self.mf.oversample,
+            self.half,
+            self.mf.phase_rate_rad_per_sample,
+            self.fit_half,
+            self.mf.mainlobe_samples,
+            self.merge_samples,
+            self.cluster_samples,
+            self.mf.acf_energy,
+            10 ** (options.threshold_db / 10),
+            10 ** (-options.dynamic_range_db / 20),
+            math.ceil(options.blanking_s * self.mf.sample_rate_hz),
+            options.max_echoes,
+            options.refine_passes,
+            _CLEAN_COMPLEX_ITERATIONS,
+            _CLEAN_REAL_ITERATIONS,
+            _CLEAN_COMPLEX_TOLERANCE,
+            _CLEAN_COMPLEX_GAIN,
+            np.array(correlation, dtype=complex),  # the residual, taken apart in place
+            tofs,
+            amplitudes,
+            power,
+        )
+        return [_Component(float(tofs[i]), complex(amplitudes[i])) for i in range(count)], float(power[0])
 
     def _window_cost(self, residual: NDArray[np.complex128], lo: int, hi: int) -> float:
         return float(np.sum(np.abs(residual[lo:hi]) ** 2))
@@ -636,8 +594,6 @@ class _Clean:
         """
         if not group:
             return group
-        if self.compiled:
-            return self._choose_order_compiled(residual, group, power)
         if len(group) > 1:
             return self._choose_overlapping(residual, group, power)
         tofs = [c.tof_samples for c in group]
@@ -672,39 +628,6 @@ class _Clean:
             return len(fitted) > len(group) and min(magnitudes) >= 0.25 * max(magnitudes)
 
         return self._try_models(residual, group, candidates, power, keep)
-
-    def _choose_order_compiled(
-        self, residual: NDArray[np.complex128], group: list[_Component], power: float
-    ) -> list[_Component]:
-        """:meth:`_choose_order` in compiled loops (:func:`echoloc._echoes_kernels.clean_choose_order`)."""
-        from echoloc import _echoes_kernels as kernels
-
-        capacity = max(len(group), 2)  # no candidate has more echoes than this
-        tofs = np.zeros(capacity)
-        amplitudes = np.zeros(capacity, dtype=complex)
-        for i, c in enumerate(group):
-            tofs[i], amplitudes[i] = c.tof_samples, c.amplitude
-        count = kernels.clean_choose_order(
-            self.table,
-            self.mf.oversample,
-            self.half,
-            self.mf.phase_rate_rad_per_sample,
-            self.fit_half,
-            self.mf.mainlobe_samples,
-            self.merge_samples,
-            self.mf.acf_energy,
-            10 ** (self.options.threshold_db / 10) * power,
-            power,
-            residual,
-            tofs,
-            amplitudes,
-            len(group),
-            _CLEAN_COMPLEX_ITERATIONS,
-            _CLEAN_REAL_ITERATIONS,
-            _CLEAN_COMPLEX_TOLERANCE,
-            _CLEAN_COMPLEX_GAIN,
-        )
-        return [_Component(float(tofs[i]), complex(amplitudes[i])) for i in range(count)]
 
     def _plausible(self, components: list[_Component]) -> bool:
         """Whether echoes closer than a main lobe could be two reflectors rather than one echo's misfit.
