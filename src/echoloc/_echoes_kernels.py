@@ -293,7 +293,7 @@ def joint_fit(
 def _fit_scratch_size(k: int, w: int) -> int:  # pragma: no cover - compiled
     """Floats of scratch :func:`_joint_fit_into` needs for ``k`` echoes over ``w`` samples."""
     p = 3 * k
-    return 4 * k * w * 2 + 2 * w * 2 + p * w * 2 + 2 * p * p + 3 * p + k
+    return 4 * k * w * 2 + 2 * w * 2 + p * w * 2 + 2 * p * p + 3 * p + 3 * k
 
 
 @njit(cache=True)
@@ -340,6 +340,10 @@ def _joint_fit_into(
     rhs = work[at + p : at + 2 * p]
     step = work[at + 2 * p : at + 3 * p]
     new_tofs = work[at + 3 * p : at + 3 * p + k]
+    # cos and sin of the carrier phase at each delay of the current point: computed once a point,
+    # for its normal equations and every trial step from it (the trial's own turn is its move's).
+    turn_c = work[at + 3 * p + k : at + 3 * p + 2 * k]
+    turn_s = work[at + 3 * p + 2 * k : at + 3 * p + 3 * k]
     trial_amps = new_amps[:k]
     cost = _evaluate(table, u, half, data, lo, valid, tofs, amps, shapes, slopes, residual)
     damping = 1e-3
@@ -347,8 +351,10 @@ def _joint_fit_into(
     for _ in range(iterations):
         if stale:
             if rotation != 0.0 and not real:
+                for m in range(k):
+                    turn_c[m], turn_s[m] = math.cos(rotation * tofs[m]), math.sin(rotation * tofs[m])
                 _rotate_normal_equations(
-                    shapes, slopes, residual, tofs, amps, rotation, jac, undamped, gradient
+                    shapes, slopes, residual, turn_c, turn_s, amps, rotation, jac, undamped, gradient
                 )
             else:
                 _normal_equations(shapes, slopes, residual, amps, real, jac, undamped, gradient)
@@ -365,7 +371,7 @@ def _joint_fit_into(
             new_tofs[m] = tofs[m] + min(max(step[m], -2.0), 2.0)
             if rotation != 0.0 and not real:
                 # b + db at the new delay: a_new = (a + db exp(i r tau)) exp(i r (tau_new - tau)).
-                turn = complex(math.cos(rotation * tofs[m]), math.sin(rotation * tofs[m]))
+                turn = complex(turn_c[m], turn_s[m])
                 moved = new_tofs[m] - tofs[m]
                 trial_amps[m] = (amps[m] + complex(step[k + m], step[2 * k + m]) * turn) * complex(
                     math.cos(rotation * moved), math.sin(rotation * moved)
@@ -449,7 +455,8 @@ def _rotate_normal_equations(
     shapes: Any,
     slopes: Any,
     residual: Any,
-    tofs: Any,
+    turn_c: Any,
+    turn_s: Any,
     amps: Any,
     rotation: float,
     jac: Any,
@@ -459,13 +466,14 @@ def _rotate_normal_equations(
     """:func:`_normal_equations` for complex amplitudes stepped in the frame turning with the carrier.
 
     d model / d tau_k = a_k (R' + i rotation R) (R' the slope in the delay), d model /
-    d Re b_k = exp(i rotation tau_k) R, d model / d Im b_k = i exp(i rotation tau_k) R.
+    d Re b_k = exp(i rotation tau_k) R, d model / d Im b_k = i exp(i rotation tau_k) R;
+    ``turn_c``/``turn_s`` hold cos and sin of ``rotation tau_k``.
     """
     k, w = shapes.shape[0], shapes.shape[1]
     p = normal.shape[0]
     for m in range(k):
         ar, ai = amps[m].real, amps[m].imag
-        c, sn = math.cos(rotation * tofs[m]), math.sin(rotation * tofs[m])
+        c, sn = turn_c[m], turn_s[m]
         for j in range(w):
             xr, xi = shapes[m, j, 0], shapes[m, j, 1]
             dr = slopes[m, j, 0] - rotation * xi
