@@ -946,20 +946,22 @@ def clean_extract(
     for i in range(count):
         strongest = max(strongest, abs(amps[i]))
     cluster = np.zeros(max_echoes + 1, dtype=np.int64)
+    # The search for the strongest sample keeps |c|^2 and its maximum per block of samples,
+    # refreshed only where a subtraction changed the residual (the template's reach around
+    # the echoes fitted): a scan of every sample per echo was half the extraction's time.
+    scan = max(first, 0)
+    power = np.zeros(n)
+    block = np.zeros(max((n - scan + _BLOCK - 1) // _BLOCK, 0))
+    _refresh_power(residual, power, block, scan, scan, n)
     while count < max_echoes:
-        # The strongest sample (its power: the square root is taken once, at the peak).
-        peak = 0
-        top = 0.0
-        for s in range(max(first, 0), n):
-            value = residual[s]
-            power = value.real * value.real + value.imag * value.imag
-            if power > top:
-                top, peak = power, s
+        # The first strongest sample (its power: the square root is taken once, at the peak).
+        peak, top = _strongest(power, block, scan)
         height = abs(residual[peak]) if top > 0 else 0.0
         if height**2 < threshold or height < floor * strongest:
             break
         tof, amp = clean_fit(table, u, half, rate, fit_half, residual, peak)
         clean_subtract(table, u, half, residual, tof, amp)
+        lo, hi = _reach(u, half, tof, n)
         size = 0
         for i in range(count):
             if abs(tofs[i] - tof) < cluster_samples:
@@ -971,9 +973,64 @@ def clean_extract(
         if size:
             for _ in range(refine_passes):
                 for j in range(size + 1):
+                    before = _reach(u, half, tofs[cluster[j]], n)
                     clean_refit(table, u, half, rate, fit_half, residual, tofs, amps, cluster[j])
+                    after = _reach(u, half, tofs[cluster[j]], n)
+                    lo, hi = min(lo, before[0], after[0]), max(hi, before[1], after[1])
+        _refresh_power(residual, power, block, scan, lo, hi)
         strongest = max(strongest, abs(amps[count - 1]))
     return count
+
+
+_BLOCK = 64
+"""Samples per block of clean_extract's running maxima."""
+
+
+@njit(cache=True, inline="always")
+def _reach(u: int, half: int, tof: float, n: int) -> tuple[int, int]:  # pragma: no cover - compiled
+    """The samples ``lo..hi-1`` that clean_subtract changes for an echo at ``tof``."""
+    start = _grid(u, tof)[0] - half
+    return max(start, 0), min(start + 2 * half + 1, n)
+
+
+@njit(cache=True)
+def _refresh_power(
+    residual: Any, power: Any, block: Any, scan: int, lo: int, hi: int
+) -> None:  # pragma: no cover - compiled
+    """``power = |residual|^2`` over ``lo..hi-1`` (from ``scan`` on), and the maxima of the blocks
+    that touch it (block ``b``: samples ``scan + b _BLOCK`` onwards; 0 if nothing is positive)."""
+    n = len(residual)
+    lo = max(lo, scan)
+    if hi <= lo:
+        return
+    for s in range(lo, hi):
+        value = residual[s]
+        power[s] = value.real * value.real + value.imag * value.imag
+    for b in range((lo - scan) // _BLOCK, (hi - 1 - scan) // _BLOCK + 1):
+        top = 0.0
+        for s in range(scan + b * _BLOCK, min(scan + (b + 1) * _BLOCK, n)):
+            if power[s] > top:
+                top = power[s]
+        block[b] = top
+
+
+@njit(cache=True)
+def _strongest(power: Any, block: Any, scan: int) -> tuple[int, float]:  # pragma: no cover - compiled
+    """The first sample of largest positive ``power`` from ``scan`` on, and that power; (0, 0.0) if none
+    is positive: the first block of the largest maximum, then its first sample of that power."""
+    top = 0.0
+    best = -1
+    for b in range(len(block)):
+        if block[b] > top:
+            top, best = block[b], b
+    if best < 0:
+        return 0, 0.0
+    peak = 0
+    top = 0.0
+    for s in range(scan + best * _BLOCK, min(scan + (best + 1) * _BLOCK, len(power))):
+        if power[s] > top:
+            top, peak = power[s], s
+    return peak, top
 
 
 @njit(cache=True)
