@@ -8,8 +8,8 @@ joint fits of clusters, residual checks) takes a few microseconds a channel. The
 formulas are those of :func:`echoloc.echoes._isolated_echoes`, which stays as their
 readable statement (the tests hold the two to the same answers); this module holds
 only their loops. The same holds for CLEAN (:class:`echoloc.echoes._Clean`): its
-extraction loop, subtractions and candidate-model fits are here, its Python
-statement there.
+whole run (:func:`clean_run`: noise power, extraction, merging, joint fits, the model
+choice's candidates, fits, checks and scores) is here, its Python statement there.
 
 Where a test on noisy data decides (the median's partitions, the local-maximum test
 above the threshold), the loops are written without branches: mispredicted branches

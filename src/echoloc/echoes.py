@@ -26,11 +26,12 @@ estimators are in :mod:`echoloc.envelopes` and the registry of all of them in
     compiled loops (:mod:`echoloc._echoes_kernels`, stated in numpy by
     :func:`_isolated_echoes`) fits isolated echoes and clusters of resolved echoes
     with the same formulas, and hands CLEAN only the channels whose correlation its
-    model does not explain. CLEAN's extraction, subtractions and the fits of its
-    candidate models run in compiled loops too (:class:`_Clean` with ``compiled=False``
-    is their Python statement); its complex-amplitude fits step in the frame turning
-    with the carrier and stop at 1e-3 samples or once a step gains less than 1 % of the
-    cost, since they only choose the basin the real-amplitude fit settles in.
+    model does not explain. CLEAN runs in compiled loops too, one call a channel
+    (:class:`_Clean` with ``compiled=False`` is its Python statement), on the hard
+    channels' double-precision correlation computed in one call; its complex-amplitude
+    fits step in the frame turning with the carrier and stop at 1e-3 samples or once a
+    step gains less than 1 % of the cost, since they only choose the basin the
+    real-amplitude fit settles in.
 
 Conventions: ``tof_s`` is the delay from emission start to the echo's arrival
 (FORMATS.md), whatever the estimator. ``amplitude`` is the echo's peak amplitude in
