@@ -330,3 +330,29 @@ def test_extraction_peak_search_is_the_first_largest_sample() -> None:
     power, block = np.zeros(100), np.zeros(2)
     kernels._refresh_power(nothing, power, block, 0, 0, 100)
     assert kernels._strongest(power, block, 0) == (0, 0.0)
+
+
+@pytest.mark.parametrize("n", [1024, 1025, 2400, 2401])
+def test_sampled_median_is_numpy_s_median(n: int) -> None:
+    """CLEAN's median bracketed by every 8th value gives numpy's median exactly: on noise powers, with
+    ties, sorted, reversed, organ-pipe and constant orders, and where the sampled values mislead the
+    bracket (all of them huge or zero: the full quickselect then)."""
+    from echoloc._echoes_kernels import _median_sampled
+
+    rng = np.random.default_rng(n)
+    for _ in range(5):
+        powers = np.abs(rng.normal(size=n) + 1j * rng.normal(size=n)) ** 2
+        ordered = np.sort(powers)
+        huge, zero = powers.copy(), powers.copy()
+        huge[::8], zero[::8] = 1e9, 0.0
+        for values in (
+            powers,
+            powers.round(1),
+            ordered,
+            ordered[::-1],
+            np.concatenate([ordered[::2], ordered[1::2][::-1]]),
+            np.ones(n),
+            huge,
+            zero,
+        ):
+            assert _median_sampled(np.ascontiguousarray(values)) == np.median(values)

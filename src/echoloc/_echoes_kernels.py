@@ -1434,6 +1434,87 @@ def clean_choose_order(
 
 
 @njit(cache=True)
+def _select(a: Any, k: int, below: Any, above: Any) -> float:  # pragma: no cover - compiled
+    """The ``k``-th smallest of ``a`` (from 0) by _median's branch-free quickselect; ``a`` is
+    overwritten (not a permutation of itself after), ``below`` and ``above`` are scratch at least
+    as long."""
+    lo, hi = 0, len(a)
+    while True:
+        size = hi - lo
+        if size == 1:
+            return float(a[lo])
+        x, y, z = a[lo], a[lo + size // 2], a[hi - 1]
+        pivot = max(min(x, y), min(max(x, y), z))
+        n_below = 0
+        n_above = 0
+        for i in range(lo, hi):
+            v = a[i]
+            below[n_below] = v
+            n_below += v < pivot
+            above[n_above] = v
+            n_above += v > pivot
+        if k < lo + n_below:
+            a[lo : lo + n_below] = below[:n_below]
+            hi = lo + n_below
+        elif k >= hi - n_above:
+            a[hi - n_above : hi] = above[:n_above]
+            lo = hi - n_above
+        else:
+            return float(pivot)
+
+
+@njit(cache=True)
+def _median_sampled(values: Any) -> float:  # pragma: no cover - compiled
+    """:func:`_median`, exactly, in about half the time on thousands of values.
+
+    Every 8th value brackets the median: its order statistics 1.5 sqrt(m) + 2 either side of
+    its own median (m values; the median's rank among them strays by sqrt(m) / 2) are the
+    bounds of a band that one pass over the values counts and collects (a fifth of them), and
+    the middle values are selected in the band. If they do not lie in it, :func:`_median`.
+    """
+    n = len(values)
+    if n < 1024:
+        return _median(values)
+    m = n // 8
+    sub = np.empty(m)
+    for i in range(m):
+        sub[i] = values[8 * i]
+    band = np.empty(n)
+    below = np.empty(n)
+    above = np.empty(n)
+    margin = int(1.5 * math.sqrt(m)) + 2
+    low = _select(sub.copy(), max(m // 2 - margin, 0), below, above)
+    high = _select(sub, min(m // 2 + margin, m - 1), below, above)
+    n_low = 0
+    n_band = 0
+    n_high = 0
+    for i in range(n):
+        v = values[i]
+        band[n_band] = v
+        n_band += (v >= low) & (v <= high)
+        n_low += v < low
+        n_high += v > high
+    k = n // 2  # the upper middle value; with an even count also the one below it
+    first = k - 1 if n % 2 == 0 else k
+    if n_low + n_band + n_high != n or not n_low <= first or not k < n_low + n_band:
+        return _median(values)  # the middle is outside the band (or a value is NaN)
+    upper = _select(band[:n_band].copy(), k - n_low, below, above)
+    if n % 2:
+        return upper
+    # The other middle value, as _median finds it: the largest below ``upper`` (in the band, since
+    # at least one band value ranks below k), or ``upper`` itself when it repeats there.
+    smaller = n_low
+    lower = -np.inf
+    for i in range(n_band):
+        v = band[i]
+        smaller += v < upper
+        lower = max(lower, v if v < upper else -np.inf)
+    if smaller < k:
+        lower = upper
+    return 0.5 * (float(lower) + float(upper))
+
+
+@njit(cache=True)
 def _clean_noise_power(residual: Any) -> float:  # pragma: no cover - compiled
     """echoes.noise_power: ``median(|c|^2) / ln 2``, at least the smallest normal float (the median
     exact, and free of the mispredicted branches that make numpy's take 30 us on 2400 samples)."""
@@ -1444,7 +1525,7 @@ def _clean_noise_power(residual: Any) -> float:  # pragma: no cover - compiled
         for s in range(n):
             magnitude = abs(residual[s])
             values[s] = magnitude * magnitude
-        power = _median(values) / math.log(2.0)
+        power = _median_sampled(values) / math.log(2.0)
     return power if power > 0 else 2.2250738585072014e-308
 
 
