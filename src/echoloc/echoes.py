@@ -531,10 +531,10 @@ class _Clean:
             return self._run_compiled(correlation)
         residual = correlation.copy()
         components: list[_Component] = []
-        power = noise_power(residual)
+        power = self._noise_power(residual)
         self._extract(residual, components, power)
         # The first noise estimate includes the echoes' sidelobes; redo it on the residual.
-        power = noise_power(residual)
+        power = self._noise_power(residual)
         self._extract(residual, components, power)
         merged: list[_Component] = []
         for group in _clusters(self._merge_close(residual, components), self.cluster_samples):
@@ -575,6 +575,13 @@ class _Clean:
             power,
         )
         return [_Component(float(tofs[i]), complex(amplitudes[i])) for i in range(count)], float(power[0])
+
+    def _noise_power(self, residual: NDArray[np.complex128]) -> float:
+        """:func:`noise_power`, the power of each sample as ``re^2 + im^2`` (as the batch path
+        takes it: the magnitude's ``hypot`` cost CLEAN's compiled run ~15 µs a call)."""
+        powers = residual.real**2 + residual.imag**2
+        power = float(np.median(powers)) / _LN2 if len(powers) else 0.0
+        return power if power > 0 else float(np.finfo(float).tiny)
 
     def _window_cost(self, residual: NDArray[np.complex128], lo: int, hi: int) -> float:
         return float(np.sum(np.abs(residual[lo:hi]) ** 2))
