@@ -622,6 +622,15 @@ def batch_echoes(
     grid_b = np.zeros((max_candidates, 4), dtype=np.int64)
     grid_w = np.zeros(max_candidates)
     window = np.zeros(2 * max(fit_half, span) + 1, dtype=np.complex128)
+    # A cluster's fit spans at most max_joint echoes two main lobes apart and half a main lobe
+    # beyond each end.
+    joint_w = math.ceil((max_joint - 1) * 2 * mainlobe) + 2 * fit_half + 4
+    joint_work = np.empty(_fit_scratch_size(max_joint, joint_w))
+    joint_data = np.zeros((joint_w, 2))
+    joint_valid = np.zeros(joint_w, dtype=np.bool_)
+    joint_t = np.zeros(max_joint)
+    joint_a = np.zeros(max_joint, dtype=np.complex128)
+    joint_new = np.zeros(max_joint, dtype=np.complex128)
     for ch in range(n_ch):
         out_count[ch] = 0
         out_status[ch] = OK
@@ -721,27 +730,67 @@ def batch_echoes(
             while stop < n_echo and tofs[stop] - tofs[stop - 1] < 2 * mainlobe:
                 stop += 1
             size = stop - start
-            if size > max_joint:
+            if (
+                size > max_joint
+                or math.ceil(tofs[stop - 1]) - math.floor(tofs[start]) + 2 * fit_half + 1 > joint_w
+            ):
                 status = TOO_BIG
             elif size > 1:
                 lo = math.floor(tofs[start]) - fit_half
                 hi = math.ceil(tofs[stop - 1]) + fit_half + 1
                 w = hi - lo
-                data = np.zeros((w, 2))
-                valid = np.zeros(w, dtype=np.bool_)
+                data = joint_data[:w]
+                valid = joint_valid[:w]
                 for j in range(w):
                     s = lo + j
-                    if 0 <= s < n:
-                        valid[j] = True
+                    data[j, 0] = data[j, 1] = 0.0
+                    valid[j] = 0 <= s < n
+                    if valid[j]:
                         other = _model(table, half, grid_b, grid_w, amps, n_echo, s, start, stop)
                         data[j, 0] = row[2 * s] - other.real
                         data[j, 1] = row[2 * s + 1] - other.imag
-                t = tofs[start:stop].copy()
-                a = amps[start:stop].copy()
-                joint_fit(table, u, half, data, lo, valid, t, a, False, complex_iterations)
+                t = joint_t[:size]
+                a = joint_a[:size]
+                t[:] = tofs[start:stop]
+                a[:] = amps[start:stop]
+                _joint_fit_into(
+                    table,
+                    u,
+                    half,
+                    data,
+                    lo,
+                    valid,
+                    t,
+                    a,
+                    False,
+                    complex_iterations,
+                    False,
+                    0.0,
+                    1e-6,
+                    0.0,
+                    joint_work,
+                    joint_new,
+                )
                 for i in range(size):
                     a[i] = abs(a[i]) if a[i].real >= 0 else -abs(a[i])
-                joint_fit(table, u, half, data, lo, valid, t, a, True, real_iterations)
+                _joint_fit_into(
+                    table,
+                    u,
+                    half,
+                    data,
+                    lo,
+                    valid,
+                    t,
+                    a,
+                    True,
+                    real_iterations,
+                    False,
+                    0.0,
+                    1e-6,
+                    0.0,
+                    joint_work,
+                    joint_new,
+                )
                 fitted_tofs[start:stop] = t
                 fitted_amps[start:stop] = a
             start = stop
