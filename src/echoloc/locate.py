@@ -482,7 +482,10 @@ def _objects(setup: _Setup, echoes: _Echoes, options: LocateOptions, n_ch: int) 
     """Steps 1-4 of :func:`associate` on the usable channels' echoes, as located objects."""
     geometry, _, origin, receiver_of, transmitter_of = setup
     if _COMPILED:
-        chosen = _associate_compiled(geometry, echoes, options)
+        compiled = _associate_compiled(geometry, echoes, options)
+        if not isinstance(compiled, list):
+            return _located(setup, *compiled, n_ch)
+        chosen = compiled
     else:
         candidates = _seed_candidates(geometry, echoes, options)
         if len(candidates.echo) == 0:
@@ -503,6 +506,44 @@ def _objects(setup: _Setup, echoes: _Echoes, options: LocateOptions, n_ch: int) 
         for obj in chosen
     ]
     objects.sort(key=lambda o: _distance(o.position_m - origin))
+    return objects
+
+
+def _located(
+    setup: _Setup,
+    echo_use: NDArray[np.int64],
+    position: NDArray[np.float64],
+    covariance: NDArray[np.float64],
+    chi2: NDArray[np.float64],
+    n_ch: int,
+) -> list[LocatedObject]:
+    """:func:`_objects` from the compiled choice's surviving rows (``echo_use``: each row's
+    echo indices, then its use), with the same scores and order as from ``_Chosen``."""
+    geometry, _, origin, receiver_of, transmitter_of = setup
+    if len(chi2) == 0:
+        return []
+    n_channels, dim = geometry.n, geometry.dim
+    rows: list[list[int]] = echo_use.tolist()
+    chi2_rows: list[float] = chi2.tolist()
+    used = [[c for c in range(n_channels) if row[n_channels + c] != _NONE] for row in rows]
+    dof = [len(channels) - dim for channels in used]
+    tail: list[float] = special.chdtrc(np.maximum(dof, 1), chi2).tolist()
+    distance = [math.sqrt(float(offset.dot(offset))) for offset in position - origin]
+    objects = []
+    for k in sorted(range(len(rows)), key=distance.__getitem__):  # stable, as objects.sort
+        row, channels = rows[k], used[k]
+        objects.append(
+            LocatedObject(
+                position[k],
+                covariance[k],
+                tuple([receiver_of[c] for c in channels]),
+                tuple([row[c] for c in channels]),
+                chi2_rows[k],
+                (tail[k] if dof[k] > 0 else 1.0) * len(channels) / n_ch,
+                tuple([transmitter_of[c] for c in channels]),
+                row[n_channels:].count(_SHARED),
+            )
+        )
     return objects
 
 
@@ -637,14 +678,16 @@ def _seed_sets_cached(tx_index: bytes, required: bytes, dim: int) -> list[tuple[
     ]
 
 
-def _associate_compiled(geometry: _Geometry, echoes: _Echoes, options: LocateOptions) -> list[_Chosen]:
+def _associate_compiled(
+    geometry: _Geometry, echoes: _Echoes, options: LocateOptions
+) -> list[_Chosen] | tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Steps 1-4 of :func:`associate` in one compiled call (:func:`_seed_candidates`,
-    :func:`_refine` and :func:`_choose` in turn, without the calls between them)."""
+    :func:`_refine` and :func:`_choose` in turn, without the calls between them): the
+    kernel's surviving rows (echo_use, positions, covariances, chi2), or, when it
+    leaves the choice to the reference (tied weights), the reference's choice."""
     from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
 
-    dim = geometry.dim
-    kernel: Any = kernels.associate  # (its options come as one tuple)
-    status, refined, chosen = kernel(
+    args = (
         geometry.transmitters_m,
         geometry.receivers_m,
         geometry.transmitter_axes,
@@ -656,10 +699,12 @@ def _associate_compiled(geometry: _Geometry, echoes: _Echoes, options: LocateOpt
         _NO_AMPLITUDES if echoes.amplitudes is None else echoes.amplitudes,
         echoes.offset,
         _seed_array(geometry),
-        *_kernel_options(options, dim, geometry.n),
+        *_kernel_options(options, geometry.dim, geometry.n),  # (its options come as one tuple)
         _NODE_LIMIT,
         _MAX_SEED_ROWS,
     )
+    kernel: Any = kernels.associate
+    status, echo_use, position, covariance, chi2 = kernel(*args)
     if status == 1:
         warnings.warn(
             f"frame skipped: more than {_MAX_SEED_ROWS} echo combinations to associate; "
@@ -669,10 +714,11 @@ def _associate_compiled(geometry: _Geometry, echoes: _Echoes, options: LocateOpt
         )
         return []
     if status == 2:
-        echo, use, position, covariance, chi2, converged, amplitude_chi2 = refined
+        refined: Any = kernels.candidates  # the same seeds and refinement again (ties are rare)
+        echo, use, position, covariance, chi2, converged, amplitude_chi2 = refined(*args)[1]
         candidates = _Candidates(echo, use, Solution(position, covariance, chi2, converged), amplitude_chi2)
         return _choose_reference(geometry, candidates, echoes, options)
-    return _chosen(geometry, *chosen[1:])
+    return echo_use, position, covariance, chi2
 
 
 def _kernel_options(options: LocateOptions, dim: int, n_channels: int) -> tuple[Any, ...]:
@@ -1023,38 +1069,6 @@ def _weights(candidates: _Candidates, options: LocateOptions, dim: int) -> NDArr
     n_shared = np.sum(candidates.use == _SHARED, axis=1)
     tie = candidates.solution.chi2 / gate + candidates.amplitude_chi2 / np.maximum(n_used, 1) + 0.5 * n_shared
     return np.asarray(1.0 - 1e-3 * np.minimum(tie, 100.0))
-
-
-def _chosen(
-    geometry: _Geometry,
-    echo: NDArray[np.int64],
-    use: NDArray[np.int8],
-    position: NDArray[np.float64],
-    covariance: NDArray[np.float64],
-    chi2: NDArray[np.float64],
-    converged: NDArray[np.bool_],
-    good: NDArray[np.bool_],
-) -> list[_Chosen]:
-    """The compiled choice's surviving rows, with their scores (as _choose_reference's)."""
-    rows = np.flatnonzero(good).tolist()
-    if not rows:
-        return []
-    echo_rows, use_rows, chi2_rows = echo.tolist(), use.tolist(), chi2.tolist()
-    channels = [[c for c, u in enumerate(use_rows[k]) if u != _NONE] for k in rows]
-    dof = [len(used) - geometry.dim for used in channels]
-    tail = special.chdtrc([max(d, 1) for d in dof], [chi2_rows[k] for k in rows]).tolist()
-    return [
-        _Chosen(
-            position[k],
-            covariance[k],
-            tuple(used),
-            tuple([echo_rows[k][c] for c in used]),
-            chi2_rows[k],
-            tail[i] if dof[i] > 0 else 1.0,
-            use_rows[k].count(_SHARED),
-        )
-        for i, (k, used) in enumerate(zip(rows, channels, strict=True))
-    ]
 
 
 _NODE_LIMIT = 50_000
