@@ -25,9 +25,11 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import lru_cache
-from itertools import combinations
+from itertools import accumulate, combinations
+from operator import itemgetter
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -480,7 +482,7 @@ def associate(
 
 def _objects(setup: _Setup, echoes: _Echoes, options: LocateOptions, n_ch: int) -> list[LocatedObject]:
     """Steps 1-4 of :func:`associate` on the usable channels' echoes, as located objects."""
-    geometry, _, origin, receiver_of, transmitter_of = setup
+    geometry, _, origin, receiver_of, transmitter_of, _ = setup
     if _COMPILED:
         compiled = _associate_compiled(geometry, echoes, options)
         if not isinstance(compiled, list):
@@ -519,32 +521,61 @@ def _located(
 ) -> list[LocatedObject]:
     """:func:`_objects` from the compiled choice's surviving rows (``echo_use``: each row's
     echo indices, then its use), with the same scores and order as from ``_Chosen``."""
-    geometry, _, origin, receiver_of, transmitter_of = setup
+    geometry, _, origin, receiver_of, transmitter_of, supports = setup
     if len(chi2) == 0:
         return []
-    n_channels, dim = geometry.n, geometry.dim
+    n_channels = geometry.n
     rows: list[list[int]] = echo_use.tolist()
-    chi2_rows: list[float] = chi2.tolist()
-    used = [[c for c in range(n_channels) if row[n_channels + c] != _NONE] for row in rows]
-    dof = [len(channels) - dim for channels in used]
+    support = []
+    for row in rows:
+        use = tuple(row[n_channels:])
+        found = supports.get(use)
+        if found is None:
+            found = supports[use] = _support(use, receiver_of, transmitter_of)
+        support.append(found)
+    dof = [len(s.channels) - geometry.dim for s in support]
     tail: list[float] = special.chdtrc(np.maximum(dof, 1), chi2).tolist()
-    distance = [math.sqrt(float(offset.dot(offset))) for offset in position - origin]
-    objects = []
-    for k in sorted(range(len(rows)), key=distance.__getitem__):  # stable, as objects.sort
-        row, channels = rows[k], used[k]
-        objects.append(
-            LocatedObject(
-                position[k],
-                covariance[k],
-                tuple([receiver_of[c] for c in channels]),
-                tuple([row[c] for c in channels]),
-                chi2_rows[k],
-                (tail[k] if dof[k] > 0 else 1.0) * len(channels) / n_ch,
-                tuple([transmitter_of[c] for c in channels]),
-                row[n_channels:].count(_SHARED),
-            )
+    chi2_rows: list[float] = chi2.tolist()
+    order: Any = range(len(rows))
+    if len(rows) > 1:
+        distance = [math.sqrt(float(offset.dot(offset))) for offset in position - origin]
+        order = sorted(order, key=distance.__getitem__)  # stable, as objects.sort
+    return [
+        LocatedObject(
+            position[k],
+            covariance[k],
+            support[k].receivers,
+            support[k].pick(rows[k]),
+            chi2_rows[k],
+            (tail[k] if dof[k] > 0 else 1.0) * len(support[k].channels) / n_ch,
+            support[k].transmitters,
+            support[k].shared,
         )
-    return objects
+        for k in order
+    ]
+
+
+class _Support(NamedTuple):
+    """What an object's use of the channels gives: its channels, receivers and transmitters,
+    how to pick its echo indices from its row, how many echoes it shares."""
+
+    channels: list[int]
+    receivers: tuple[int, ...]
+    transmitters: tuple[int, ...]
+    pick: Callable[[list[int]], tuple[int, ...]]
+    shared: int
+
+
+def _support(use: tuple[int, ...], receiver_of: list[int], transmitter_of: list[int]) -> _Support:
+    channels = [c for c, u in enumerate(use) if u != _NONE]
+    get = itemgetter(*channels)
+    return _Support(
+        channels,
+        tuple([receiver_of[c] for c in channels]),
+        tuple([transmitter_of[c] for c in channels]),
+        get if len(channels) > 1 else lambda row: (get(row),),
+        use.count(_SHARED),
+    )
 
 
 def _distance(offset: NDArray[np.float64]) -> float:
@@ -552,7 +583,9 @@ def _distance(offset: NDArray[np.float64]) -> float:
     return math.sqrt(float(offset.dot(offset)))
 
 
-_Setup = tuple[_Geometry, list[int], NDArray[np.float64], list[int], list[int]]
+_Setup = tuple[
+    _Geometry, list[int], NDArray[np.float64], list[int], list[int], dict[tuple[int, ...], "_Support"]
+]
 _SETUPS: dict[tuple[Any, ...], _Setup] = {}
 
 
@@ -620,7 +653,9 @@ def _make_setup(
     geometry = _geometry(
         tx[active], receivers[active], tx_index[active], rx_index[active], must[active], options, dim
     )
-    return geometry, active.tolist(), tx[0].copy(), rx_index[active].tolist(), tx_index[active].tolist()
+    # The last: a memo of _support per use of the channels, filled as objects come (the
+    # same use always gives the same support: no state leaks from one frame to the next).
+    return geometry, active.tolist(), tx[0].copy(), rx_index[active].tolist(), tx_index[active].tolist(), {}
 
 
 def _geometry(
@@ -1328,8 +1363,7 @@ def locate_frame(
         n_ch, dim = receivers.shape
         setup = _setup(transmitter_m, receivers, usable, None, None, None, options)
         if len(setup[1]) == n_ch == len(channels) and n_ch >= max(options.min_receivers, dim):
-            offset = np.zeros(n_ch + 1, dtype=np.int64)
-            offset[1:] = np.cumsum([len(ch.tof_s) for ch in channels])
+            offset = np.array([0, *accumulate([len(ch.tof_s) for ch in channels])], dtype=np.int64)
             echoes = _Echoes(
                 offset,
                 (np.concatenate([ch.tof_s for ch in channels]) * c).astype(float, copy=False),
