@@ -22,7 +22,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from numba import njit, objmode
+from numba import njit
 
 OWN, SHARED, NONE = 0, 1, 2
 
@@ -692,7 +692,8 @@ def _has_tie(values: Any, members: Any) -> bool:  # pragma: no cover - compiled
 
 @njit(cache=True)
 def _order_by_weight(weights: Any, members: Any) -> None:  # pragma: no cover - compiled
-    """Sort ``members`` heaviest first (insertion sort; callers rule out ties)."""
+    """Sort ``members`` heaviest first (insertion sort: equal weights keep their order, as a
+    stable sort leaves them)."""
     for a in range(1, members.shape[0]):
         item = members[a]
         b = a - 1
@@ -1043,12 +1044,8 @@ def choose(
         order = np.arange(m)
         if not _weights(s_use, s_chi2, s_amplitude, gates, s_weights):
             return failed
-        if _has_tie(s_weights, order):
-            # Ties: the order is numpy's (the reference's), whatever its sort does with them.
-            with objmode(order="int64[:]"):
-                order = np.argsort(-s_weights).astype(np.int64)
-        else:
-            _order_by_weight(s_weights, order)
+        # Heaviest first, ties in candidate order (the reference's stable argsort).
+        _order_by_weight(s_weights, order)
         taken[:] = False
         added = False
         for k in order:

@@ -1168,7 +1168,8 @@ def _choose_reference(
         taken: set[tuple[int, int]] = set()
         added = False
         second_echo, second_use = second.echo.tolist(), second.use.tolist()
-        for k in np.argsort(-_weights(second, options, geometry.dim)).tolist():
+        # Heaviest first; ties in candidate order (a stable sort: the same on every platform).
+        for k in np.argsort(-_weights(second, options, geometry.dim), kind="stable").tolist():
             attached = set(_attached(second_echo[k], second_use[k]))
             merged = {e for e in attached if second_use[k][e[0]] == _SHARED}
             if ((attached - merged) & (claimed | taken)) or not merged <= claimed:
