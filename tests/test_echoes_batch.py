@@ -118,6 +118,18 @@ def test_model_choice_survives_a_candidate_with_no_echo() -> None:
     assert [c.tof_samples for c in chosen] == pytest.approx([700.37], abs=0.05)
 
 
+def _same_runs(compiled: _Clean, python: _Clean, channel: np.ndarray) -> list:
+    """CLEAN's compiled run and its Python statement on one channel: the same noise power and
+    echoes to rounding; the compiled run's echoes."""
+    correlation = MF.correlate(channel)
+    a, power_a = compiled.run(correlation)
+    b, power_b = python.run(correlation)
+    assert power_a == pytest.approx(power_b, rel=1e-12)
+    assert [c.tof_samples for c in a] == pytest.approx([c.tof_samples for c in b], abs=1e-8)
+    assert [c.amplitude for c in a] == pytest.approx([c.amplitude for c in b], rel=1e-8)
+    return a
+
+
 @pytest.mark.parametrize("seed", [5, 6])
 def test_compiled_clean_gives_the_python_statement_s_answers(seed: int) -> None:
     """CLEAN's compiled loops (extraction, successive refinement, the candidate models' fits) and
@@ -131,12 +143,7 @@ def test_compiled_clean_gives_the_python_statement_s_answers(seed: int) -> None:
         delays = [first, first + rng.uniform(6, 14), first + rng.uniform(60, 400)]
         frames = frames_with_echoes(delays, list(rng.uniform(0.6, 1.0, 3)), noise_std=1 / 13, seed=seed)
         for channel in frames[0]:
-            correlation = MF.correlate(channel)
-            a, power_a = compiled.run(correlation)
-            b, power_b = python.run(correlation)
-            assert power_a == pytest.approx(power_b, rel=1e-12)
-            assert [c.tof_samples for c in a] == pytest.approx([c.tof_samples for c in b], abs=1e-8)
-            assert [c.amplitude for c in a] == pytest.approx([c.amplitude for c in b], rel=1e-8)
+            a = _same_runs(compiled, python, channel)
             exercised += len(a) >= 3
     assert exercised >= 8  # the pairs were found, so the model choice ran
 
@@ -264,12 +271,7 @@ def test_compiled_clean_matches_on_three_overlapping_echoes(
         delays = [first, first + rng.uniform(0.35, 0.5) * lobe, first + rng.uniform(0.8, 1.0) * lobe]
         frames = frames_with_echoes(delays, list(rng.uniform(0.7, 1.0, 3)), noise_std=0.01, seed=seed)
         for channel in frames[0]:
-            correlation = MF.correlate(channel)
-            a, power_a = compiled.run(correlation)
-            b, power_b = python.run(correlation)
-            assert power_a == pytest.approx(power_b, rel=1e-12)
-            assert [c.tof_samples for c in a] == pytest.approx([c.tof_samples for c in b], abs=1e-8)
-            assert [c.amplitude for c in a] == pytest.approx([c.amplitude for c in b], rel=1e-8)
+            _same_runs(compiled, python, channel)
     assert max(sizes) >= 3  # a group of three reached the model choice
 
 

@@ -107,47 +107,24 @@ def _median(values: Any) -> float:  # pragma: no cover - compiled
 
 @njit(cache=True)
 def _median_in(values: Any, a: Any, below: Any, above: Any) -> float:  # pragma: no cover - compiled
-    """:func:`_median` with scratch ``a``, ``below``, ``above`` (at least ``len(values)`` each).
-
-    The partitions are branch-free (every element is written, the write position advances
-    by the comparison): on noise the comparisons are unpredictable, and a quickselect that
-    branches on them spends most of its time in mispredicted branches (5 us for 600 values).
-    """
+    """:func:`_median` with scratch ``a``, ``below``, ``above`` (at least ``len(values)`` each),
+    by :func:`_select`."""
     n = len(values)
     k = n // 2
     a[:n] = values
-    lo, hi = 0, n  # the k-th smallest lies in a[lo:hi], all of a[:lo] below it, a[hi:] above
-    upper = a[0]
-    while True:
-        size = hi - lo
-        if size == 1:
-            upper = a[lo]
-            break
-        x, y, z = a[lo], a[lo + size // 2], a[hi - 1]
-        pivot = max(min(x, y), min(max(x, y), z))
-        n_below = 0
-        n_above = 0
-        for i in range(lo, hi):
-            v = a[i]
-            below[n_below] = v
-            n_below += v < pivot
-            above[n_above] = v
-            n_above += v > pivot
-        if k < lo + n_below:
-            a[lo : lo + n_below] = below[:n_below]
-            hi = lo + n_below
-        elif k >= hi - n_above:
-            a[hi - n_above : hi] = above[:n_above]
-            lo = hi - n_above
-        else:
-            upper = pivot
-            break
+    upper = _select(a[:n], k, below, above)
     if n % 2:
-        return float(upper)
-    # The other middle value: the largest below ``upper``, or ``upper`` itself when it repeats there.
-    smaller = 0
+        return upper
+    return _mean_of_middles(values, upper, 0, k)
+
+
+@njit(cache=True, inline="always")
+def _mean_of_middles(values: Any, upper: float, smaller: int, k: int) -> float:  # pragma: no cover
+    """The median of an even count from its upper middle value ``upper`` (rank ``k``): the mean
+    with the largest of ``values`` below it, or with ``upper`` itself when it repeats there.
+    ``smaller`` counts the values below ``upper`` that ``values`` leaves out (all below it)."""
     lower = -np.inf
-    for i in range(n):
+    for i in range(len(values)):
         v = values[i]
         smaller += v < upper
         lower = max(lower, v if v < upper else -np.inf)
@@ -1525,9 +1502,13 @@ def clean_choose_order(
 
 @njit(cache=True)
 def _select(a: Any, k: int, below: Any, above: Any) -> float:  # pragma: no cover - compiled
-    """The ``k``-th smallest of ``a`` (from 0) by _median's branch-free quickselect; ``a`` is
-    overwritten (not a permutation of itself after), ``below`` and ``above`` are scratch at least
-    as long."""
+    """The ``k``-th smallest of ``a`` (from 0) by quickselect; ``a`` is overwritten (not a
+    permutation of itself after), ``below`` and ``above`` are scratch at least as long.
+
+    The partitions are branch-free (every element is written, the write position advances
+    by the comparison): on noise the comparisons are unpredictable, and a quickselect that
+    branches on them spends most of its time in mispredicted branches (5 us for 600 values).
+    """
     lo, hi = 0, len(a)
     while True:
         size = hi - lo
@@ -1591,17 +1572,8 @@ def _median_sampled(values: Any) -> float:  # pragma: no cover - compiled
     upper = _select(band[:n_band].copy(), k - n_low, below, above)
     if n % 2:
         return upper
-    # The other middle value, as _median finds it: the largest below ``upper`` (in the band, since
-    # at least one band value ranks below k), or ``upper`` itself when it repeats there.
-    smaller = n_low
-    lower = -np.inf
-    for i in range(n_band):
-        v = band[i]
-        smaller += v < upper
-        lower = max(lower, v if v < upper else -np.inf)
-    if smaller < k:
-        lower = upper
-    return 0.5 * (float(lower) + float(upper))
+    # The other middle value is in the band: at least one band value ranks below k.
+    return _mean_of_middles(band[:n_band], upper, n_low, k)
 
 
 @njit(cache=True)

@@ -389,38 +389,17 @@ class _Clean:
         not. Components that drift within a quarter main lobe of each other, or fall
         below the detection threshold, are dropped and the rest fitted again.
         """
-        from echoloc import _echoes_kernels as kernels  # numba: imported (and compiled) on first use
-
         for member in cluster:
             self._take_out(residual, member.tof_samples, -member.amplitude)
         threshold = 10 ** (self.options.threshold_db / 10) * power
-        rate = self.mf.phase_rate_rad_per_sample  # complex amplitudes are stepped turning with the carrier
         members = sorted(cluster, key=lambda c: c.tof_samples)
         for _ in range(len(cluster)):
             lo = max(math.floor(members[0].tof_samples) - self.fit_half, 0)
             hi = min(math.ceil(members[-1].tof_samples) + self.fit_half + 1, len(residual))
-            data = np.ascontiguousarray(np.stack([residual[lo:hi].real, residual[lo:hi].imag], axis=-1))
-            # First with complex amplitudes: the cost is then smooth in the delays (the
-            # envelope), where with real amplitudes it has a minimum every half carrier
-            # cycle. Then with real amplitudes from there: the carrier phase pins the delays.
             tofs = np.array([m.tof_samples for m in members])
-            amplitudes = np.array([m.amplitude for m in members], dtype=complex)
-            valid = np.ones(hi - lo, dtype=bool)
-            args = (self.mf.acf_table, self.mf.oversample, self.mf.half_width, data, lo, valid)
-            kernels.joint_fit(
-                *args,
-                tofs,
-                amplitudes,
-                False,
-                _CLEAN_COMPLEX_ITERATIONS,
-                True,
-                rate,
-                _CLEAN_COMPLEX_TOLERANCE,
-                _CLEAN_COMPLEX_GAIN,
+            amplitudes = self._fit_model(
+                residual[lo:hi], lo, tofs, np.array([m.amplitude for m in members], dtype=complex)
             )
-            amplitudes = np.where(amplitudes.real >= 0, np.abs(amplitudes), -np.abs(amplitudes)) + 0j
-            # Every argument given: numba's dispatcher takes a slow path (~60 us) for omitted defaults.
-            kernels.joint_fit(*args, tofs, amplitudes, True, _CLEAN_REAL_ITERATIONS, True, 0.0, 1e-6, 0.0)
             if not (np.all(np.isfinite(tofs)) and np.all(np.abs(tofs - (lo + hi) / 2) < hi - lo)):
                 # A fit that ran away from its window keeps what successive refinement found.
                 break
@@ -441,6 +420,41 @@ class _Clean:
         for member in members:
             self._take_out(residual, member.tof_samples, member.amplitude)
         return members
+
+    def _fit_model(
+        self,
+        values: NDArray[np.complex128],
+        first: int,
+        tofs: NDArray[np.float64],
+        amplitudes: NDArray[np.complex128],
+    ) -> NDArray[np.complex128]:
+        """Least squares of ``sum_k a_k R(s - tau_k)`` to ``values`` (samples from ``first``):
+        ``tofs`` in place, the (real) amplitudes returned.
+
+        First with complex amplitudes: the cost is then smooth in the delays (the envelope),
+        where with real amplitudes it has a minimum every half carrier cycle. Then with real
+        amplitudes from there: the carrier phase pins the delays. The complex fit steps in the
+        frame turning with the carrier and stops at 1e-3 samples or a 1 % gain.
+        """
+        from echoloc import _echoes_kernels as kernels  # numba: imported (and compiled) on first use
+
+        data = np.ascontiguousarray(np.stack([values.real, values.imag], axis=-1))
+        args = (
+            self.mf.acf_table,
+            self.mf.oversample,
+            self.mf.half_width,
+            data,
+            first,
+            np.ones(len(values), bool),
+        )
+        rate = self.mf.phase_rate_rad_per_sample
+        amplitudes = amplitudes.copy()
+        # Every argument given: numba's dispatcher takes a slow path (~60 us) for omitted defaults.
+        complex_stop = (_CLEAN_COMPLEX_ITERATIONS, True, rate, _CLEAN_COMPLEX_TOLERANCE, _CLEAN_COMPLEX_GAIN)
+        kernels.joint_fit(*args, tofs, amplitudes, False, *complex_stop)
+        amplitudes = np.where(amplitudes.real >= 0, np.abs(amplitudes), -np.abs(amplitudes)) + 0j
+        kernels.joint_fit(*args, tofs, amplitudes, True, _CLEAN_REAL_ITERATIONS, True, 0.0, 1e-6, 0.0)
+        return np.asarray(amplitudes)
 
     def _take_out(self, residual: NDArray[np.complex128], tof_samples: float, amplitude: complex) -> None:
         """Subtract an echo's correlation model ``amplitude R(m - tof)`` from ``residual``."""
@@ -698,14 +712,11 @@ class _Clean:
                 start_tof[row, slot] = member.tof_samples
                 start_amplitude[row, slot] = member.amplitude
                 active[row, slot] = True
-        from echoloc import _echoes_kernels as kernels
-
         # Each candidate is fitted as :meth:`_joint_fit` fits a cluster, over its own span (half
         # a main lobe beyond its first and last echo), and scored over the group's stretch.
         fit_tof = start_tof.copy()
         fit_amplitude = start_amplitude.copy()
         cost = np.full(n_rows, np.inf)
-        rate = self.mf.phase_rate_rad_per_sample  # complex amplitudes are stepped turning with the carrier
         stretch = np.arange(lo, hi)
         for row in range(n_rows):
             members = np.flatnonzero(active[row])
@@ -714,23 +725,7 @@ class _Clean:
             t, a = start_tof[row, members].copy(), start_amplitude[row, members].copy()
             first = min(max(math.floor(t.min()) - self.fit_half, lo), hi - 2)
             last = max(min(math.ceil(t.max()) + self.fit_half + 1, hi), first + 2)
-            data = np.ascontiguousarray(
-                np.stack([restored[first:last].real, restored[first:last].imag], axis=-1)
-            )
-            valid = np.ones(last - first, dtype=bool)
-            args = (self.mf.acf_table, self.mf.oversample, self.mf.half_width, data, first, valid, t)
-            kernels.joint_fit(
-                *args,
-                a,
-                False,
-                _CLEAN_COMPLEX_ITERATIONS,
-                True,
-                rate,
-                _CLEAN_COMPLEX_TOLERANCE,
-                _CLEAN_COMPLEX_GAIN,
-            )
-            a = np.where(a.real >= 0, np.abs(a), -np.abs(a)) + 0j
-            kernels.joint_fit(*args, a, True, _CLEAN_REAL_ITERATIONS, True, 0.0, 1e-6, 0.0)
+            a = self._fit_model(restored[first:last], first, t, a)
             model = np.sum(
                 a[:, None] * _shape_values(self.mf, t, np.broadcast_to(stretch, (len(t), hi - lo))), axis=0
             )
