@@ -624,7 +624,9 @@ def fixed_level_threshold(
 
 # --- plots ---------------------------------------------------------------------------------
 
-COLOURS = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+# The default ten colours, then black and grey: the tables have up to eleven rows, and a
+# repeated colour made two lines of one plot look like one.
+COLOURS = [*plt.rcParams["axes.prop_cycle"].by_key()["color"], "#000000", "#999999"]
 
 
 def save(fig: Figure, path: Path) -> None:

@@ -118,6 +118,18 @@ def test_model_choice_survives_a_candidate_with_no_echo() -> None:
     assert [c.tof_samples for c in chosen] == pytest.approx([700.37], abs=0.05)
 
 
+def _same_runs(compiled: _Clean, python: _Clean, channel: np.ndarray) -> list:
+    """CLEAN's compiled run and its Python statement on one channel: the same noise power and
+    echoes to rounding; the compiled run's echoes."""
+    correlation = MF.correlate(channel)
+    a, power_a = compiled.run(correlation)
+    b, power_b = python.run(correlation)
+    assert power_a == pytest.approx(power_b, rel=1e-12)
+    assert [c.tof_samples for c in a] == pytest.approx([c.tof_samples for c in b], abs=1e-8)
+    assert [c.amplitude for c in a] == pytest.approx([c.amplitude for c in b], rel=1e-8)
+    return a
+
+
 @pytest.mark.parametrize("seed", [5, 6])
 def test_compiled_clean_gives_the_python_statement_s_answers(seed: int) -> None:
     """CLEAN's compiled loops (extraction, successive refinement, the candidate models' fits) and
@@ -131,12 +143,7 @@ def test_compiled_clean_gives_the_python_statement_s_answers(seed: int) -> None:
         delays = [first, first + rng.uniform(6, 14), first + rng.uniform(60, 400)]
         frames = frames_with_echoes(delays, list(rng.uniform(0.6, 1.0, 3)), noise_std=1 / 13, seed=seed)
         for channel in frames[0]:
-            correlation = MF.correlate(channel)
-            a, power_a = compiled.run(correlation)
-            b, power_b = python.run(correlation)
-            assert power_a == pytest.approx(power_b, rel=1e-12)
-            assert [c.tof_samples for c in a] == pytest.approx([c.tof_samples for c in b], abs=1e-8)
-            assert [c.amplitude for c in a] == pytest.approx([c.amplitude for c in b], rel=1e-8)
+            a = _same_runs(compiled, python, channel)
             exercised += len(a) >= 3
     assert exercised >= 8  # the pairs were found, so the model choice ran
 
@@ -239,3 +246,115 @@ def test_carrier_turning_fit_reaches_the_same_minimum() -> None:
         assert cost < 1e-16
         assert tofs == pytest.approx(delays, abs=1e-7)
         assert amps == pytest.approx(amplitudes, abs=1e-6)
+
+
+@pytest.mark.parametrize("seed", [7, 8])
+def test_compiled_clean_matches_on_three_overlapping_echoes(
+    seed: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Three echoes a third to half a main lobe apart: the model choice reads a group of three (each
+    member moved, each left out, each left out with another moved), and the compiled run finds the
+    Python statement's echoes, channel by channel, to rounding."""
+    rng = np.random.default_rng(seed)
+    compiled, python = _Clean(MF, EchoOptions()), _Clean(MF, EchoOptions(), compiled=False)
+    sizes: list[int] = []
+    choose = _Clean._choose_overlapping
+
+    def recording(self: _Clean, residual: np.ndarray, group: list, power: float) -> list:
+        sizes.append(len(group))
+        return choose(self, residual, group, power)
+
+    monkeypatch.setattr(_Clean, "_choose_overlapping", recording)
+    lobe = MF.mainlobe_samples
+    for _ in range(3):
+        first = rng.uniform(300, 1800)
+        delays = [first, first + rng.uniform(0.35, 0.5) * lobe, first + rng.uniform(0.8, 1.0) * lobe]
+        frames = frames_with_echoes(delays, list(rng.uniform(0.7, 1.0, 3)), noise_std=0.01, seed=seed)
+        for channel in frames[0]:
+            _same_runs(compiled, python, channel)
+    assert max(sizes) >= 3  # a group of three reached the model choice
+
+
+def test_stopping_the_complex_fit_on_a_small_gain_leaves_the_minimum() -> None:
+    """The complex-amplitude stage stops once a step gains less than 1 % of the cost: on noisy data of
+    two echoes 9 samples apart, started a third of a sample and half a carrier cycle off, the
+    real-amplitude fit from there reaches the minimum it reaches after a complex stage run to 1e-9."""
+    from echoloc import _echoes_kernels as kernels
+    from echoloc.echoes import _shape_values
+
+    delays, amplitudes = np.array([707.17, 716.2]), np.array([1.3, 0.9])
+    lo, hi = 690, 734
+    samples = np.arange(lo, hi)
+    model = np.sum(
+        amplitudes[:, None] * _shape_values(MF, delays, np.broadcast_to(samples, (2, hi - lo))), axis=0
+    )
+    rng = np.random.default_rng(3)
+    noisy = model + 0.03 * (rng.normal(size=hi - lo) + 1j * rng.normal(size=hi - lo))
+    data = np.ascontiguousarray(np.stack([noisy.real, noisy.imag], axis=-1))
+    valid = np.ones(hi - lo, dtype=bool)
+    rate = MF.phase_rate_rad_per_sample
+    args = (MF.acf_table, MF.oversample, MF.half_width, data, lo, valid)
+    for offset in (0.3, 2.0):
+        found = []
+        for tolerance, gain in ((1e-9, 0.0), (1e-3, 1e-2)):
+            tofs, amps = delays + np.array([offset, -offset]), amplitudes * (0.8 + 0j)
+            kernels.joint_fit(*args, tofs, amps, False, 200, True, rate, tolerance, gain)
+            amps = np.where(amps.real >= 0, np.abs(amps), -np.abs(amps)) + 0j
+            cost = kernels.joint_fit(*args, tofs, amps, True, 200, True, 0.0, 1e-6, 0.0)
+            found.append((tofs, amps.real, cost))
+        (full_tofs, full_amps, full_cost), (tofs, amps, cost) = found
+        assert tofs == pytest.approx(full_tofs, abs=1e-7)
+        assert amps == pytest.approx(full_amps, rel=1e-7)
+        assert cost == pytest.approx(full_cost, rel=1e-10)
+        assert tofs == pytest.approx(delays, abs=0.05)
+
+
+def test_extraction_peak_search_is_the_first_largest_sample() -> None:
+    """The extraction's running block maxima give the first sample of largest power at or after the
+    blanking, as a full scan does: with ties, zeros and a refreshed stretch."""
+    from echoloc import _echoes_kernels as kernels
+
+    rng = np.random.default_rng(11)
+    residual = (rng.normal(size=1000) + 1j * rng.normal(size=1000)).round(1)  # many ties
+    residual[:50] = 0
+    for scan in (0, 37, 130):
+        power = np.zeros(len(residual))
+        block = np.zeros((len(residual) - scan + kernels._BLOCK - 1) // kernels._BLOCK)
+        kernels._refresh_power(residual, power, block, scan, scan, len(residual))
+        for lo, hi in ((400, 820), (0, 90), (990, 1000)):
+            residual[lo:hi] *= rng.uniform(0.0, 1.2)
+            kernels._refresh_power(residual, power, block, scan, lo, hi)
+            expected = scan + int(np.argmax(np.abs(residual[scan:]) ** 2))
+            peak, top = kernels._strongest(power, block, scan)
+            assert peak == expected
+            assert top == abs(residual[expected].real) ** 2 + abs(residual[expected].imag) ** 2
+    nothing = np.zeros(100, dtype=complex)
+    power, block = np.zeros(100), np.zeros(2)
+    kernels._refresh_power(nothing, power, block, 0, 0, 100)
+    assert kernels._strongest(power, block, 0) == (0, 0.0)
+
+
+@pytest.mark.parametrize("n", [1024, 1025, 2400, 2401])
+def test_sampled_median_is_numpy_s_median(n: int) -> None:
+    """CLEAN's median bracketed by every 8th value gives numpy's median exactly: on noise powers, with
+    ties, sorted, reversed, organ-pipe and constant orders, and where the sampled values mislead the
+    bracket (all of them huge or zero: the full quickselect then)."""
+    from echoloc._echoes_kernels import _median_sampled
+
+    rng = np.random.default_rng(n)
+    for _ in range(5):
+        powers = np.abs(rng.normal(size=n) + 1j * rng.normal(size=n)) ** 2
+        ordered = np.sort(powers)
+        huge, zero = powers.copy(), powers.copy()
+        huge[::8], zero[::8] = 1e9, 0.0
+        for values in (
+            powers,
+            powers.round(1),
+            ordered,
+            ordered[::-1],
+            np.concatenate([ordered[::2], ordered[1::2][::-1]]),
+            np.ones(n),
+            huge,
+            zero,
+        ):
+            assert _median_sampled(np.ascontiguousarray(values)) == np.median(values)

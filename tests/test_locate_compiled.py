@@ -231,3 +231,58 @@ def test_too_many_combinations_skip_the_frame_with_a_warning(compiled: bool) -> 
         patch.setattr(locate, "_COMPILED", compiled)
         with pytest.warns(locate.LocateWarning, match="frame skipped"):
             assert locate_frame(frame, TRANSMITTERS[0], CROSS, OPTIONS[0]).objects == ()
+
+
+def _assert_identical(expected: tuple[LocatedObject, ...], got: tuple[LocatedObject, ...]) -> None:
+    assert len(got) == len(expected)
+    for a, b in zip(expected, got, strict=True):
+        assert (a.receivers, a.echo_indices, a.transmitters, a.shared, a.chi2, a.score) == (
+            b.receivers,
+            b.echo_indices,
+            b.transmitters,
+            b.shared,
+            b.chi2,
+            b.score,
+        )
+        assert np.array_equal(a.position_m, b.position_m)
+        assert np.array_equal(a.covariance_m2, b.covariance_m2)
+
+
+def test_repeated_and_interleaved_geometries_give_the_same_objects() -> None:
+    """The cached setup keeps a memo of each object's support: calls with two geometries in
+    turn, again and again, give bit for bit what a fresh cache gives for each."""
+    rng, points = _scene(3)
+    frames = [_frame(rng, i, TRANSMITTERS[0], points) for i in range(3)]
+    geometries = [
+        (TRANSMITTERS[0], CROSS, OPTIONS[0], None),
+        (TRANSMITTERS[0], CROSS, OPTIONS[0], np.array([True, True, False, True])),
+        (TRANSMITTERS[1], CROSS, OPTIONS[1], None),
+    ]
+    expected = {}
+    for g, call in enumerate(geometries):
+        for f, frame in enumerate(frames):
+            with pytest.MonkeyPatch.context() as patch:
+                patch.setattr(locate, "_SETUPS", {})
+                expected[g, f] = locate_frame(frame, *call).objects
+    assert any(expected.values())
+    for _ in range(2):
+        for f, frame in enumerate(frames):
+            for g, call in enumerate(geometries):
+                _assert_identical(expected[g, f], locate_frame(frame, *call).objects)
+
+
+def test_frames_with_more_seed_rows_than_the_first_capacity_are_associated() -> None:
+    """More seed rows than the compiled seeds' first outputs hold (256; this frame has
+    about 1500): the seeds run again with room for more, as the reference does."""
+    paths = np.arange(0.5, 0.58, 0.01)
+    channels = tuple(
+        ChannelEchoes(tof_s=paths, amplitude=np.ones(len(paths)), snr_db=np.full(len(paths), 20.0))
+        for _ in CROSS
+    )
+    frame = FrameEchoes(0, 0.0, 1.0, channels)
+    compiled = locate_frame(frame, TRANSMITTERS[0], CROSS, OPTIONS[0])
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(locate, "_COMPILED", False)
+        reference = locate_frame(frame, TRANSMITTERS[0], CROSS, OPTIONS[0])
+    assert compiled.objects
+    _assert_same(reference.objects, compiled.objects)

@@ -315,3 +315,33 @@ def test_the_listeners_address_outlives_its_socket():
     port = listener.address.port
     listener.stop()
     assert listener.address.port == port > 0
+
+
+def test_warm_up_frame_takes_clean_and_locates_its_reflector(recording):
+    """The warm-up frame reaches every kernel a crowded frame does: its overlapping echoes go to
+    CLEAN on every channel, and the reflector on the transmitter's axis is located there."""
+    from echoloc.echoes import MatchedFilter, _compiled_batch
+    from echoloc.pipeline import samples_echoes, transmitter_objects
+
+    chain = prepare(recording)
+    processor = StreamProcessor(chain)
+    frame = processor.warm_up_frame()
+    matched = MatchedFilter(
+        np.asarray(recording.waveform, float), recording.n_samples, recording.sample_rate_hz
+    )
+    handed = _compiled_batch(
+        matched.correlate_single(frame[None]).reshape(len(frame), -1), matched, chain.echo_options
+    )
+    assert not handed.ok.any()
+    objects = transmitter_objects(chain, samples_echoes(chain, frame, 0, 0.0), 0).objects
+    assert len(objects) >= 1
+    axis = np.asarray(chain.locate_options.boresight, dtype=float)
+    nearest = min(
+        objects,
+        key=lambda o: float(np.linalg.norm(np.cross(o.position_m - recording.transmitters_m[0], axis))),
+    )
+    offset = nearest.position_m - recording.transmitters_m[0]
+    assert np.linalg.norm(np.cross(offset, axis)) < 5e-3  # on the axis, within 5 mm
+    before = processor.stats()
+    processor.warm_up()
+    assert processor.stats() == before  # counters untouched

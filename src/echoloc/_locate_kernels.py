@@ -22,7 +22,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from numba import njit, objmode
+from numba import njit
 
 OWN, SHARED, NONE = 0, 1, 2
 
@@ -89,7 +89,7 @@ def _exact(t: Any, receivers: Any, paths: Any, points: Any) -> int:  # pragma: n
     return _exact_work(t, receivers, paths, points, np.empty((4 * d + 4, d + 1)))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _exact_work(t: Any, receivers: Any, paths: Any, points: Any, work: Any) -> int:  # pragma: no cover
     """:func:`_exact` in the scratch rows ``work`` (4 D + 4, D + 1): no allocation per combination."""
     d = paths.shape[0]
@@ -215,12 +215,13 @@ def seed_candidates(
 
     ``flat_paths``/``flat_sigmas`` hold every channel's echoes, channel c's at
     ``offset[c]:offset[c+1]``; ``sorted_paths`` the same sorted within each channel,
-    ``sorted_index`` their echo indices.
+    ``sorted_index`` their echo indices. Only the first ``count`` rows are written;
+    ``overflow``: more than ``capacity`` rows (the caller tries again with more).
     """
     n_ch, d = receivers.shape
-    echo_out = np.full((capacity, n_ch), -1, dtype=np.int64)
-    use_out = np.full((capacity, n_ch), NONE, dtype=np.int8)
-    points_out = np.zeros((capacity, d))
+    echo_out = np.empty((capacity, n_ch), dtype=np.int64)
+    use_out = np.empty((capacity, n_ch), dtype=np.int8)
+    points_out = np.empty((capacity, d))
     count = 0
     direct = np.empty(n_ch)
     for c in range(n_ch):
@@ -691,7 +692,8 @@ def _has_tie(values: Any, members: Any) -> bool:  # pragma: no cover - compiled
 
 @njit(cache=True)
 def _order_by_weight(weights: Any, members: Any) -> None:  # pragma: no cover - compiled
-    """Sort ``members`` heaviest first (insertion sort; callers rule out ties)."""
+    """Sort ``members`` heaviest first (insertion sort: equal weights keep their order, as a
+    stable sort leaves them)."""
     for a in range(1, members.shape[0]):
         item = members[a]
         b = a - 1
@@ -1042,12 +1044,8 @@ def choose(
         order = np.arange(m)
         if not _weights(s_use, s_chi2, s_amplitude, gates, s_weights):
             return failed
-        if _has_tie(s_weights, order):
-            # Ties: the order is numpy's (the reference's), whatever its sort does with them.
-            with objmode(order="int64[:]"):
-                order = np.argsort(-s_weights).astype(np.int64)
-        else:
-            _order_by_weight(s_weights, order)
+        # Heaviest first, ties in candidate order (the reference's stable argsort).
+        _order_by_weight(s_weights, order)
         taken[:] = False
         added = False
         for k in order:
@@ -1238,6 +1236,96 @@ def first_of_each(echo: Any, use: Any, count: int) -> Any:  # pragma: no cover -
 
 
 @njit(cache=True)
+def candidates(
+    transmitters: Any,
+    receivers: Any,
+    transmitter_axes: Any,
+    receiver_axes: Any,
+    boresight: Any,
+    required: Any,
+    paths: Any,
+    sigmas: Any,
+    amplitudes: Any,
+    offset: Any,
+    seeds: Any,
+    window_low: float,
+    window_high: float,
+    cos_fov: float,
+    k_gate: float,
+    merge_reach: float,
+    merge_sigma: float,
+    gates: Any,
+    check_beams: bool,
+    min_own: int,
+    sharing_rounds: int,
+    amplitude_log_sigma: float,
+    node_limit: int,
+    max_rows: int,
+) -> Any:  # pragma: no cover - compiled
+    """Steps 1-3 of locate.associate (the arguments of :func:`associate`): seeds (sorted,
+    deduplicated) and refined. Returns (overflow, candidates): ``overflow`` more seed rows
+    than ``max_rows`` (rounded up to 4096 x 4^k; no candidates then), ``candidates`` =
+    refined (echo, use, positions, covariances, chi2, converged, amplitude_chi2)."""
+    sorted_paths, sorted_index = sort_within_channels(paths, offset)
+    limit = np.int64(4096)
+    while limit < max_rows:
+        limit *= 4
+    # A few dozen rows are usual: start small, again with 4 times more when too small
+    # (growing the outputs inside the seed loop slows the loop down).
+    capacity = np.int64(256)
+    while True:
+        echo, use, points, count, overflow = seed_candidates(
+            transmitters,
+            receivers,
+            transmitter_axes,
+            receiver_axes,
+            boresight,
+            required,
+            paths,
+            sigmas,
+            offset,
+            sorted_paths,
+            sorted_index,
+            seeds,
+            window_low,
+            window_high,
+            cos_fov,
+            k_gate,
+            merge_reach,
+            min_own,
+            capacity,
+        )
+        if not overflow or capacity >= limit:
+            break
+        capacity *= 4
+    # The same object comes from several seeds: keep one of each echo set (none on overflow).
+    first = first_of_each(echo, use, 0 if overflow else count)
+    refined = refine(
+        transmitters,
+        receivers,
+        transmitter_axes,
+        receiver_axes,
+        boresight,
+        required,
+        paths,
+        sigmas,
+        amplitudes,
+        offset,
+        echo[first],
+        use[first],
+        points[first],
+        merge_sigma,
+        gates,
+        check_beams,
+        cos_fov,
+        min_own,
+        np.int64(6),
+        amplitude_log_sigma,
+    )
+    return overflow, refined
+
+
+@njit(cache=True)
 def associate(
     transmitters: Any,
     receivers: Any,
@@ -1264,44 +1352,15 @@ def associate(
     node_limit: int,
     max_rows: int,
 ) -> Any:  # pragma: no cover - compiled
-    """Steps 1-4 of locate.associate in one call: seeds (sorted, deduplicated), refine, choose.
+    """Steps 1-4 of locate.associate in one call: :func:`candidates`, then :func:`choose`.
 
-    Returns (status, candidates, chosen): status 0 done, 1 more than ``max_rows``
-    seed rows (nothing else meaningful), 2 tied weights (the caller chooses from
-    ``candidates`` = refined (echo, use, positions, covariances, chi2, converged,
-    amplitude_chi2) with the reference); ``chosen`` as :func:`choose` returns it
-    after its flag.
+    Returns (status, echo_use, positions, covariances, chi2) of the surviving objects
+    only (few arrays: each returned array costs the caller), ``echo_use`` (n, 2 C) the
+    rows' echo indices then their use. Status 0 done, 1 more than ``max_rows`` seed
+    rows, 2 tied weights (the caller chooses from :func:`candidates` with the
+    reference); no objects then.
     """
-    sorted_paths, sorted_index = sort_within_channels(paths, offset)
-    capacity = np.int64(4096)  # typed, not a literal: one compiled seed kernel
-    while True:
-        echo, use, points, count, overflow = seed_candidates(
-            transmitters,
-            receivers,
-            transmitter_axes,
-            receiver_axes,
-            boresight,
-            required,
-            paths,
-            sigmas,
-            offset,
-            sorted_paths,
-            sorted_index,
-            seeds,
-            window_low,
-            window_high,
-            cos_fov,
-            k_gate,
-            merge_reach,
-            min_own,
-            capacity,
-        )
-        if not overflow or capacity >= max_rows:
-            break
-        capacity *= 4
-    # The same object comes from several seeds: keep one of each echo set (none on overflow).
-    first = first_of_each(echo, use, 0 if overflow else count)
-    candidates = refine(
+    overflow, refined = candidates(
         transmitters,
         receivers,
         transmitter_axes,
@@ -1312,18 +1371,22 @@ def associate(
         sigmas,
         amplitudes,
         offset,
-        echo[first],
-        use[first],
-        points[first],
+        seeds,
+        window_low,
+        window_high,
+        cos_fov,
+        k_gate,
+        merge_reach,
         merge_sigma,
         gates,
         check_beams,
-        cos_fov,
         min_own,
-        np.int64(6),
+        sharing_rounds,
         amplitude_log_sigma,
+        node_limit,
+        max_rows,
     )
-    chosen = choose(
+    done, echo, use, position, covariance, chi2, _, good = choose(
         transmitters,
         receivers,
         transmitter_axes,
@@ -1334,11 +1397,11 @@ def associate(
         sigmas,
         amplitudes,
         offset,
-        candidates[0],
-        candidates[1],
-        candidates[2],
-        candidates[4],
-        candidates[6],
+        refined[0],
+        refined[1],
+        refined[2],
+        refined[4],
+        refined[6],
         merge_sigma,
         merge_reach,
         gates,
@@ -1349,4 +1412,12 @@ def associate(
         amplitude_log_sigma,
         node_limit,
     )
-    return 1 if overflow else 0 if chosen[0] else 2, candidates, chosen
+    status = 1 if overflow else 0 if done else 2
+    rows = np.flatnonzero(good) if status == 0 else np.empty(0, dtype=np.int64)
+    n_ch = offset.shape[0] - 1
+    echo_use = np.empty((rows.shape[0], 2 * n_ch), dtype=np.int64)
+    for i in range(rows.shape[0]):
+        for c in range(n_ch):
+            echo_use[i, c] = echo[rows[i], c]
+            echo_use[i, n_ch + c] = use[rows[i], c]
+    return status, echo_use, position[rows], covariance[rows], chi2[rows]

@@ -169,6 +169,7 @@ def bench_chains(recording: Recording, *, baseline_frames: int = 2, warmup_frame
     few = min(baseline_frames, n)
     # Compile the numba kernels and warm the caches before timing.
     warm = StreamProcessor(chain)
+    warm.warm_up()  # what `echoloc stream` does before its first frame
     for frame in itertools.islice(recording_frames(recording), warmup_frames):
         warm.process(frame)
 

@@ -26,10 +26,11 @@ estimators are in :mod:`echoloc.envelopes` and the registry of all of them in
     compiled loops (:mod:`echoloc._echoes_kernels`, stated in numpy by
     :func:`_isolated_echoes`) fits isolated echoes and clusters of resolved echoes
     with the same formulas, and hands CLEAN only the channels whose correlation its
-    model does not explain. CLEAN's extraction, subtractions and the fits of its
-    candidate models run in compiled loops too (:class:`_Clean` with ``compiled=False``
-    is their Python statement); its complex-amplitude fits step in the frame turning
-    with the carrier and stop at 1e-3 samples, since they only choose the basin the
+    model does not explain. CLEAN runs in compiled loops too, one call a channel
+    (:class:`_Clean` with ``compiled=False`` is its Python statement), on the hard
+    channels' double-precision correlation computed in one call; its complex-amplitude
+    fits step in the frame turning with the carrier and stop at 1e-3 samples or once a
+    step gains less than 1 % of the cost, since they only choose the basin the
     real-amplitude fit settles in.
 
 Conventions: ``tof_s`` is the delay from emission start to the echo's arrival
@@ -252,10 +253,14 @@ class MatchedFilter:
         40 dB weaker (the dynamic range kept); the fits read the samples they need in
         double precision.
         """
+        return self.correlate_single_rows(frames)[..., : self.n_samples]
+
+    def correlate_single_rows(self, frames: NDArray[np.floating]) -> NDArray[np.complex64]:
+        """:meth:`correlate_single` as the FFT leaves it: rows of ``n_fft`` lags, of which the
+        first ``n_samples`` are the correlation (the rest wraps around), C-contiguous."""
         spectrum = scipy.fft.rfft(np.asarray(frames, np.float32), self.n_fft, axis=-1)
         spectrum *= self._spectrum_single
-        full = scipy.fft.ifft(spectrum, self.n_fft, axis=-1, overwrite_x=True)
-        return np.asarray(full[..., : self.n_samples])
+        return np.asarray(scipy.fft.ifft(spectrum, self.n_fft, axis=-1, overwrite_x=True))
 
 
 def noise_power(values: NDArray[Any]) -> float:
@@ -289,10 +294,11 @@ class _Component:
 class _Clean:
     """CLEAN extraction and refinement on one channel's analytic correlation.
 
-    With ``compiled`` (the default) the extraction loop (:meth:`_extract`: peak search,
-    fits, subtraction, successive refinement) and the fits of the candidate models
-    (:meth:`_try_models`) run as compiled loops (:mod:`echoloc._echoes_kernels`); without,
-    as the Python statements below, which the tests hold the compiled loops to.
+    With ``compiled`` (the default) :meth:`run` is one compiled call
+    (:func:`echoloc._echoes_kernels.clean_run`: noise power, extraction, merging, joint fits,
+    model choice); without, it runs the Python statements below (their fits of candidate
+    models call the compiled Levenberg-Marquardt, :func:`echoloc._echoes_kernels.joint_fit`),
+    which the tests hold the compiled loops to. The other methods are the statement only.
     """
 
     def __init__(self, mf: MatchedFilter, options: EchoOptions, compiled: bool = True):
@@ -383,37 +389,17 @@ class _Clean:
         not. Components that drift within a quarter main lobe of each other, or fall
         below the detection threshold, are dropped and the rest fitted again.
         """
-        from echoloc import _echoes_kernels as kernels  # numba: imported (and compiled) on first use
-
         for member in cluster:
             self._take_out(residual, member.tof_samples, -member.amplitude)
         threshold = 10 ** (self.options.threshold_db / 10) * power
-        rate = self.mf.phase_rate_rad_per_sample  # complex amplitudes are stepped turning with the carrier
         members = sorted(cluster, key=lambda c: c.tof_samples)
         for _ in range(len(cluster)):
             lo = max(math.floor(members[0].tof_samples) - self.fit_half, 0)
             hi = min(math.ceil(members[-1].tof_samples) + self.fit_half + 1, len(residual))
-            data = np.ascontiguousarray(np.stack([residual[lo:hi].real, residual[lo:hi].imag], axis=-1))
-            # First with complex amplitudes: the cost is then smooth in the delays (the
-            # envelope), where with real amplitudes it has a minimum every half carrier
-            # cycle. Then with real amplitudes from there: the carrier phase pins the delays.
             tofs = np.array([m.tof_samples for m in members])
-            amplitudes = np.array([m.amplitude for m in members], dtype=complex)
-            valid = np.ones(hi - lo, dtype=bool)
-            args = (self.mf.acf_table, self.mf.oversample, self.mf.half_width, data, lo, valid)
-            kernels.joint_fit(
-                *args,
-                tofs,
-                amplitudes,
-                False,
-                _CLEAN_COMPLEX_ITERATIONS,
-                True,
-                rate,
-                _CLEAN_COMPLEX_TOLERANCE,
+            amplitudes = self._fit_model(
+                residual[lo:hi], lo, tofs, np.array([m.amplitude for m in members], dtype=complex)
             )
-            amplitudes = np.where(amplitudes.real >= 0, np.abs(amplitudes), -np.abs(amplitudes)) + 0j
-            # Every argument given: numba's dispatcher takes a slow path (~60 us) for omitted defaults.
-            kernels.joint_fit(*args, tofs, amplitudes, True, _CLEAN_REAL_ITERATIONS, True, 0.0, 1e-6)
             if not (np.all(np.isfinite(tofs)) and np.all(np.abs(tofs - (lo + hi) / 2) < hi - lo)):
                 # A fit that ran away from its window keeps what successive refinement found.
                 break
@@ -435,38 +421,48 @@ class _Clean:
             self._take_out(residual, member.tof_samples, member.amplitude)
         return members
 
-    def _take_out(self, residual: NDArray[np.complex128], tof_samples: float, amplitude: complex) -> None:
-        """Subtract an echo's correlation model ``amplitude R(m - tof)`` from ``residual`` (compiled:
-        :func:`echoloc._echoes_kernels.clean_subtract`, the same values)."""
-        if self.compiled:
-            from echoloc import _echoes_kernels as kernels
+    def _fit_model(
+        self,
+        values: NDArray[np.complex128],
+        first: int,
+        tofs: NDArray[np.float64],
+        amplitudes: NDArray[np.complex128],
+    ) -> NDArray[np.complex128]:
+        """Least squares of ``sum_k a_k R(s - tau_k)`` to ``values`` (samples from ``first``):
+        ``tofs`` in place, the (real) amplitudes returned.
 
-            kernels.clean_subtract(
-                self.table, self.mf.oversample, self.half, residual, tof_samples, amplitude
-            )
-            return
+        First with complex amplitudes: the cost is then smooth in the delays (the envelope),
+        where with real amplitudes it has a minimum every half carrier cycle. Then with real
+        amplitudes from there: the carrier phase pins the delays. The complex fit steps in the
+        frame turning with the carrier and stops at 1e-3 samples or a 1 % gain.
+        """
+        from echoloc import _echoes_kernels as kernels  # numba: imported (and compiled) on first use
+
+        data = np.ascontiguousarray(np.stack([values.real, values.imag], axis=-1))
+        args = (
+            self.mf.acf_table,
+            self.mf.oversample,
+            self.mf.half_width,
+            data,
+            first,
+            np.ones(len(values), bool),
+        )
+        rate = self.mf.phase_rate_rad_per_sample
+        amplitudes = amplitudes.copy()
+        # Every argument given: numba's dispatcher takes a slow path (~60 us) for omitted defaults.
+        complex_stop = (_CLEAN_COMPLEX_ITERATIONS, True, rate, _CLEAN_COMPLEX_TOLERANCE, _CLEAN_COMPLEX_GAIN)
+        kernels.joint_fit(*args, tofs, amplitudes, False, *complex_stop)
+        amplitudes = np.where(amplitudes.real >= 0, np.abs(amplitudes), -np.abs(amplitudes)) + 0j
+        kernels.joint_fit(*args, tofs, amplitudes, True, _CLEAN_REAL_ITERATIONS, True, 0.0, 1e-6, 0.0)
+        return np.asarray(amplitudes)
+
+    def _take_out(self, residual: NDArray[np.complex128], tof_samples: float, amplitude: complex) -> None:
+        """Subtract an echo's correlation model ``amplitude R(m - tof)`` from ``residual``."""
         shape, start = self._shape(tof_samples)
         _subtract(residual, shape, start, amplitude)
 
     def _refit(self, residual: NDArray[np.complex128], component: _Component) -> None:
         """Put the component back into the residual, fit it again alone, take it out again."""
-        if self.compiled:
-            from echoloc import _echoes_kernels as kernels
-
-            tofs, amplitudes = np.array([component.tof_samples]), np.array([component.amplitude])
-            kernels.clean_refit(
-                self.table,
-                self.mf.oversample,
-                self.half,
-                self.mf.phase_rate_rad_per_sample,
-                self.fit_half,
-                residual,
-                tofs,
-                amplitudes,
-                0,
-            )
-            component.tof_samples, component.amplitude = float(tofs[0]), complex(amplitudes[0])
-            return
         shape, start = self._shape(component.tof_samples)
         _subtract(residual, shape, start, -component.amplitude)
         centre = round(component.tof_samples)
@@ -503,8 +499,6 @@ class _Clean:
         threshold = 10 ** (self.options.threshold_db / 10)
         floor = 10 ** (-self.options.dynamic_range_db / 20)
         first = math.ceil(self.options.blanking_s * self.mf.sample_rate_hz)
-        if self.compiled:
-            return self._extract_compiled(residual, components, threshold * power, floor, first)
         strongest = max((abs(c.amplitude) for c in components), default=0.0)
         added = 0
         while len(components) < self.options.max_echoes:
@@ -526,47 +520,6 @@ class _Clean:
             if cluster:
                 self._refit_together([*cluster, component], residual)
             strongest = max(strongest, abs(component.amplitude))
-        return added
-
-    def _extract_compiled(
-        self,
-        residual: NDArray[np.complex128],
-        components: list[_Component],
-        threshold: float,
-        floor: float,
-        first: int,
-    ) -> int:
-        """:meth:`_extract` in compiled loops (:func:`echoloc._echoes_kernels.clean_extract`)."""
-        from echoloc import _echoes_kernels as kernels
-
-        capacity = max(self.options.max_echoes, len(components))
-        tofs = np.zeros(capacity)
-        amplitudes = np.zeros(capacity, dtype=complex)
-        for i, c in enumerate(components):
-            tofs[i], amplitudes[i] = c.tof_samples, c.amplitude
-        count = kernels.clean_extract(
-            self.table,
-            self.mf.oversample,
-            self.half,
-            self.mf.phase_rate_rad_per_sample,
-            self.fit_half,
-            self.cluster_samples,
-            residual,
-            tofs,
-            amplitudes,
-            len(components),
-            threshold,
-            floor,
-            first,
-            self.options.max_echoes,
-            self.options.refine_passes,
-        )
-        for i, c in enumerate(components):  # refits move earlier components, as _refit does
-            c.tof_samples, c.amplitude = float(tofs[i]), complex(amplitudes[i])
-        added = count - len(components)
-        components.extend(
-            _Component(float(tofs[i]), complex(amplitudes[i])) for i in range(len(components), count)
-        )
         return added
 
     def _refit_together(self, cluster: list[_Component], residual: NDArray[np.complex128]) -> None:
@@ -592,6 +545,8 @@ class _Clean:
         refinement. Clusters whose members are closer than one main lobe are then
         fitted jointly (:meth:`_joint_fit`).
         """
+        if self.compiled:
+            return self._run_compiled(correlation)
         residual = correlation.copy()
         components: list[_Component] = []
         power = self._noise_power(residual)
@@ -605,14 +560,45 @@ class _Clean:
             merged.extend(self._choose_order(residual, fitted, power))
         return merged, power
 
-    def _noise_power(self, residual: NDArray[np.complex128]) -> float:
-        """:func:`noise_power`; compiled, with the batch path's median (exact, and free of the
-        mispredicted branches that make numpy's take 30 us on 2400 samples)."""
-        if not self.compiled or not len(residual):
-            return noise_power(residual)
+    def _run_compiled(self, correlation: NDArray[np.complex128]) -> tuple[list[_Component], float]:
+        """:meth:`run` in one compiled call (:func:`echoloc._echoes_kernels.clean_run`)."""
         from echoloc import _echoes_kernels as kernels
 
-        power = float(kernels.median(np.abs(residual) ** 2)) / _LN2
+        options = self.options
+        tofs = np.zeros(2 * max(options.max_echoes, 1))  # a split adds at most one echo per group
+        amplitudes = np.zeros(len(tofs), dtype=complex)
+        power = np.zeros(1)
+        count = kernels.clean_run(
+            self.table,
+            self.mf.oversample,
+            self.half,
+            self.mf.phase_rate_rad_per_sample,
+            self.fit_half,
+            self.mf.mainlobe_samples,
+            self.merge_samples,
+            self.cluster_samples,
+            self.mf.acf_energy,
+            10 ** (options.threshold_db / 10),
+            10 ** (-options.dynamic_range_db / 20),
+            math.ceil(options.blanking_s * self.mf.sample_rate_hz),
+            options.max_echoes,
+            options.refine_passes,
+            _CLEAN_COMPLEX_ITERATIONS,
+            _CLEAN_REAL_ITERATIONS,
+            _CLEAN_COMPLEX_TOLERANCE,
+            _CLEAN_COMPLEX_GAIN,
+            np.array(correlation, dtype=complex),  # the residual, taken apart in place
+            tofs,
+            amplitudes,
+            power,
+        )
+        return [_Component(float(tofs[i]), complex(amplitudes[i])) for i in range(count)], float(power[0])
+
+    def _noise_power(self, residual: NDArray[np.complex128]) -> float:
+        """:func:`noise_power`, the power of each sample as ``re^2 + im^2`` (as the batch path
+        takes it: the magnitude's ``hypot`` cost CLEAN's compiled run ~15 µs a call)."""
+        powers = residual.real**2 + residual.imag**2
+        power = float(np.median(powers)) / _LN2 if len(powers) else 0.0
         return power if power > 0 else float(np.finfo(float).tiny)
 
     def _window_cost(self, residual: NDArray[np.complex128], lo: int, hi: int) -> float:
@@ -632,6 +618,8 @@ class _Clean:
         imperfections) and lowers the residual by more than a penalty per echo, half
         the energy an echo at the detection threshold puts into its main lobe.
         """
+        if not group:
+            return group
         if len(group) > 1:
             return self._choose_overlapping(residual, group, power)
         tofs = [c.tof_samples for c in group]
@@ -724,52 +712,20 @@ class _Clean:
                 start_tof[row, slot] = member.tof_samples
                 start_amplitude[row, slot] = member.amplitude
                 active[row, slot] = True
-        # Each candidate as _joint_fit_batch fits a row (complex amplitudes, then real ones),
-        # in compiled loops: a few candidates a call would leave numpy's per-call overhead.
-        from echoloc import _echoes_kernels as kernels
-
         # Each candidate is fitted as :meth:`_joint_fit` fits a cluster, over its own span (half
         # a main lobe beyond its first and last echo), and scored over the group's stretch.
         fit_tof = start_tof.copy()
         fit_amplitude = start_amplitude.copy()
         cost = np.full(n_rows, np.inf)
-        rate = self.mf.phase_rate_rad_per_sample  # complex amplitudes are stepped turning with the carrier
         stretch = np.arange(lo, hi)
-        if self.compiled:
-            kernels.clean_fit_models(
-                self.mf.acf_table,
-                self.mf.oversample,
-                self.half,
-                self.fit_half,
-                restored,
-                lo,
-                hi,
-                fit_tof,
-                fit_amplitude,
-                active,
-                _CLEAN_COMPLEX_ITERATIONS,
-                _CLEAN_REAL_ITERATIONS,
-                rate,
-                _CLEAN_COMPLEX_TOLERANCE,
-                cost,
-            )
-        for row in range(0 if self.compiled else n_rows):
+        for row in range(n_rows):
             members = np.flatnonzero(active[row])
             if len(members) == 0:
                 continue
             t, a = start_tof[row, members].copy(), start_amplitude[row, members].copy()
             first = min(max(math.floor(t.min()) - self.fit_half, lo), hi - 2)
             last = max(min(math.ceil(t.max()) + self.fit_half + 1, hi), first + 2)
-            data = np.ascontiguousarray(
-                np.stack([restored[first:last].real, restored[first:last].imag], axis=-1)
-            )
-            valid = np.ones(last - first, dtype=bool)
-            args = (self.mf.acf_table, self.mf.oversample, self.mf.half_width, data, first, valid, t)
-            kernels.joint_fit(
-                *args, a, False, _CLEAN_COMPLEX_ITERATIONS, True, rate, _CLEAN_COMPLEX_TOLERANCE
-            )
-            a = np.where(a.real >= 0, np.abs(a), -np.abs(a)) + 0j
-            kernels.joint_fit(*args, a, True, _CLEAN_REAL_ITERATIONS, True, 0.0, 1e-6)
+            a = self._fit_model(restored[first:last], first, t, a)
             model = np.sum(
                 a[:, None] * _shape_values(self.mf, t, np.broadcast_to(stretch, (len(t), hi - lo))), axis=0
             )
@@ -894,19 +850,21 @@ def matched_filter_batch(
     """
     frames = np.asarray(frames)
     n_frames, n_rx, _ = frames.shape
-    correlation = mf.correlate_single(frames).reshape(n_frames * n_rx, -1)
-    channels = _finish_batch(_compiled_batch(correlation, mf, options), mf, options)
-    if any(c is None for c in channels):
+    correlation = mf.correlate_single_rows(frames).reshape(n_frames * n_rx, -1)
+    channels = _finish_batch(_compiled_batch(correlation, mf, options, n_samples=mf.n_samples), mf, options)
+    hard = [index for index, found in enumerate(channels) if found is None]
+    if hard:
         clean = _Clean(mf, options)
-        rows = frames.reshape(n_frames * n_rx, -1)
-        for index, found in enumerate(channels):
-            if found is None:
-                components, power = clean.run(mf.correlate(rows[index]))
-                tof = np.array([c.tof_samples for c in components])
-                amplitude = np.array([abs(c.amplitude) for c in components])
-                snr_db = 10 * np.log10(np.maximum(amplitude**2, 1e-300) / power)
-                tof_s = tof / mf.sample_rate_hz + mf.arrival_s
-                channels[index] = finish_channel(tof_s, amplitude, snr_db, options)
+        # The double-precision correlation of every hard channel in one call (the same values
+        # as one call a channel, a third less time).
+        exact = mf.correlate(frames.reshape(n_frames * n_rx, -1)[hard])
+        for index, row in zip(hard, exact, strict=True):
+            components, power = clean.run(row)
+            tof = np.array([c.tof_samples for c in components])
+            amplitude = np.array([abs(c.amplitude) for c in components])
+            snr_db = 10 * np.log10(np.maximum(amplitude**2, 1e-300) / power)
+            tof_s = tof / mf.sample_rate_hz + mf.arrival_s
+            channels[index] = finish_channel(tof_s, amplitude, snr_db, options)
     done = [c for c in channels if c is not None]
     return [done[i * n_rx : (i + 1) * n_rx] for i in range(n_frames)]
 
@@ -1128,8 +1086,13 @@ def _compiled_batch(
     mf: MatchedFilter,
     options: EchoOptions,
     noise_step: int = _NOISE_STEP,
+    n_samples: int | None = None,
 ) -> _BatchOutput:
-    """Run the compiled batch path (:func:`echoloc._echoes_kernels.batch_echoes`) on every channel."""
+    """Run the compiled batch path (:func:`echoloc._echoes_kernels.batch_echoes`) on every channel.
+
+    ``correlation`` is (n_channels, lags); only its first ``n_samples`` lags are read (None:
+    all), so the FFT's longer rows (:meth:`MatchedFilter.correlate_single_rows`) go in uncopied.
+    """
     from echoloc import _echoes_kernels as kernels  # numba: imported (and compiled) on first use
 
     n_ch = correlation.shape[0]
@@ -1139,8 +1102,12 @@ def _compiled_batch(
     out_count = np.zeros(n_ch, dtype=np.int64)
     out_power = np.zeros(n_ch)
     out_status = np.zeros(n_ch, dtype=np.int64)
+    n = correlation.shape[-1] if n_samples is None else n_samples
+    if not 0 < n <= correlation.shape[-1]:
+        raise ValueError(f"{n} samples asked of correlation rows of {correlation.shape[-1]}")
     kernels.batch_echoes(
         np.ascontiguousarray(correlation, dtype=np.complex64).view(np.float32),
+        n,
         mf.acf_table,
         mf.oversample,
         mf.half_width,
@@ -1340,6 +1307,12 @@ _CLEAN_COMPLEX_TOLERANCE = 1e-3
 (the real-amplitude fits: 1e-6). They only choose the basin the real-amplitude fit settles
 in, half a carrier cycle (2 samples) wide: on the five-reflector bench scene's fits, 1e-3
 instead of 1e-6 halves their steps and changes 1 final fit of 430."""
+_CLEAN_COMPLEX_GAIN = 1e-2
+"""CLEAN's complex-amplitude fits also stop once an accepted step lowers the cost by less than
+this fraction of it (the real-amplitude fits: never): there they crawl along the valley floor
+of their basin (Gauss-Newton steps on the table's piecewise-linear slopes zig-zag by a hundredth
+of a sample) or drift a faint echo outward. On the bench scenes' CLEAN channels this cuts the
+candidate fits' time by two fifths and moves no answer by more than 1e-9 samples."""
 _COMPLEX_ITERATIONS = 2
 _REAL_ITERATIONS = 3
 """Levenberg-Marquardt steps of the batched cluster fits: they start from the

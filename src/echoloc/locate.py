@@ -25,9 +25,11 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import lru_cache
-from itertools import combinations
+from itertools import accumulate, combinations
+from operator import itemgetter
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -480,9 +482,12 @@ def associate(
 
 def _objects(setup: _Setup, echoes: _Echoes, options: LocateOptions, n_ch: int) -> list[LocatedObject]:
     """Steps 1-4 of :func:`associate` on the usable channels' echoes, as located objects."""
-    geometry, _, origin, receiver_of, transmitter_of = setup
+    geometry, _, origin, receiver_of, transmitter_of, _ = setup
     if _COMPILED:
-        chosen = _associate_compiled(geometry, echoes, options)
+        compiled = _associate_compiled(geometry, echoes, options)
+        if not isinstance(compiled, list):
+            return _located(setup, *compiled, n_ch)
+        chosen = compiled
     else:
         candidates = _seed_candidates(geometry, echoes, options)
         if len(candidates.echo) == 0:
@@ -506,12 +511,81 @@ def _objects(setup: _Setup, echoes: _Echoes, options: LocateOptions, n_ch: int) 
     return objects
 
 
+def _located(
+    setup: _Setup,
+    echo_use: NDArray[np.int64],
+    position: NDArray[np.float64],
+    covariance: NDArray[np.float64],
+    chi2: NDArray[np.float64],
+    n_ch: int,
+) -> list[LocatedObject]:
+    """:func:`_objects` from the compiled choice's surviving rows (``echo_use``: each row's
+    echo indices, then its use), with the same scores and order as from ``_Chosen``."""
+    geometry, _, origin, receiver_of, transmitter_of, supports = setup
+    if len(chi2) == 0:
+        return []
+    n_channels = geometry.n
+    rows: list[list[int]] = echo_use.tolist()
+    support = []
+    for row in rows:
+        use = tuple(row[n_channels:])
+        found = supports.get(use)
+        if found is None:
+            found = supports[use] = _support(use, receiver_of, transmitter_of)
+        support.append(found)
+    dof = [len(s.channels) - geometry.dim for s in support]
+    tail: list[float] = special.chdtrc(np.maximum(dof, 1), chi2).tolist()
+    chi2_rows: list[float] = chi2.tolist()
+    order: Any = range(len(rows))
+    if len(rows) > 1:
+        distance = [math.sqrt(float(offset.dot(offset))) for offset in position - origin]
+        order = sorted(order, key=distance.__getitem__)  # stable, as objects.sort
+    return [
+        LocatedObject(
+            position[k],
+            covariance[k],
+            support[k].receivers,
+            support[k].pick(rows[k]),
+            chi2_rows[k],
+            (tail[k] if dof[k] > 0 else 1.0) * len(support[k].channels) / n_ch,
+            support[k].transmitters,
+            support[k].shared,
+        )
+        for k in order
+    ]
+
+
+class _Support(NamedTuple):
+    """What an object's use of the channels gives: its channels, receivers and transmitters,
+    how to pick its echo indices from its row, how many echoes it shares."""
+
+    channels: list[int]
+    receivers: tuple[int, ...]
+    transmitters: tuple[int, ...]
+    pick: Callable[[list[int]], tuple[int, ...]]
+    shared: int
+
+
+def _support(use: tuple[int, ...], receiver_of: list[int], transmitter_of: list[int]) -> _Support:
+    channels = [c for c, u in enumerate(use) if u != _NONE]
+    get = itemgetter(*channels)
+    return _Support(
+        channels,
+        tuple([receiver_of[c] for c in channels]),
+        tuple([transmitter_of[c] for c in channels]),
+        get if len(channels) > 1 else lambda row: (get(row),),
+        use.count(_SHARED),
+    )
+
+
 def _distance(offset: NDArray[np.float64]) -> float:
     """np.linalg.norm of a vector, as it computes it (sqrt of the dot product), without its overhead."""
     return math.sqrt(float(offset.dot(offset)))
 
 
-_Setup = tuple[_Geometry, list[int], NDArray[np.float64], list[int], list[int]]
+_Setup = tuple[
+    _Geometry, list[int], NDArray[np.float64], list[int], list[int], dict[tuple[int, ...], "_Support"]
+]
 _SETUPS: dict[tuple[Any, ...], _Setup] = {}
 
 
@@ -579,7 +653,9 @@ def _make_setup(
     geometry = _geometry(
         tx[active], receivers[active], tx_index[active], rx_index[active], must[active], options, dim
     )
-    return geometry, active.tolist(), tx[0].copy(), rx_index[active].tolist(), tx_index[active].tolist()
+    # The last: a memo of _support per use of the channels, filled as objects come (the
+    # same use always gives the same support: no state leaks from one frame to the next).
+    return geometry, active.tolist(), tx[0].copy(), rx_index[active].tolist(), tx_index[active].tolist(), {}
 
 
 def _geometry(
@@ -637,14 +713,16 @@ def _seed_sets_cached(tx_index: bytes, required: bytes, dim: int) -> list[tuple[
     ]
 
 
-def _associate_compiled(geometry: _Geometry, echoes: _Echoes, options: LocateOptions) -> list[_Chosen]:
+def _associate_compiled(
+    geometry: _Geometry, echoes: _Echoes, options: LocateOptions
+) -> list[_Chosen] | tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Steps 1-4 of :func:`associate` in one compiled call (:func:`_seed_candidates`,
-    :func:`_refine` and :func:`_choose` in turn, without the calls between them)."""
+    :func:`_refine` and :func:`_choose` in turn, without the calls between them): the
+    kernel's surviving rows (echo_use, positions, covariances, chi2), or, when it
+    leaves the choice to the reference (tied weights), the reference's choice."""
     from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
 
-    dim = geometry.dim
-    kernel: Any = kernels.associate  # (its options come as one tuple)
-    status, refined, chosen = kernel(
+    args = (
         geometry.transmitters_m,
         geometry.receivers_m,
         geometry.transmitter_axes,
@@ -656,10 +734,12 @@ def _associate_compiled(geometry: _Geometry, echoes: _Echoes, options: LocateOpt
         _NO_AMPLITUDES if echoes.amplitudes is None else echoes.amplitudes,
         echoes.offset,
         _seed_array(geometry),
-        *_kernel_options(options, dim, geometry.n),
+        *_kernel_options(options, geometry.dim, geometry.n),  # (its options come as one tuple)
         _NODE_LIMIT,
         _MAX_SEED_ROWS,
     )
+    kernel: Any = kernels.associate
+    status, echo_use, position, covariance, chi2 = kernel(*args)
     if status == 1:
         warnings.warn(
             f"frame skipped: more than {_MAX_SEED_ROWS} echo combinations to associate; "
@@ -669,10 +749,11 @@ def _associate_compiled(geometry: _Geometry, echoes: _Echoes, options: LocateOpt
         )
         return []
     if status == 2:
-        echo, use, position, covariance, chi2, converged, amplitude_chi2 = refined
+        refined: Any = kernels.candidates  # the same seeds and refinement again (ties are rare)
+        echo, use, position, covariance, chi2, converged, amplitude_chi2 = refined(*args)[1]
         candidates = _Candidates(echo, use, Solution(position, covariance, chi2, converged), amplitude_chi2)
         return _choose_reference(geometry, candidates, echoes, options)
-    return _chosen(geometry, *chosen[1:])
+    return echo_use, position, covariance, chi2
 
 
 def _kernel_options(options: LocateOptions, dim: int, n_channels: int) -> tuple[Any, ...]:
@@ -1025,38 +1106,6 @@ def _weights(candidates: _Candidates, options: LocateOptions, dim: int) -> NDArr
     return np.asarray(1.0 - 1e-3 * np.minimum(tie, 100.0))
 
 
-def _chosen(
-    geometry: _Geometry,
-    echo: NDArray[np.int64],
-    use: NDArray[np.int8],
-    position: NDArray[np.float64],
-    covariance: NDArray[np.float64],
-    chi2: NDArray[np.float64],
-    converged: NDArray[np.bool_],
-    good: NDArray[np.bool_],
-) -> list[_Chosen]:
-    """The compiled choice's surviving rows, with their scores (as _choose_reference's)."""
-    rows = np.flatnonzero(good).tolist()
-    if not rows:
-        return []
-    echo_rows, use_rows, chi2_rows = echo.tolist(), use.tolist(), chi2.tolist()
-    channels = [[c for c, u in enumerate(use_rows[k]) if u != _NONE] for k in rows]
-    dof = [len(used) - geometry.dim for used in channels]
-    tail = special.chdtrc([max(d, 1) for d in dof], [chi2_rows[k] for k in rows]).tolist()
-    return [
-        _Chosen(
-            position[k],
-            covariance[k],
-            tuple(used),
-            tuple([echo_rows[k][c] for c in used]),
-            chi2_rows[k],
-            tail[i] if dof[i] > 0 else 1.0,
-            use_rows[k].count(_SHARED),
-        )
-        for i, (k, used) in enumerate(zip(rows, channels, strict=True))
-    ]
-
-
 _NODE_LIMIT = 50_000
 
 
@@ -1119,7 +1168,8 @@ def _choose_reference(
         taken: set[tuple[int, int]] = set()
         added = False
         second_echo, second_use = second.echo.tolist(), second.use.tolist()
-        for k in np.argsort(-_weights(second, options, geometry.dim)).tolist():
+        # Heaviest first; ties in candidate order (a stable sort: the same on every platform).
+        for k in np.argsort(-_weights(second, options, geometry.dim), kind="stable").tolist():
             attached = set(_attached(second_echo[k], second_use[k]))
             merged = {e for e in attached if second_use[k][e[0]] == _SHARED}
             if ((attached - merged) & (claimed | taken)) or not merged <= claimed:
@@ -1314,8 +1364,7 @@ def locate_frame(
         n_ch, dim = receivers.shape
         setup = _setup(transmitter_m, receivers, usable, None, None, None, options)
         if len(setup[1]) == n_ch == len(channels) and n_ch >= max(options.min_receivers, dim):
-            offset = np.zeros(n_ch + 1, dtype=np.int64)
-            offset[1:] = np.cumsum([len(ch.tof_s) for ch in channels])
+            offset = np.array([0, *accumulate([len(ch.tof_s) for ch in channels])], dtype=np.int64)
             echoes = _Echoes(
                 offset,
                 (np.concatenate([ch.tof_s for ch in channels]) * c).astype(float, copy=False),
