@@ -26,8 +26,8 @@ from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import signal
 
+from echoloc.benchmark import baseline_echoes
 from echoloc.echoes import (
     EchoOptions,
     MatchedFilter,
@@ -38,32 +38,17 @@ from echoloc.echoes import (
     matched_filter_echoes,
 )
 from echoloc.locate import model_paths_m
-from echoloc.pipeline import prepare
+from echoloc.pipeline import Chain, prepare
 from echoloc.recording import Recording
 from echoloc.scene import RandomReflectors, Scene, default_scene
 from echoloc.simulate import simulate
 
 
-def scipy_chain(recording: Recording, frames: NDArray[np.float64]) -> list[list[NDArray[np.float64]]]:
-    """Delays (s) per frame and channel by correlate + hilbert + find_peaks + parabola."""
-    pulse = np.asarray(recording.waveform)
-    fs = recording.sample_rate_hz
-    chip = round(4 / 50e3 * fs)
-    out = []
-    for frame in frames:
-        channels = []
-        for channel in frame:
-            correlation = signal.correlate(channel, pulse, mode="full")[len(pulse) - 1 :]
-            envelope = np.abs(signal.hilbert(correlation))
-            noise = np.median(envelope) / np.sqrt(np.log(4))
-            peaks, _ = signal.find_peaks(envelope, height=5 * noise, distance=chip)
-            peaks = peaks[envelope[peaks] > 0.1 * envelope.max()]
-            a, b = envelope[peaks - 1], envelope[peaks]
-            c = envelope[np.minimum(peaks + 1, len(envelope) - 1)]
-            offset = 0.5 * (a - c) / np.where(a - 2 * b + c < 0, a - 2 * b + c, -1.0)
-            channels.append((peaks + offset) / fs)
-        out.append(channels)
-    return out
+def scipy_chain(chain: Chain, frames: NDArray[np.float64]) -> list[list[NDArray[np.float64]]]:
+    """Delays (s) per frame and channel by correlate + hilbert + find_peaks + parabola
+    (:func:`echoloc.benchmark.baseline_echoes`, the baseline of `echoloc bench` too)."""
+    c = chain.speed_of_sound_m_s
+    return [[paths / c for paths in baseline_echoes(chain, frame)] for frame in frames]
 
 
 def accuracy(
@@ -118,7 +103,7 @@ def bench(name: str, scene: Scene, n_frames: int, rounds: int) -> None:
     clean_python = _Clean(mf, options, compiled=False)
 
     jobs: dict[str, Callable[[], object]] = {
-        "scipy": lambda: scipy_chain(recording, frames),
+        "scipy": lambda: scipy_chain(chain, frames),
         "frame": lambda: [matched_filter_echoes(frame, mf, options) for frame in frames],
         "batch": lambda: matched_filter_batch(frames, mf, options),
         "correlation": lambda: mf.correlate_single(frames),
@@ -135,7 +120,7 @@ def bench(name: str, scene: Scene, n_frames: int, rounds: int) -> None:
     median = {k: float(np.median(v)) * 1e6 for k, v in timings.items()}
 
     ours = [[c.tof_s for c in channels] for channels in matched_filter_batch(frames, mf, options)]
-    theirs = scipy_chain(recording, frames)
+    theirs = scipy_chain(chain, frames)
     c = chain.speed_of_sound_m_s
     acc_ours, acc_theirs = accuracy(recording, ours, c), accuracy(recording, theirs, c)
 
