@@ -33,6 +33,13 @@ def recording_path(tmp_path_factory):
     return path
 
 
+def echoloc(*args: object, check: bool = False) -> subprocess.CompletedProcess[str]:
+    """Run ``echoloc ARGS`` to its end, its output captured as text."""
+    return subprocess.run(
+        [*ECHOLOC, *map(str, args)], capture_output=True, text=True, timeout=TIMEOUT_S, check=check
+    )
+
+
 class Proc:
     """A command running in the background whose stderr lines are collected as they come."""
 
@@ -99,24 +106,12 @@ class Proc:
 def test_stream_prints_what_locate_prints_and_counts_nothing_lost(recording_path):
     stream = Proc("stream", "--listen", "127.0.0.1:0", "--once", "--json")
     port = stream.port()
-    sent = subprocess.run(
-        [*ECHOLOC, "send", str(recording_path), "--to", f"127.0.0.1:{port}", "--speed", "0"],
-        capture_output=True,
-        text=True,
-        timeout=TIMEOUT_S,
-        check=False,
-    )
+    sent = echoloc("send", recording_path, "--to", f"127.0.0.1:{port}", "--speed", "0")
     assert sent.returncode == 0, sent.stderr
     assert "sent 15 frames" in sent.stderr
     code, stdout = stream.finish()
     assert code == 0, stream.lines
-    located = subprocess.run(
-        [*ECHOLOC, "locate", str(recording_path), "--json"],
-        capture_output=True,
-        text=True,
-        timeout=TIMEOUT_S,
-        check=True,
-    )
+    located = echoloc("locate", recording_path, "--json", check=True)
     assert stdout == located.stdout
     assert len(stdout.splitlines()) == 15
     summary = stream.lines[-1]
@@ -128,23 +123,11 @@ def test_stream_with_the_live_view_and_its_map_changes_nothing_it_prints(recordi
     stream = Proc("stream", "--listen", "127.0.0.1:0", "--once", "--json", "--view", "--view-port", "0")
     port = stream.port()
     stream.wait_for(r"live view on ws://127\.0\.0\.1:\d+")
-    sent = subprocess.run(
-        [*ECHOLOC, "send", str(recording_path), "--to", f"127.0.0.1:{port}", "--speed", "1"],
-        capture_output=True,
-        text=True,
-        timeout=TIMEOUT_S,
-        check=False,
-    )
+    sent = echoloc("send", recording_path, "--to", f"127.0.0.1:{port}", "--speed", "1")
     assert sent.returncode == 0, sent.stderr
     code, stdout = stream.finish()
     assert code == 0, stream.lines
-    located = subprocess.run(
-        [*ECHOLOC, "locate", str(recording_path), "--json"],
-        capture_output=True,
-        text=True,
-        timeout=TIMEOUT_S,
-        check=True,
-    )
+    located = echoloc("locate", recording_path, "--json", check=True)
     assert stdout == located.stdout
     assert "received 15, processed 15, lost 0, dropped 0" in stream.lines[-1]
 
@@ -168,13 +151,7 @@ def test_stream_reports_counts_on_sigint(recording_path):
 
 
 def test_send_to_nothing_is_one_line_and_exit_2(recording_path):
-    sent = subprocess.run(
-        [*ECHOLOC, "send", str(recording_path), "--to", "127.0.0.1:9", "--connect-timeout", "0.2"],
-        capture_output=True,
-        text=True,
-        timeout=TIMEOUT_S,
-        check=False,
-    )
+    sent = echoloc("send", recording_path, "--to", "127.0.0.1:9", "--connect-timeout", "0.2")
     assert sent.returncode == 2
     assert len(sent.stderr.strip().splitlines()) == 1
     assert "cannot connect" in sent.stderr
@@ -266,13 +243,7 @@ def test_help_of_the_real_time_commands(command):
 
 
 def test_bench_reports_both_chains_and_the_physics():
-    done = subprocess.run(
-        [*ECHOLOC, "bench", "--reflectors", "0", "--frames", "4", "--baseline-frames", "1", "--json"],
-        capture_output=True,
-        text=True,
-        timeout=TIMEOUT_S,
-        check=False,
-    )
+    done = echoloc("bench", "--reflectors", "0", "--frames", "4", "--baseline-frames", "1", "--json")
     assert done.returncode == 0, done.stderr
     report = json.loads(done.stdout)
     assert report["objects"] == 3
