@@ -582,6 +582,7 @@ def batch_echoes(
     fit_half = max(1, int(np.round(mainlobe / 2)))
     span = math.ceil(mainlobe)
     power_map = np.zeros(n)
+    residual_power = np.zeros(n)  # the checks' |data - model|^2 around each echo
     maxima = np.zeros(n + 1, dtype=np.int64)
     n_noise = (n + noise_step - 1) // noise_step
     noise = np.zeros(n_noise)
@@ -787,17 +788,17 @@ def batch_echoes(
                 window_r = complex(row[2 * s], row[2 * s + 1]) - _model(
                     table, half, grid_b, grid_w, fitted_amps, n_echo, s, 0, 0
                 )
-                power_map[s] = window_r.real * window_r.real + window_r.imag * window_r.imag
+                residual_power[s] = window_r.real * window_r.real + window_r.imag * window_r.imag
             for i in range(2 * fit_half + 1):
                 s = min(max(peaks[e] - fit_half + i, 0), n - 1)
-                if power_map[s] > threshold:
+                if residual_power[s] > threshold:
                     status = LEFT_OVER
             cost = 0.0
             inside = 0
             for i in range(2 * span + 1):
                 s = centre - span + i
                 if 0 <= s < n:
-                    cost += power_map[s]
+                    cost += residual_power[s]
                     inside += 1
             magnitude = abs(fitted_amps[e])
             if cost >= 3.0 * power * inside and cost >= 0.003 * magnitude * magnitude * acf_energy:
