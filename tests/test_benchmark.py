@@ -52,6 +52,20 @@ def test_bench_figures_are_consistent(recording):
     text = format_bench(report)
     assert "x the scipy chain" in text
     assert "| echoloc (stream) | 6 |" in text
+    assert report["workers"] == 1
+    if report["cpus"] is not None:
+        assert len(report["cpus"]) == 1
+        assert f"one core (CPU {report['cpus'][0]})" in text
+
+
+def test_bench_on_two_cores_pins_two_and_finds_the_same_objects(recording):
+    report = bench_chains(recording, baseline_frames=1, warmup_frames=1, workers=2)
+    assert report["workers"] == 2
+    assert report["echoloc"]["recall"] == 1.0
+    if report["cpus"] is not None:
+        assert 1 <= len(report["cpus"]) <= 2
+        assert report["cpus"] == sorted(report["cpus"])
+        assert "echoes on 2 threads" in format_bench(report)
 
 
 def test_bench_scene_has_the_asked_number_of_objects():

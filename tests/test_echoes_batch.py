@@ -17,6 +17,7 @@ from echoloc.echoes import (
     matched_filter_batch,
     matched_filter_echoes,
 )
+from echoloc.errors import EchoLocError
 from test_echoes import FS, N_SAMPLES, PULSE, frames_with_echoes
 
 MF = MatchedFilter(PULSE, N_SAMPLES, FS)
@@ -60,6 +61,35 @@ def test_a_batch_gives_each_frame_s_own_answer() -> None:
         for alone, batched in zip(matched_filter_echoes(frame, MF, EchoOptions()), channels, strict=True):
             np.testing.assert_array_equal(alone.tof_s, batched.tof_s)
             np.testing.assert_array_equal(alone.amplitude, batched.amplitude)
+
+
+def test_threads_give_the_answers_of_one() -> None:
+    """Spreading channels over threads (``workers``) changes no echo: channels are independent.
+
+    The batch holds channels both paths take: isolated echoes and clusters (the batch path),
+    and pairs 3 to 6 samples apart (CLEAN, several channels, so its rows are shared out too).
+    """
+    pairs = [[700.0, 703.0 + k, 1500.0] for k in range(4)]
+    close = [frames_with_echoes(delays, [1.0, 0.8, 0.5], 0.02, seed=k)[0] for k, delays in enumerate(pairs)]
+    frames = np.concatenate([scene_frames(5, n_frames=4), np.array(close)])
+    correlation = MF.correlate_single(frames).reshape(-1, N_SAMPLES)
+    hard = sum(found is None for found in _compiled_echoes(correlation, MF, EchoOptions()))
+    assert hard >= 4  # CLEAN gets several rows
+    one = matched_filter_batch(frames, MF, EchoOptions())
+    two = matched_filter_batch(frames, MF, EchoOptions(workers=2))
+    every = matched_filter_batch(frames, MF, EchoOptions(workers=-1))
+    for answers in (two, every):
+        for frame_one, frame_other in zip(one, answers, strict=True):
+            for a, b in zip(frame_one, frame_other, strict=True):
+                np.testing.assert_array_equal(a.tof_s, b.tof_s)
+                np.testing.assert_array_equal(a.amplitude, b.amplitude)
+                np.testing.assert_array_equal(a.snr_db, b.snr_db)
+
+
+@pytest.mark.parametrize("workers", [0, -2])
+def test_a_thread_count_below_one_is_refused(workers: int) -> None:
+    with pytest.raises(EchoLocError, match="workers must be >= 1"):
+        EchoOptions(workers=workers)
 
 
 @settings(max_examples=15, deadline=None)

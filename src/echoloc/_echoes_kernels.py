@@ -26,7 +26,7 @@ import math
 from typing import Any
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 OK, TOO_MANY, CLOSE, TOO_BIG, LEFT_OVER, UNEXPLAINED = 0, 1, 2, 3, 4, 5
 """Status of a channel: fitted here, or why it goes to CLEAN."""
@@ -821,6 +821,65 @@ def batch_echoes(
             out_tof[ch, e] = fitted_tofs[e]
             out_amp[ch, e] = abs(fitted_amps[e])
         out_count[ch] = count
+
+
+@njit(cache=True, parallel=True)
+def batch_echoes_parallel(
+    parts: int,
+    corr: Any,
+    n: int,
+    table: Any,
+    u: int,
+    half: int,
+    rate: float,
+    dilated: Any,
+    mainlobe: float,
+    acf_energy: float,
+    threshold_factor: float,
+    dynamic_range: float,
+    first: int,
+    max_candidates: int,
+    max_joint: int,
+    complex_iterations: int,
+    real_iterations: int,
+    noise_step: int,
+    out_tof: Any,
+    out_amp: Any,
+    out_count: Any,
+    out_power: Any,
+    out_status: Any,
+) -> None:  # pragma: no cover - compiled
+    """:func:`batch_echoes` on ``parts`` consecutive groups of channels at once, one thread a group.
+
+    Channels are independent, so the answers are those of one call over all of them.
+    """
+    n_ch = corr.shape[0]
+    for part in prange(parts):
+        lo, hi = part * n_ch // parts, (part + 1) * n_ch // parts
+        batch_echoes(
+            corr[lo:hi],
+            n,
+            table,
+            u,
+            half,
+            rate,
+            dilated,
+            mainlobe,
+            acf_energy,
+            threshold_factor,
+            dynamic_range,
+            first,
+            max_candidates,
+            max_joint,
+            complex_iterations,
+            real_iterations,
+            noise_step,
+            out_tof[lo:hi],
+            out_amp[lo:hi],
+            out_count[lo:hi],
+            out_power[lo:hi],
+            out_status[lo:hi],
+        )
 
 
 @njit(cache=True)
@@ -1779,3 +1838,59 @@ def clean_run(
         found += size
         start = stop
     return found
+
+
+@njit(cache=True, parallel=True)
+def clean_run_rows(
+    table: Any,
+    u: int,
+    half: int,
+    rate: float,
+    fit_half: int,
+    mainlobe: float,
+    merge_samples: float,
+    cluster_samples: float,
+    acf_energy: float,
+    threshold_factor: float,
+    floor: float,
+    first: int,
+    max_echoes: int,
+    refine_passes: int,
+    complex_iterations: int,
+    real_iterations: int,
+    tolerance: float,
+    gain: float,
+    residuals: Any,
+    out_tof: Any,
+    out_amp: Any,
+    out_power: Any,
+    out_count: Any,
+) -> None:  # pragma: no cover - compiled
+    """:func:`clean_run` on every row of ``residuals`` (n_rows, n), rows spread over the threads:
+    row r's echoes into ``out_tof[r]``/``out_amp[r]``, its noise power into ``out_power[r]`` and
+    their number into ``out_count[r]``. Rows are independent: the answers of one call a row."""
+    for r in prange(residuals.shape[0]):
+        out_count[r] = clean_run(
+            table,
+            u,
+            half,
+            rate,
+            fit_half,
+            mainlobe,
+            merge_samples,
+            cluster_samples,
+            acf_energy,
+            threshold_factor,
+            floor,
+            first,
+            max_echoes,
+            refine_passes,
+            complex_iterations,
+            real_iterations,
+            tolerance,
+            gain,
+            residuals[r],
+            out_tof[r],
+            out_amp[r],
+            out_power[r : r + 1],
+        )

@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import optimize, signal, stats
 
+from echoloc.echoes import EchoOptions
 from echoloc.evaluate import evaluate
 from echoloc.locate import FrameObjects, LocatedObject, model_paths_m
 from echoloc.pipeline import Chain, prepare, samples_echoes
@@ -116,16 +117,17 @@ def baseline_locate(chain: Chain, index: int, paths: list[NDArray[np.float64]]) 
 
 
 @contextlib.contextmanager
-def one_core() -> Iterator[int | None]:
-    """Pin this process to one CPU (the first it may use) for the block; yields it (None: unsupported)."""
+def pinned_cores(count: int = 1) -> Iterator[list[int] | None]:
+    """Pin this process to ``count`` CPUs (the first it may use) for the block; yields them
+    (None: pinning unsupported). Fewer when fewer are allowed."""
     if not hasattr(os, "sched_getaffinity"):
         yield None
         return
     before = os.sched_getaffinity(0)
-    cpu = min(before)
-    os.sched_setaffinity(0, {cpu})
+    cpus = sorted(before)[: max(count, 1)]
+    os.sched_setaffinity(0, set(cpus))
     try:
-        yield cpu
+        yield cpus
     finally:
         os.sched_setaffinity(0, before)
 
@@ -162,9 +164,15 @@ def _peak_mib(job: Callable[[], object]) -> float:
     return (peak - base) / 2**20
 
 
-def bench_chains(recording: Recording, *, baseline_frames: int = 2, warmup_frames: int = 5) -> dict[str, Any]:
-    """Time echoloc's streamed chain and the scipy chain on ``recording``; the figures as a dict."""
-    chain = prepare(recording)
+def bench_chains(
+    recording: Recording, *, baseline_frames: int = 2, warmup_frames: int = 5, workers: int = 1
+) -> dict[str, Any]:
+    """Time echoloc's streamed chain and the scipy chain on ``recording``; the figures as a dict.
+
+    Both run pinned to ``workers`` cores (one by default), echoloc's echoes stage with
+    that many threads (:attr:`echoloc.echoes.EchoOptions.workers`); the scipy chain uses one.
+    """
+    chain = prepare(recording, echo_options=EchoOptions(workers=workers))
     n = recording.n_frames
     few = min(baseline_frames, n)
     # Compile the numba kernels and warm the caches before timing.
@@ -180,7 +188,7 @@ def bench_chains(recording: Recording, *, baseline_frames: int = 2, warmup_frame
     def theirs() -> list[FrameObjects]:
         return [baseline_locate(chain, i, baseline_echoes(chain, recording.frames[i])) for i in range(few)]
 
-    with one_core() as cpu:
+    with pinned_cores(workers) as cpus:
         processor = StreamProcessor(chain)
         latencies: list[float] = []
         found: list[FrameObjects] = []
@@ -230,7 +238,9 @@ def bench_chains(recording: Recording, *, baseline_frames: int = 2, warmup_frame
         "receivers": recording.n_receivers,
         "samples": recording.n_samples,
         "objects": int(np.isfinite(truth[0, :, 0]).sum()) if truth is not None else None,
-        "cpu": cpu,
+        "cpu": None if cpus is None else cpus[0],
+        "cpus": cpus,
+        "workers": workers,
         "speed_of_sound_m_s": c,
         "physics_frames_per_s": physics_fps,
         "recording_frames_per_s": _frame_rate_hz(recording),
@@ -244,11 +254,23 @@ def bench_chains(recording: Recording, *, baseline_frames: int = 2, warmup_frame
     }
 
 
+def _cores_text(report: dict[str, Any]) -> str:
+    """Where the bench ran: "one core (CPU 0)", "2 cores (CPUs 0, 1), echoes on 2 threads"."""
+    cpus = report.get("cpus")
+    workers = int(report.get("workers", 1))
+    threads = "" if workers == 1 else f", echoes on {workers} threads"
+    if cpus is None:
+        return f"cores not pinned (unsupported here){threads}"
+    if len(cpus) == 1:
+        return f"one core (CPU {cpus[0]}){threads}"
+    return f"{len(cpus)} cores (CPUs {', '.join(map(str, cpus))}){threads}"
+
+
 def format_bench(report: dict[str, Any]) -> str:
     """The figures as a Markdown table and two lines of ratios."""
     lines = [
         f"Full chain (echoes + locate), {report['frames']} frames of {report['receivers']} receivers x "
-        f"{report['samples']} samples, {report['objects']} objects, one core (CPU {report['cpu']}):",
+        f"{report['samples']} samples, {report['objects']} objects, {_cores_text(report)}:",
         "",
         "| chain | frames | ms/frame | frames/s | latency p50 ms | latency p99 ms | peak MiB | recall |",
         "|---|---|---|---|---|---|---|---|",

@@ -120,6 +120,7 @@ class Processing:
     blind_zone_text: str | None = None
     field_of_view_deg: float | None = None
     method: str = "association"
+    workers: int = 1
 
     def open(self) -> tuple[Recording, Chain, range]:
         """Read the recording, check the options, prepare the chain and the frames to run."""
@@ -130,21 +131,25 @@ class Processing:
         _finite("--field-of-view-deg", self.field_of_view_deg, positive=True)
         if self.field_of_view_deg is not None and self.field_of_view_deg > 180:
             raise EchoLocError(f"--field-of-view-deg must be at most 180, got {self.field_of_view_deg:g}")
+        template = None if self.template_path is None else read_template(self.template_path)
+        echo_options = EchoOptions(
+            threshold_db=self.threshold_db,
+            blanking_s=self.blanking_s,
+            template=template,
+            workers=self.workers,
+        )
         recording = read_recording(self.recording_path, repair_nonfinite=self.repair_nonfinite)
         calibration = (
             None
             if self.calibration_path is None
             else read_calibration(self.calibration_path, recording.n_receivers)
         )
-        template = None if self.template_path is None else read_template(self.template_path)
         blind_zone = None if self.blind_zone_text is None else parse_blind_zone(self.blind_zone_text)
         conditioning = Conditioning(background=self.background, tvg=self.tvg, blind_zone_s=blind_zone)
         chain = prepare(
             recording,
             estimator=self.estimator,
-            echo_options=EchoOptions(
-                threshold_db=self.threshold_db, blanking_s=self.blanking_s, template=template
-            ),
+            echo_options=echo_options,
             speed_of_sound_m_s=self.speed_of_sound_m_s,
             calibration=calibration,
             conditioning=conditioning,
@@ -162,6 +167,15 @@ class Processing:
 
 
 _PROCESSING_FIELDS = [f.name for f in fields(Processing)]
+
+_WORKERS_OPTION = click.option(
+    "--workers",
+    type=int,
+    default=1,
+    show_default=True,
+    help="Threads the matched filter spreads each frame's channels over (-1: one a core); "
+    "the echoes do not depend on it.",
+)
 
 
 def _located(
@@ -248,6 +262,7 @@ def _processing_options(
                 is_flag=True,
                 help="Replace NaN or infinite samples by 0 (with a warning) instead of refusing the file.",
             ),
+            _WORKERS_OPTION,
             click.option(
                 "--template",
                 "template_path",
@@ -1825,6 +1840,7 @@ def send_command(
     default=None,
     help="From `echoloc calibrate`.",
 )
+@_WORKERS_OPTION
 def stream_command(
     listen_text: str,
     udp: bool,
@@ -1844,6 +1860,7 @@ def stream_command(
     blanking_s: float,
     speed_of_sound_m_s: float | None,
     calibration_path: Path | None,
+    workers: int,
 ) -> None:
     """Locate objects in frames arriving over the network, as they arrive.
 
@@ -1861,7 +1878,7 @@ def stream_command(
     _finite("--deadline-ms", deadline_ms, positive=True)
     _finite("--speed-of-sound", speed_of_sound_m_s, positive=True)
     _finite("--blanking-s", blanking_s, minimum=0.0)
-    options = EchoOptions(threshold_db=threshold_db, blanking_s=blanking_s)
+    options = EchoOptions(threshold_db=threshold_db, blanking_s=blanking_s, workers=workers)
 
     def make_chain(header: Recording) -> Chain:
         calibration = (
@@ -1881,7 +1898,7 @@ def stream_command(
         Recorder.check_path(record_path)
     _finite("--duration", duration_s, positive=True)
     listener = _open_listener(listen_text, udp, geometry_path, queue_frames, block)
-    warm_kernels(estimator)
+    warm_kernels(estimator, workers)
     session = _LiveStream(listener, make_chain, deadline_ms / 1e3, as_json, record_path)
     interrupted = False
     try:
@@ -2171,17 +2188,25 @@ def record_command(
     show_default=True,
     help="Frames for the scipy chain (its brute-force locate takes seconds a frame).",
 )
+@click.option(
+    "--workers",
+    type=click.IntRange(1, 1024),
+    default=1,
+    show_default=True,
+    help="Cores to pin the bench to, and threads for echoloc's echoes stage.",
+)
 @click.option("--json", "as_json", is_flag=True, help="One JSON object with the figures.")
-def bench_command(reflectors: int, n_frames: int, baseline_frames: int, as_json: bool) -> None:
+def bench_command(reflectors: int, n_frames: int, baseline_frames: int, workers: int, as_json: bool) -> None:
     """Frames/s, latency p50/p99 and peak memory of the full chain, beside a plain scipy chain."""
     from echoloc.benchmark import bench_chains, bench_scene, format_bench
 
+    cores = "one core" if workers == 1 else f"{workers} cores"
     stderr.print(
-        f"echoloc: bench: simulating {n_frames} frames, then timing both chains on one core...",
+        f"echoloc: bench: simulating {n_frames} frames, then timing both chains on {cores}...",
         markup=False,
     )
     recording = simulate(bench_scene(reflectors), n_frames)
-    report = bench_chains(recording, baseline_frames=baseline_frames)
+    report = bench_chains(recording, baseline_frames=baseline_frames, workers=workers)
     if as_json:
         click.echo(json.dumps(report, allow_nan=False))
         return

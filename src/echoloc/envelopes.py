@@ -121,6 +121,7 @@ that has not levelled off by the frame's end) biases it. Undo a known gain with
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
@@ -132,7 +133,7 @@ import scipy.ndimage
 import scipy.signal
 from numpy.typing import NDArray
 
-from echoloc.echoes import ChannelEchoes, EchoOptions, analytic_weights, finish_channel
+from echoloc.echoes import ChannelEchoes, EchoOptions, analytic_weights, fft_workers, finish_channel
 from echoloc.errors import EchoLocError
 
 _LN2 = float(np.log(2.0))
@@ -429,8 +430,9 @@ class ThresholdDetector:
         if self.uses_fir:
             return fir_envelope_signal(frames, self.fir_taps, self.envelope.detector)
         n = frames.shape[-1]
-        spectrum = scipy.fft.rfft(frames, n_fft, axis=-1, workers=-1)
-        analytic = scipy.fft.ifft(spectrum * analytic_weights(n_fft), n_fft, axis=-1, workers=-1)
+        workers = fft_workers(os.cpu_count() or 1, math.prod(frames.shape[:-1]))
+        spectrum = scipy.fft.rfft(frames, n_fft, axis=-1, workers=workers)
+        analytic = scipy.fft.ifft(spectrum * analytic_weights(n_fft), n_fft, axis=-1, workers=workers)
         return np.asarray(analytic[..., :n])
 
     def magnitude(self, signal: NDArray[np.generic]) -> NDArray[np.float64]:

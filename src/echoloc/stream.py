@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from echoloc.echoes import FrameEchoes, frame_time_s
+from echoloc.echoes import EchoOptions, FrameEchoes, frame_time_s
 from echoloc.errors import EchoLocError
 from echoloc.locate import FrameObjects, model_paths_m
 from echoloc.pipeline import (
@@ -436,16 +436,19 @@ class StreamProcessor:
         )
 
 
-def warm_kernels(estimator: str = "matched") -> None:
+def warm_kernels(estimator: str = "matched", workers: int = 1) -> None:
     """Load (or compile) the chain's kernels before any session is known.
 
     The compiled kernels do not depend on the geometry: running a chain on the
     default scene's header once loads them, so the first frames of a stream do not
     wait for them (half a second from the on-disk cache, seconds on the very first
-    run). An estimator that the default scene does not suit is left cold.
+    run); with ``workers`` above 1 the threaded ones, and their threads start. An
+    estimator that the default scene does not suit is left cold.
     """
+    options = EchoOptions(workers=workers)
     with contextlib.suppress(EchoLocError):
-        StreamProcessor(prepare(recording_header(default_scene()), estimator=estimator)).warm_up()
+        chain = prepare(recording_header(default_scene()), estimator=estimator, echo_options=options)
+        StreamProcessor(chain).warm_up()
 
 
 def recording_frames(recording: Recording, frames: Iterable[int] | None = None) -> Iterator[StreamFrame]:
