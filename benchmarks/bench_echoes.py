@@ -13,7 +13,10 @@ run on the same frames in alternating rounds (this machine is shared and noisy);
 median of the rounds is reported with the ratios, and the accuracy of both chains on
 the same echoes, so that a speed-up never hides a loss of accuracy.
 
-    python benchmarks/bench_echoes.py [--frames 40] [--rounds 7]
+The threaded rows spread each call's channels over ``--threads`` threads
+(``EchoOptions.workers``, `--workers` on the CLI); every other row runs on one.
+
+    python benchmarks/bench_echoes.py [--frames 40] [--rounds 7] [--threads 2]
 """
 
 from __future__ import annotations
@@ -88,7 +91,7 @@ def _time(job: Callable[[], object]) -> float:
     return time.perf_counter() - start
 
 
-def bench(name: str, scene: Scene, n_frames: int, rounds: int) -> None:
+def bench(name: str, scene: Scene, n_frames: int, rounds: int, threads: int) -> None:
     chain = prepare(simulate(scene, n_frames))
     recording = chain.recording
     options: EchoOptions = chain.echo_options
@@ -101,11 +104,15 @@ def bench(name: str, scene: Scene, n_frames: int, rounds: int) -> None:
     hard = [i for i, f in enumerate(fast) if f is None]
     clean = _Clean(mf, options)
     clean_python = _Clean(mf, options, compiled=False)
+    threaded = replace(options, workers=threads)
+    matched_filter_batch(frames[:2], mf, threaded)  # the threaded kernels and their threads
 
     jobs: dict[str, Callable[[], object]] = {
         "scipy": lambda: scipy_chain(chain, frames),
         "frame": lambda: [matched_filter_echoes(frame, mf, options) for frame in frames],
         "batch": lambda: matched_filter_batch(frames, mf, options),
+        "frame_threads": lambda: [matched_filter_echoes(frame, mf, threaded) for frame in frames],
+        "batch_threads": lambda: matched_filter_batch(frames, mf, threaded),
         "correlation": lambda: mf.correlate_single(frames),
         "compiled": lambda: _compiled_echoes(correlation, mf, options),
         "numpy": lambda: _isolated_echoes(correlation, mf, options),
@@ -134,6 +141,8 @@ def bench(name: str, scene: Scene, n_frames: int, rounds: int) -> None:
         ("scipy chain (correlate + hilbert + find_peaks per channel)", "scipy"),
         ("echoloc `matched`, one frame per call (latency)", "frame"),
         ("echoloc `matched`, all frames in one call (throughput)", "batch"),
+        (f"echoloc `matched`, one frame per call, {threads} threads (--workers)", "frame_threads"),
+        (f"echoloc `matched`, all frames in one call, {threads} threads", "batch_threads"),
         ("  of which: correlation, single precision, all channels", "correlation"),
         ("  of which: batch path, compiled", "compiled"),
         ("  of which: CLEAN on the channels the batch path hands over", "clean"),
@@ -159,15 +168,17 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=40)
     parser.add_argument("--rounds", type=int, default=7)
+    parser.add_argument("--threads", type=int, default=2, help="threads of the threaded rows (--workers)")
     args = parser.parse_args()
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(
         "# bench_echoes.py — last run\n\n"
-        f"`python benchmarks/bench_echoes.py --frames {args.frames} --rounds {args.rounds}`"
+        f"`python benchmarks/bench_echoes.py --frames {args.frames} --rounds {args.rounds} "
+        f"--threads {args.threads}`"
     )
     print(f"\nLoad average at start: {load:.2f} on {os.cpu_count()} cores (the machine is shared).")
     scene = default_scene()
-    bench("Default scene (report set-up, 3 balls)", scene, args.frames, args.rounds)
+    bench("Default scene (report set-up, 3 balls)", scene, args.frames, args.rounds, args.threads)
     five = replace(
         scene,
         reflector_positions_m=np.zeros((0, 3)),
@@ -176,7 +187,7 @@ def main() -> None:
         snr_db=20.0,
         path_jitter_m=0.5e-3,
     )
-    bench("Five random reflectors in 1 m^3", five, args.frames, args.rounds)
+    bench("Five random reflectors in 1 m^3", five, args.frames, args.rounds, args.threads)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"\nLoad average at the end: {load:.2f}.")
 

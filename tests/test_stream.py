@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import itertools
 import socket
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -53,6 +55,61 @@ def test_streaming_equals_batch_processing(recording, batch_frames):
     assert streamed == batch
     # Not vacuous: the three balls are found in every frame.
     assert all(len(o["objects"]) == 3 for _, o in batch)
+
+
+def test_batches_of_frames_give_the_echoes_and_objects_of_one_at_a_time(recording, two_tx):
+    """run() hands the estimator 32 frames a call by default; 1 or 5 a call change nothing, with
+    transmitters fired in turn too (objects combine the latest frame of each)."""
+    for rec in (recording, two_tx):
+        chain = prepare(rec)
+        one = _records(run(chain, batch_frames=1))
+        assert _records(run(chain, batch_frames=5)) == one
+        assert _records(run(chain)) == one
+
+
+def test_a_refused_frame_in_a_batch_keeps_the_frames_before_it(recording):
+    """An estimator error at frame 3 of a batch: frames 0-2 still come out, then the error."""
+    chain = prepare(recording)
+    calls = []
+
+    class Refusing:
+        def __call__(self, frame):
+            calls.append(1)
+            if len(calls) == 4:
+                raise EchoLocError("frame refused")
+            return chain.estimator(frame)
+
+        def batch(self, frames):
+            raise EchoLocError("frame refused")
+
+    refusing = replace(chain, estimator=Refusing())
+    done: list[int] = []
+
+    def take_all() -> None:
+        for echoes, _ in run(refusing, batch_frames=8):
+            done.append(echoes.frame)
+
+    with pytest.raises(EchoLocError, match="frame refused"):
+        take_all()
+    assert done == [0, 1, 2]
+
+
+def test_a_batch_through_the_processor_times_each_frame_to_its_own_objects(recording):
+    """Frames without an arrival time count from the batch's start: each later frame's latency
+    includes the frames located before it; the objects are those of one frame a call."""
+    chain = prepare(recording)
+    processor = StreamProcessor(chain)
+    frames = [replace(f, arrival_s=float("nan")) for f in list(recording_frames(recording))[:6]]
+    results = processor.process_batch(frames)
+    assert [r.echoes.frame for r in results] == list(range(6))
+    assert processor.processed == 6
+    latencies = [r.latency_s for r in results]
+    assert all(0 < a < b for a, b in itertools.pairwise(latencies))
+    alone = StreamProcessor(chain)
+    assert _records((r.echoes, r.objects) for r in results) == _records(
+        (r.echoes, r.objects) for r in map(alone.process, frames)
+    )
+    assert processor.process_batch([]) == []
 
 
 def test_streaming_equals_batch_with_transmitters_fired_in_turn(two_tx):

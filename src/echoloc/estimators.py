@@ -13,7 +13,13 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from echoloc.echoes import ChannelEchoes, EchoOptions, MatchedFilter, matched_filter_echoes
+from echoloc.echoes import (
+    ChannelEchoes,
+    EchoOptions,
+    MatchedFilter,
+    matched_filter_batch,
+    matched_filter_echoes,
+)
 from echoloc.envelope_fit import envelope_fit_echoes, envelope_fitter
 from echoloc.envelopes import (
     EnvelopeOptions,
@@ -28,7 +34,34 @@ from echoloc.recording import Recording
 from echoloc.templates import sent_template
 
 Estimator = Callable[[NDArray[np.floating]], list[ChannelEchoes]]
-"""A prepared estimator: one frame (n_rx, n_samples) -> echoes per receiver."""
+"""A prepared estimator: one frame (n_rx, n_samples) -> echoes per receiver. One that can
+take many frames in one call too has a ``batch`` method (:func:`estimate_frames`)."""
+
+
+@dataclass(frozen=True, eq=False)
+class MatchedEstimator:
+    """The prepared matched filter: one frame per call, or a batch (:meth:`batch`), with the
+    same answers either way."""
+
+    mf: MatchedFilter
+    options: EchoOptions
+
+    def __call__(self, frame: NDArray[np.floating]) -> list[ChannelEchoes]:
+        return matched_filter_echoes(frame, self.mf, self.options)
+
+    def batch(self, frames: NDArray[np.floating]) -> list[list[ChannelEchoes]]:
+        """Echoes of frames (n_frames, n_rx, n_samples): :func:`echoloc.echoes.matched_filter_batch`,
+        whose FFTs and compiled loops take every channel of the batch at once."""
+        return matched_filter_batch(frames, self.mf, self.options)
+
+
+def estimate_frames(estimator: Estimator, frames: NDArray[np.floating]) -> list[list[ChannelEchoes]]:
+    """Echoes of frames (n_frames, n_rx, n_samples): in one call where the estimator takes
+    batches (:class:`MatchedEstimator`), else frame by frame; the same answers either way."""
+    batch = getattr(estimator, "batch", None)
+    if batch is not None and len(frames) > 1:
+        return batch(frames)  # type: ignore[no-any-return]
+    return [estimator(frame) for frame in frames]
 
 
 def _prepare_matched(recording: Recording, options: EchoOptions) -> Estimator:
@@ -46,7 +79,7 @@ def _prepare_matched(recording: Recording, options: EchoOptions) -> Estimator:
     mf = MatchedFilter(
         template.samples, recording.n_samples, recording.sample_rate_hz, arrival_s=template.arrival_s
     )
-    return lambda frame: matched_filter_echoes(frame, mf, options)
+    return MatchedEstimator(mf, options)
 
 
 def _envelope_detector(

@@ -8,7 +8,8 @@ observable window, receivers to use). :func:`run` then maps frames to results.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
+import itertools
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -24,7 +25,7 @@ from echoloc.echoes import (
     frame_time_s,
 )
 from echoloc.errors import EchoLocError
-from echoloc.estimators import Estimator, prepare_estimator
+from echoloc.estimators import Estimator, estimate_frames, prepare_estimator
 from echoloc.locate import FrameObjects, LocateOptions, combine_frames, locate_frame
 from echoloc.recording import Recording, dead_receivers
 
@@ -148,25 +149,53 @@ def combines_transmitters(chain: Chain) -> bool:
     )
 
 
-def run(chain: Chain, frames: Iterable[int] | None = None) -> Iterator[tuple[FrameEchoes, FrameObjects]]:
-    """Echoes and objects of every frame (or of ``frames``), one frame at a time.
+RUN_BATCH_FRAMES = 32
+"""Frames :func:`run` hands the estimator in one call: the matched filter's FFTs and compiled
+loops then take 128 channels at once, a quarter less time a frame than one frame a call
+(`benchmarks/bench_echoes.py`), for 2.5 MB of samples at 4 x 2400."""
 
-    With several transmitters fired in turn, each frame is located together with
-    the latest frame of every other transmitter (:func:`echoloc.locate.combine_frames`):
-    n_tx times the ellipsoids per object once every transmitter has fired.
+
+def run(
+    chain: Chain, frames: Iterable[int] | None = None, *, batch_frames: int = RUN_BATCH_FRAMES
+) -> Iterator[tuple[FrameEchoes, FrameObjects]]:
+    """Echoes and objects of every frame (or of ``frames``), in order.
+
+    Echoes are found ``batch_frames`` frames at a time (:func:`samples_echoes_batch`; the
+    same echoes as one at a time). With several transmitters fired in turn, each frame
+    is located together with the latest frame of every other transmitter
+    (:func:`echoloc.locate.combine_frames`): n_tx times the ellipsoids per object once
+    every transmitter has fired.
     """
-    indices = range(chain.recording.n_frames) if frames is None else frames
+    if batch_frames < 1:
+        raise EchoLocError(f"batch_frames must be >= 1, got {batch_frames}")
+    indices = iter(range(chain.recording.n_frames) if frames is None else frames)
+    recording = chain.recording
     combine = combines_transmitters(chain)
     latest: dict[int, FrameEchoes] = {}
-    for index in indices:
-        echoes = frame_echoes(chain, index)
-        if not combine:
-            yield echoes, frame_objects(chain, echoes)
-            continue
-        transmitter = chain.recording.frame_transmitter
-        assert transmitter is not None
-        latest, objects = combine_latest(chain, latest, echoes, int(transmitter[index]))
-        yield echoes, objects
+    while block := list(itertools.islice(indices, batch_frames)):
+        samples = [recording.frames[index] for index in block]
+        times = [frame_time_s(recording, index) for index in block]
+        found: Iterable[FrameEchoes]
+        try:
+            found = samples_echoes_batch(chain, samples, block, times)
+        except EchoLocError:
+            # One frame of the block is refused: the frames before it still come out, one at
+            # a time, and the error is raised at that frame.
+            found = (samples_echoes(chain, *frame) for frame in zip(samples, block, times, strict=True))
+        for echoes in found:
+            latest, objects = _located_frame(chain, latest, echoes, combine)
+            yield echoes, objects
+
+
+def _located_frame(
+    chain: Chain, latest: dict[int, FrameEchoes], echoes: FrameEchoes, combine: bool
+) -> tuple[dict[int, FrameEchoes], FrameObjects]:
+    """Objects of one frame for :func:`run`, and the latest frame of each transmitter."""
+    if not combine:
+        return latest, frame_objects(chain, echoes)
+    transmitter = chain.recording.frame_transmitter
+    assert transmitter is not None
+    return combine_latest(chain, latest, echoes, int(transmitter[echoes.frame]))
 
 
 def find_echoes(
@@ -197,14 +226,33 @@ def samples_echoes(
     ``index`` is the frame's number (it indexes a per-frame background of
     ``chain.recording`` when there is one); ``time_s`` its start time.
     """
+    return samples_echoes_batch(chain, [samples], [index], [time_s])[0]
+
+
+def samples_echoes_batch(
+    chain: Chain,
+    samples: Sequence[NDArray[np.floating] | NDArray[np.complexfloating]],
+    indices: Sequence[int],
+    times_s: Sequence[float],
+) -> list[FrameEchoes]:
+    """:func:`samples_echoes` of several frames, in one call of the estimator where it takes
+    batches (:func:`echoloc.estimators.estimate_frames`): the same echoes, more frames a second."""
     recording = chain.recording
-    frame = condition_frame(samples, recording, chain.conditioning, index)
-    channels = chain.estimator(frame)
-    echoes = FrameEchoes(index, time_s, chain.speed_of_sound_m_s, tuple(channels))
-    if chain.calibration is not None:
-        echoes = apply_calibration(echoes, chain.calibration)
-        return replace(echoes, speed_of_sound_m_s=chain.speed_of_sound_m_s)
-    return echoes
+    conditioned = [
+        condition_frame(frame, recording, chain.conditioning, index)
+        for frame, index in zip(samples, indices, strict=True)
+    ]
+    frames = np.asarray(conditioned[0])[None] if len(conditioned) == 1 else np.stack(conditioned)
+    channels_of_frames = estimate_frames(chain.estimator, frames)
+    found = []
+    for channels, index, time_s in zip(channels_of_frames, indices, times_s, strict=True):
+        echoes = FrameEchoes(index, time_s, chain.speed_of_sound_m_s, tuple(channels))
+        if chain.calibration is not None:
+            echoes = replace(
+                apply_calibration(echoes, chain.calibration), speed_of_sound_m_s=chain.speed_of_sound_m_s
+            )
+        found.append(echoes)
+    return found
 
 
 def transmitter_objects(chain: Chain, echoes: FrameEchoes, transmitter: int) -> FrameObjects:

@@ -43,6 +43,7 @@ from echoloc.pipeline import (
     combines_transmitters,
     prepare,
     samples_echoes,
+    samples_echoes_batch,
     transmitter_objects,
 )
 from echoloc.recording import Recording
@@ -401,28 +402,39 @@ class StreamProcessor:
 
     def process(self, frame: StreamFrame) -> StreamResult:
         """Echoes and objects of one frame (frames of one stream must come in frame order)."""
-        started = time.monotonic()
-        self.check(frame)
-        late = (
-            self.deadline_s is not None
-            and math.isfinite(frame.arrival_s)
-            and started - frame.arrival_s > self.deadline_s
-        )
-        echoes = samples_echoes(self.chain, frame.samples, frame.index, frame.time_s)
-        if self._combine:
-            self._latest, objects = combine_latest(self.chain, self._latest, echoes, frame.transmitter)
-        else:
-            objects = transmitter_objects(self.chain, echoes, frame.transmitter)
-        done = time.monotonic()
-        latency = done - (frame.arrival_s if math.isfinite(frame.arrival_s) else started)
-        self.latency.add(latency)
-        self.processed += 1
-        self.late += int(late)
-        return StreamResult(echoes, objects, frame.transmitter, latency, late)
+        return self.process_batch([frame])[0]
 
     def process_batch(self, frames: Sequence[StreamFrame]) -> list[StreamResult]:
-        """:meth:`process` of each frame of a batch, in order."""
-        return [self.process(frame) for frame in frames]
+        """:meth:`process` of each frame of a batch, in order, the echoes of all of them found in
+        one call (:func:`echoloc.pipeline.samples_echoes_batch`: the same echoes, more frames a
+        second, as when frames have queued up). A frame's latency runs to when its own objects
+        are ready; frames without an arrival time count from the batch's start."""
+        if not frames:
+            return []
+        started = time.monotonic()
+        for frame in frames:
+            self.check(frame)
+        found = samples_echoes_batch(
+            self.chain, [f.samples for f in frames], [f.index for f in frames], [f.time_s for f in frames]
+        )
+        results = []
+        for frame, echoes in zip(frames, found, strict=True):
+            late = (
+                self.deadline_s is not None
+                and math.isfinite(frame.arrival_s)
+                and started - frame.arrival_s > self.deadline_s
+            )
+            if self._combine:
+                self._latest, objects = combine_latest(self.chain, self._latest, echoes, frame.transmitter)
+            else:
+                objects = transmitter_objects(self.chain, echoes, frame.transmitter)
+            done = time.monotonic()
+            latency = done - (frame.arrival_s if math.isfinite(frame.arrival_s) else started)
+            self.latency.add(latency)
+            self.processed += 1
+            self.late += int(late)
+            results.append(StreamResult(echoes, objects, frame.transmitter, latency, late))
+        return results
 
     def stats(self, **counters: int) -> StreamStats:
         """A snapshot; ``counters`` adds what the receiving side counted (lost, dropped, ...)."""
