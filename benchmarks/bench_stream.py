@@ -36,7 +36,7 @@ from echoloc.benchmark import bench_chains, bench_scene, format_bench
 from echoloc.pipeline import prepare
 from echoloc.recording import write_recording
 from echoloc.simulate import simulate
-from echoloc.stream import FrameQueue, LatencyHistogram, StreamFrame, StreamProcessor
+from echoloc.stream import STREAM_BATCH_FRAMES, FrameQueue, LatencyHistogram, StreamFrame, StreamProcessor
 from echoloc.transport import Endpoint, Listener, SessionEvent
 
 
@@ -79,13 +79,16 @@ def soak(minutes: float, speed: float, reflectors: int, n_frames: int, window_s:
     rows += [header, "|---|---|---|---|---|---|---|---|"]
     try:
         while time.monotonic() - start < minutes * 60:
-            item = listener.queue.get(0.1)
+            # As `echoloc stream` takes them: a session, or the frames that queued up, in one batch.
+            items = listener.queue.get_batch(0.1, STREAM_BATCH_FRAMES)
+            item = items[0] if items else None
             if isinstance(item, SessionEvent):
                 processor = StreamProcessor(prepare(item.header))
                 processor.warm_up()
             elif isinstance(item, StreamFrame) and processor is not None:
-                result = processor.process(item)
-                window.add(result.latency_s)
+                frames = [frame for frame in items if isinstance(frame, StreamFrame)]  # all of them
+                for result in processor.process_batch(frames):
+                    window.add(result.latency_s)
             now = time.monotonic()
             if now >= next_note and processor is not None:
                 counters = {**listener.counters(), "processed": processor.processed}

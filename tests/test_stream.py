@@ -171,6 +171,22 @@ def test_queue_drops_oldest_frames_counts_them_and_keeps_sessions():
     assert queue.get(0.01) is None
 
 
+def test_a_batch_off_the_queue_is_the_frames_waiting_up_to_a_control_item():
+    queue = FrameQueue(16)
+    frames = [StreamFrame(k, np.zeros((1, 1)), 0.0) for k in range(6)]
+    for f in frames[:4]:
+        queue.put(f)
+    queue.put(SessionEvent(None))  # type: ignore[arg-type]
+    for f in frames[4:]:
+        queue.put(f)
+    assert [f.index for f in queue.get_batch(0.01, 3)] == [0, 1, 2]  # at most 3
+    assert [f.index for f in queue.get_batch(0.01, 8)] == [3]  # never past the session
+    assert isinstance(queue.get_batch(0.01, 8)[0], SessionEvent)
+    assert [f.index for f in queue.get_batch(0.01, 8)] == [4, 5]
+    assert len(queue) == 0
+    assert queue.get_batch(0.01, 8) == []
+
+
 def test_blocking_queue_waits_instead_of_dropping():
     queue = FrameQueue(1, block=True)
     queue.put(StreamFrame(0, np.zeros((1, 1)), 0.0))

@@ -1703,8 +1703,10 @@ def _terminate_as_interrupt() -> Iterator[None]:
 
 
 def _events(listener: Any, once: bool, max_frames: int | None, duration_s: float | None) -> Iterator[Any]:
-    """Sessions and frames off the listener's queue until a stop condition; errors to stderr."""
-    from echoloc.stream import StreamFrame
+    """Sessions, and lists of the frames that queued up (at most STREAM_BATCH_FRAMES: a
+    backlog is worked off in batches), off the listener's queue until a stop condition;
+    errors to stderr."""
+    from echoloc.stream import STREAM_BATCH_FRAMES, StreamFrame
     from echoloc.transport import EndEvent
 
     _finite("--duration", duration_s, positive=True)
@@ -1715,18 +1717,22 @@ def _events(listener: Any, once: bool, max_frames: int | None, duration_s: float
             stderr.print(f"echoloc: warning: {message}", markup=False, highlight=False)
         if deadline is not None and time.monotonic() >= deadline:
             return
-        item = listener.queue.get(0.1)
-        if item is None:
+        room = STREAM_BATCH_FRAMES if max_frames is None else min(STREAM_BATCH_FRAMES, max_frames - frames)
+        items = listener.queue.get_batch(0.1, room)
+        if not items:
             continue
+        item = items[0]
         if isinstance(item, EndEvent):
             if once:
                 return
             continue
-        yield item
-        if isinstance(item, StreamFrame):
-            frames += 1
-            if max_frames is not None and frames >= max_frames:
-                return
+        if not isinstance(item, StreamFrame):
+            yield item
+            continue
+        yield items
+        frames += len(items)
+        if max_frames is not None and frames >= max_frames:
+            return
 
 
 def _open_listener(
@@ -1975,6 +1981,7 @@ class _LiveStream:
         return self.processor.stats(**self.listener.counters())
 
     def handle(self, item: Any) -> None:
+        """A new session (a SessionEvent), or the frames that queued up (a list)."""
         from echoloc.stream import StreamProcessor
         from echoloc.transport import Recorder, SessionEvent
 
@@ -1997,9 +2004,14 @@ class _LiveStream:
                 f"c = {chain.speed_of_sound_m_s:.2f} m/s"
             )
             return
-        result = self.processor.process(item)
-        if self.recorder is not None:
-            self.recorder.add(item)
+        if self.recorder is not None:  # recorded first: a frame the chain refuses is kept too
+            for frame in item:
+                self.recorder.add(frame)
+        for frame, result in zip(item, self.processor.process_batch(item), strict=True):
+            self._show(frame, result)
+
+    def _show(self, item: Any, result: Any) -> None:
+        """Print and show one processed frame."""
         if self.as_json:
             click.echo(json_line(objects_record(result.objects)))
         now = item.arrival_s
@@ -2118,7 +2130,6 @@ def record_command(
     A recorder killed at any moment (even SIGKILL, or a power cut) leaves OUT.h5
     readable, with every frame but at most those of the last batch.
     """
-    from echoloc.stream import StreamFrame
     from echoloc.transport import Recorder, SessionEvent
 
     def progress(frames: int) -> None:
@@ -2150,8 +2161,9 @@ def record_command(
                         recorder = Recorder(
                             output, item.header, batch_frames=batch_frames, batch_s=batch_s, on_batch=progress
                         )
-                    elif isinstance(item, StreamFrame) and recorder is not None:
-                        recorder.add(item)
+                    elif isinstance(item, list) and recorder is not None:  # the frames that queued up
+                        for frame in item:
+                            recorder.add(frame)
             except KeyboardInterrupt:
                 interrupted = True
     finally:
