@@ -1381,6 +1381,7 @@ def _isolated_echoes(
 
 
 _MAX_JOINT = 4
+"""The largest cluster the batched joint fit takes (larger ones go to CLEAN)."""
 _CLEAN_COMPLEX_ITERATIONS = 200
 _CLEAN_REAL_ITERATIONS = 200
 """Most Levenberg-Marquardt steps of CLEAN's joint fits and model choice (complex, then
@@ -1404,7 +1405,6 @@ _REAL_ITERATIONS = 3
 """Levenberg-Marquardt steps of the batched cluster fits: they start from the
 phase-refined single fits and settle in two (a fit that does not is caught by the
 residual checks and handed to CLEAN)."""
-"""The largest cluster the batched joint fit takes (larger ones go to CLEAN)."""
 
 
 def _fit_clusters(
