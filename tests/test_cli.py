@@ -376,6 +376,23 @@ def test_locate_json_follows_the_contract(capsys: pytest.CaptureFixture[str], go
             assert np.min(np.linalg.norm(found - ball, axis=1)) < 1e-3
 
 
+@pytest.mark.parametrize("command", ["echoes", "locate"])
+def test_workers_change_no_output_and_a_bad_count_is_one_line(
+    capsys: pytest.CaptureFixture[str], good_h5: Path, command: str
+) -> None:
+    """--workers 2 and -1 give the JSON of one thread byte for byte; 0 is refused with exit 2
+    and one line naming the option's value, before the file is read."""
+    one = run(capsys, command, good_h5, "--json")
+    assert one.code == 0, one
+    for workers in (2, -1):
+        threaded = run(capsys, command, good_h5, "--json", "--workers", workers)
+        assert threaded.code == 0, threaded
+        assert threaded.out == one.out
+    bad = run(capsys, command, "no-such-file.h5", "--workers", 0)
+    assert bad.code == 2
+    assert bad.err.strip().splitlines() == ["echoloc: error: workers must be >= 1 (or -1: one a core), got 0"]
+
+
 def test_locate_reads_npz_recordings(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     """FORMATS.md: "the same names in a NumPy .npz are accepted too"."""
     path = write_recording(simulate(default_scene(), n_frames=1), tmp_path / "balls.npz")

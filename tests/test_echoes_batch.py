@@ -14,6 +14,7 @@ from echoloc.echoes import (
     _Clean,
     _compiled_echoes,
     _isolated_echoes,
+    fft_workers,
     matched_filter_batch,
     matched_filter_echoes,
 )
@@ -84,6 +85,16 @@ def test_threads_give_the_answers_of_one() -> None:
                 np.testing.assert_array_equal(a.tof_s, b.tof_s)
                 np.testing.assert_array_equal(a.amplitude, b.amplitude)
                 np.testing.assert_array_equal(a.snr_db, b.snr_db)
+
+
+def test_fft_threads_only_from_32_rows_a_thread_and_never_change_the_correlation() -> None:
+    """scipy.fft's threads cost more than they save on a few rows: none below 64 rows for two,
+    never more than asked; the correlation is the same to the bit with any count."""
+    assert [fft_workers(2, rows) for rows in (1, 4, 63, 64, 1000)] == [1, 1, 1, 2, 2]
+    assert fft_workers(8, 100) == 3
+    assert fft_workers(1, 1000) == 1
+    frames = scene_frames(6, n_frames=20).reshape(-1, N_SAMPLES)  # 80 rows: two threads
+    np.testing.assert_array_equal(MF.correlate(frames, 2), MF.correlate(frames, 1))
 
 
 @pytest.mark.parametrize("workers", [0, -2])

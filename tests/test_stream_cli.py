@@ -307,3 +307,35 @@ def test_a_busy_port_is_one_line_and_exit_2(capsys):
     _, err = capsys.readouterr()
     assert info.value.code == 2
     assert f"cannot listen on tcp://127.0.0.1:{port}" in err
+
+
+def test_stream_records_a_batch_before_processing_it(tmp_path, recording_path):
+    """`stream --record`: frames are written before the chain runs on them, so a batch whose
+    processing fails is still in the recording, sample for sample (to float32)."""
+    from echoloc.cli import _LiveStream
+    from echoloc.pipeline import prepare
+    from echoloc.stream import StreamProcessor, recording_frames
+    from echoloc.transport import SessionEvent
+
+    class Failing(StreamProcessor):
+        def process_batch(self, frames):
+            raise RuntimeError("the chain failed")
+
+    class Counters:
+        def counters(self):
+            return {}
+
+    source = read_recording(recording_path)
+    out = tmp_path / "kept.h5"
+    session = _LiveStream(Counters(), prepare, 0.1, as_json=False, record_path=out)
+    session.handle(SessionEvent(source))
+    session.processor = Failing(session.processor.chain)
+    frames = list(recording_frames(source, range(3)))
+    with pytest.raises(RuntimeError, match="the chain failed"):
+        session.handle(frames)
+    session.close(interrupted=True)
+    assert session.record_error is None
+    kept = read_recording(out)
+    assert kept.n_frames == 3
+    # The recorder stores float32 (recording.write_recording_stream's default), as `record` does.
+    np.testing.assert_array_equal(np.asarray(kept.frames), np.asarray(source.frames[:3]).astype(np.float32))

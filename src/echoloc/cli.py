@@ -173,8 +173,8 @@ _WORKERS_OPTION = click.option(
     type=int,
     default=1,
     show_default=True,
-    help="Threads the matched filter spreads each frame's channels over (-1: one a core); "
-    "the echoes do not depend on it.",
+    help="Threads the matched estimator spreads each frame's channels over (-1: one a core; "
+    "the other estimators use one); the echoes do not depend on it.",
 )
 
 

@@ -251,13 +251,15 @@ class MatchedFilter:
         """:func:`_sidelobe_envelope`, computed once."""
         return _sidelobe_envelope(self)
 
-    def correlate(self, frames: NDArray[np.floating]) -> NDArray[np.complex128]:
+    def correlate(self, frames: NDArray[np.floating], threads: int | None = None) -> NDArray[np.complex128]:
         """Analytic correlation of frames (..., n_samples) with the template.
 
         Index k is the lag of k samples (an echo arriving k samples after emission
         peaks at k); normalised so that an echo ``a * template`` gives ``a`` there.
+        The FFTs take at most ``threads`` threads (None: one a core), and fewer on few
+        rows (:func:`fft_workers`).
         """
-        workers = fft_workers(os.cpu_count() or 1, math.prod(np.shape(frames)[:-1]))
+        workers = fft_workers(threads or os.cpu_count() or 1, math.prod(np.shape(frames)[:-1]))
         spectrum = scipy.fft.rfft(frames, self.n_fft, axis=-1, workers=workers)
         full = scipy.fft.ifft(spectrum * self._spectrum, self.n_fft, axis=-1, workers=workers)
         return np.asarray(full[..., : self.n_samples])
@@ -918,7 +920,7 @@ def matched_filter_batch(
         clean = _Clean(mf, options)
         # The double-precision correlation of every hard channel in one call (the same values
         # as one call a channel, a third less time).
-        exact = mf.correlate(frames.reshape(n_frames * n_rx, -1)[hard])
+        exact = mf.correlate(frames.reshape(n_frames * n_rx, -1)[hard], threads)
         for index, (components, power) in zip(hard, clean.run_rows(exact, threads), strict=True):
             tof = np.array([c.tof_samples for c in components])
             amplitude = np.array([abs(c.amplitude) for c in components])

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -35,7 +36,7 @@ from echoloc.templates import sent_template
 
 Estimator = Callable[[NDArray[np.floating]], list[ChannelEchoes]]
 """A prepared estimator: one frame (n_rx, n_samples) -> echoes per receiver. One that can
-take many frames in one call too has a ``batch`` method (:func:`estimate_frames`)."""
+take many frames in one call too is a :class:`BatchEstimator` (:func:`estimate_frames`)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -55,12 +56,21 @@ class MatchedEstimator:
         return matched_filter_batch(frames, self.mf, self.options)
 
 
+@runtime_checkable
+class BatchEstimator(Protocol):
+    """An :data:`Estimator` that also takes many frames (n_frames, n_rx, n_samples) in one call."""
+
+    def __call__(self, frame: NDArray[np.floating]) -> list[ChannelEchoes]: ...
+
+    def batch(self, frames: NDArray[np.floating]) -> list[list[ChannelEchoes]]: ...
+
+
 def estimate_frames(estimator: Estimator, frames: NDArray[np.floating]) -> list[list[ChannelEchoes]]:
     """Echoes of frames (n_frames, n_rx, n_samples): in one call where the estimator takes
-    batches (:class:`MatchedEstimator`), else frame by frame; the same answers either way."""
-    batch = getattr(estimator, "batch", None)
-    if batch is not None and len(frames) > 1:
-        return batch(frames)  # type: ignore[no-any-return]
+    batches (a :class:`BatchEstimator` such as :class:`MatchedEstimator`), else frame by
+    frame; the same answers either way."""
+    if len(frames) > 1 and isinstance(estimator, BatchEstimator):
+        return estimator.batch(frames)
     return [estimator(frame) for frame in frames]
 
 
