@@ -32,6 +32,7 @@ from numpy.typing import NDArray
 
 from echoloc.benchmark import baseline_echoes
 from echoloc.echoes import (
+    MATCHED_DECIMATION,
     EchoOptions,
     MatchedFilter,
     _Clean,
@@ -96,7 +97,12 @@ def bench(name: str, scene: Scene, n_frames: int, rounds: int, threads: int) -> 
     recording = chain.recording
     options: EchoOptions = chain.echo_options
     frames = np.asarray(recording.frames[:n_frames], dtype=float)
-    mf = MatchedFilter(np.asarray(recording.waveform, float), recording.n_samples, recording.sample_rate_hz)
+    mf = MatchedFilter(
+        np.asarray(recording.waveform, float),
+        recording.n_samples,
+        recording.sample_rate_hz,
+        decimation=MATCHED_DECIMATION,
+    )
     rows = frames.reshape(-1, recording.n_samples)
     matched_filter_batch(frames[:1], mf, options)  # compile (or load) the kernels, build the tables
     correlation = mf.correlate_single(frames).reshape(rows.shape[0], -1)

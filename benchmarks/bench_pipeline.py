@@ -27,7 +27,7 @@ from dataclasses import replace
 import numpy as np
 
 from echoloc.benchmark import baseline_echoes, baseline_locate
-from echoloc.echoes import MatchedFilter, matched_filter_batch
+from echoloc.echoes import MATCHED_DECIMATION, MatchedFilter, matched_filter_batch
 from echoloc.evaluate import evaluate
 from echoloc.pipeline import Chain, frame_echoes, frame_objects, prepare
 from echoloc.scene import RandomReflectors, default_scene
@@ -50,7 +50,12 @@ def bench(name: str, chain: Chain, n_frames: int, rounds: int, brute_frames: int
     timings: dict[str, list[float]] = {
         k: [] for k in ("echoes", "echoes_batch", "echoes_base", "locate", "locate_base")
     }
-    mf = MatchedFilter(np.asarray(recording.waveform, float), recording.n_samples, recording.sample_rate_hz)
+    mf = MatchedFilter(
+        np.asarray(recording.waveform, float),
+        recording.n_samples,
+        recording.sample_rate_hz,
+        decimation=MATCHED_DECIMATION,
+    )
     block = recording.frames[:n_frames]
     for _ in range(rounds):
         timings["echoes"].append(_time(lambda: [frame_echoes(chain, i) for i in frames]) / n_frames)

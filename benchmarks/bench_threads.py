@@ -21,7 +21,7 @@ from dataclasses import replace
 import numpy as np
 
 from echoloc.benchmark import bench_scene
-from echoloc.echoes import MatchedFilter, matched_filter_batch, matched_filter_echoes
+from echoloc.echoes import MATCHED_DECIMATION, MatchedFilter, matched_filter_batch, matched_filter_echoes
 from echoloc.pipeline import prepare
 from echoloc.simulate import simulate
 
@@ -46,7 +46,12 @@ def main() -> None:
     recording = chain.recording
     one = chain.echo_options
     many = replace(one, workers=args.threads)
-    mf = MatchedFilter(np.asarray(recording.waveform, float), recording.n_samples, recording.sample_rate_hz)
+    mf = MatchedFilter(
+        np.asarray(recording.waveform, float),
+        recording.n_samples,
+        recording.sample_rate_hz,
+        decimation=MATCHED_DECIMATION,
+    )
     frames = np.asarray(recording.frames[: args.frames], dtype=float)
     for options in (one, many):  # compile or load the kernels, start the threads
         matched_filter_batch(frames[:2], mf, options)

@@ -48,7 +48,14 @@ from echoloc.crlb import (
     peak_amplitude,
     unknown_phase_tof_bound,
 )
-from echoloc.echoes import ChannelEchoes, EchoOptions, FrameEchoes, MatchedFilter, matched_filter_echoes
+from echoloc.echoes import (
+    MATCHED_DECIMATION,
+    ChannelEchoes,
+    EchoOptions,
+    FrameEchoes,
+    MatchedFilter,
+    matched_filter_echoes,
+)
 from echoloc.errors import EchoLocError
 from echoloc.estimators import ESTIMATORS, Estimator, EstimatorInfo
 from echoloc.receiver import analytic_signal, template_for_kind, to_signal_kind
@@ -384,7 +391,9 @@ def table_estimators(recording: Recording, scene: Scene, options: EchoOptions) -
     enrolled = enrol(recording, options, clean, tof, 1 / scene.pulse.carrier_hz)
     estimators = dict(enrolled.estimators)
     for label, template in templates(scene, recording.n_samples).items():
-        mf = MatchedFilter(template, recording.n_samples, recording.sample_rate_hz)
+        mf = MatchedFilter(
+            template, recording.n_samples, recording.sample_rate_hz, decimation=MATCHED_DECIMATION
+        )
         estimators[label] = guarded(label, partial(matched_filter_echoes, mf=mf, options=options))
     return Enrolled(estimators, enrolled.notes)
 

@@ -565,6 +565,7 @@ def batch_echoes(
     max_joint: int,
     complex_iterations: int,
     real_iterations: int,
+    lone_iterations: int,
     noise_step: int,
     out_tof: Any,
     out_amp: Any,
@@ -573,6 +574,9 @@ def batch_echoes(
     out_status: Any,
 ) -> None:  # pragma: no cover - compiled
     """Echoes of every channel of ``corr`` this path can vouch for (echoes._isolated_echoes).
+
+    Clusters of echoes within two main lobes get ``complex_iterations`` and then
+    ``real_iterations`` Levenberg-Marquardt steps; a lone echo ``lone_iterations`` real ones.
 
     ``corr`` is the complex correlation (n_ch, >= n) viewed as (n_ch, >= 2 n) reals, of
     which the first ``n`` samples of each row are read (the rows of a longer FFT output can
@@ -713,7 +717,7 @@ def batch_echoes(
                 or math.ceil(tofs[stop - 1]) - math.floor(tofs[start]) + 2 * fit_half + 1 > joint_w
             ):
                 status = TOO_BIG
-            elif size > 1:
+            elif size > 1 or lone_iterations > 0:
                 lo = math.floor(tofs[start]) - fit_half
                 hi = math.ceil(tofs[stop - 1]) + fit_half + 1
                 w = hi - lo
@@ -731,24 +735,25 @@ def batch_echoes(
                 a = joint_a[:size]
                 t[:] = tofs[start:stop]
                 a[:] = amps[start:stop]
-                _joint_fit_into(
-                    table,
-                    u,
-                    half,
-                    data,
-                    lo,
-                    valid,
-                    t,
-                    a,
-                    False,
-                    complex_iterations,
-                    False,
-                    0.0,
-                    1e-6,
-                    0.0,
-                    joint_work,
-                    joint_new,
-                )
+                if size > 1:  # a lone echo's delay is phase-refined: it needs no complex steps
+                    _joint_fit_into(
+                        table,
+                        u,
+                        half,
+                        data,
+                        lo,
+                        valid,
+                        t,
+                        a,
+                        False,
+                        complex_iterations,
+                        False,
+                        0.0,
+                        1e-6,
+                        0.0,
+                        joint_work,
+                        joint_new,
+                    )
                 for i in range(size):
                     a[i] = abs(a[i]) if a[i].real >= 0 else -abs(a[i])
                 _joint_fit_into(
@@ -761,7 +766,7 @@ def batch_echoes(
                     t,
                     a,
                     True,
-                    real_iterations,
+                    real_iterations if size > 1 else lone_iterations,
                     False,
                     0.0,
                     1e-6,
@@ -842,6 +847,7 @@ def batch_echoes_parallel(
     max_joint: int,
     complex_iterations: int,
     real_iterations: int,
+    lone_iterations: int,
     noise_step: int,
     out_tof: Any,
     out_amp: Any,
@@ -873,6 +879,7 @@ def batch_echoes_parallel(
             max_joint,
             complex_iterations,
             real_iterations,
+            lone_iterations,
             noise_step,
             out_tof[lo:hi],
             out_amp[lo:hi],
@@ -889,7 +896,7 @@ def finish_channels(
     out_count: Any,
     out_power: Any,
     ok: Any,
-    sample_rate_hz: float,
+    lag_rate_hz: float,
     arrival_s: float,
     blanking_s: float,
     threshold_db: float,
@@ -912,7 +919,7 @@ def finish_channels(
         floor = strongest * floor_ratio
         m = 0
         for e in range(count):
-            t = out_tof[ch, e] / sample_rate_hz + arrival_s
+            t = out_tof[ch, e] / lag_rate_hz + arrival_s
             a = out_amp[ch, e]
             snr = 10 * np.log10(max(a * a, 1e-300) / out_power[ch])
             if t >= blanking_s and snr >= threshold_db and a >= floor and np.isfinite(t):

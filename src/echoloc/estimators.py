@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from echoloc.echoes import (
+    MATCHED_DECIMATION,
     ChannelEchoes,
     EchoOptions,
     MatchedFilter,
@@ -87,7 +88,11 @@ def _prepare_matched(recording: Recording, options: EchoOptions) -> Estimator:
             f"the recording at {recording.sample_rate_hz:g} Hz"
         )
     mf = MatchedFilter(
-        template.samples, recording.n_samples, recording.sample_rate_hz, arrival_s=template.arrival_s
+        template.samples,
+        recording.n_samples,
+        recording.sample_rate_hz,
+        arrival_s=template.arrival_s,
+        decimation=MATCHED_DECIMATION,
     )
     return MatchedEstimator(mf, options)
 
