@@ -183,6 +183,10 @@ class MatchedFilter:
         """Lags of the correlation of a frame: 0, D, 2D, ... below ``n_samples``."""
         return -(-self.n_samples // self.decimation)
 
+    def first_lag(self, blanking_s: float) -> int:
+        """The first lag at or after ``blanking_s`` (the echoes before it are blanked)."""
+        return math.ceil(blanking_s * self.lag_rate_hz)
+
     @cached_property
     def n_fft(self) -> int:
         """The FFT length: no wrap-around into the frame's lags, fast, a multiple of the decimation."""
@@ -190,6 +194,11 @@ class MatchedFilter:
         while n % self.decimation:
             n = int(scipy.fft.next_fast_len(n + 1, real=True))
         return n
+
+    @cached_property
+    def n_ifft(self) -> int:
+        """The inverse FFT's length: N/D, whose first ``n_lags`` outputs are the correlation."""
+        return self.n_fft // self.decimation
 
     @cached_property
     def energy(self) -> float:
@@ -222,7 +231,7 @@ class MatchedFilter:
         gives every D-th lag (the spectrum itself, uncopied, for D = 1: the inverse FFT pads it)."""
         if self.decimation == 1:
             return spectrum
-        m = self.n_fft // self.decimation
+        m = self.n_ifft
         folded = np.array(spectrum[..., :m])
         for start in range(m, spectrum.shape[-1], m):
             part = spectrum[..., start : start + m]
@@ -311,9 +320,7 @@ class MatchedFilter:
         workers = fft_workers(threads or os.cpu_count() or 1, math.prod(np.shape(frames)[:-1]))
         spectrum = scipy.fft.rfft(frames, self.n_fft, axis=-1, workers=workers)
         folded = self._fold(spectrum * self._spectrum)
-        full = scipy.fft.ifft(
-            folded, self.n_fft // self.decimation, axis=-1, overwrite_x=True, workers=workers
-        )
+        full = scipy.fft.ifft(folded, self.n_ifft, axis=-1, overwrite_x=True, workers=workers)
         return np.asarray(full[..., : self.n_lags])
 
     def correlate_single(self, frames: NDArray[np.floating]) -> NDArray[np.complex64]:
@@ -326,14 +333,13 @@ class MatchedFilter:
         return self.correlate_single_rows(frames)[..., : self.n_lags]
 
     def correlate_single_rows(self, frames: NDArray[np.floating], workers: int = 1) -> NDArray[np.complex64]:
-        """:meth:`correlate_single` as the FFT leaves it: rows of ``n_fft / decimation`` lags, of
+        """:meth:`correlate_single` as the FFT leaves it: rows of ``n_ifft`` lags, of
         which the first ``n_lags`` are the correlation (the rest wraps around), C-contiguous;
         the FFTs on ``workers`` threads."""
         spectrum = scipy.fft.rfft(np.asarray(frames, np.float32), self.n_fft, axis=-1, workers=workers)
         spectrum *= self._spectrum_single
         folded = self._fold(spectrum)
-        n_ifft = self.n_fft // self.decimation
-        return np.asarray(scipy.fft.ifft(folded, n_ifft, axis=-1, overwrite_x=True, workers=workers))
+        return np.asarray(scipy.fft.ifft(folded, self.n_ifft, axis=-1, overwrite_x=True, workers=workers))
 
 
 MATCHED_DECIMATION = 2
@@ -577,7 +583,7 @@ class _Clean:
         """Take echoes out of ``residual`` strongest first while above the threshold; how many."""
         threshold = 10 ** (self.options.threshold_db / 10)
         floor = 10 ** (-self.options.dynamic_range_db / 20)
-        first = math.ceil(self.options.blanking_s * self.mf.lag_rate_hz)
+        first = self.mf.first_lag(self.options.blanking_s)
         strongest = max((abs(c.amplitude) for c in components), default=0.0)
         added = 0
         while len(components) < self.options.max_echoes:
@@ -686,7 +692,7 @@ class _Clean:
             self.mf.acf_energy,
             10 ** (options.threshold_db / 10),
             10 ** (-options.dynamic_range_db / 20),
-            math.ceil(options.blanking_s * self.mf.lag_rate_hz),
+            self.mf.first_lag(options.blanking_s),
             options.max_echoes,
             options.refine_passes,
             _CLEAN_COMPLEX_ITERATIONS,
@@ -1269,7 +1275,7 @@ def _compiled_batch(
         mf.acf_energy,
         10 ** (options.threshold_db / 10),
         10 ** (-options.dynamic_range_db / 10),
-        max(math.ceil(options.blanking_s * mf.lag_rate_hz), 1),
+        max(mf.first_lag(options.blanking_s), 1),
         cap,
         _MAX_JOINT,
         _COMPLEX_ITERATIONS,
@@ -1336,7 +1342,7 @@ def _isolated_echoes(
     power_map = correlation.real**2 + correlation.imag**2
     power = np.maximum(np.median(power_map, axis=1) / _LN2, np.finfo(float).tiny)
     threshold = 10 ** (options.threshold_db / 10) * power
-    first = max(math.ceil(options.blanking_s * mf.lag_rate_hz), 1)
+    first = max(mf.first_lag(options.blanking_s), 1)
     ch, k = np.nonzero(power_map[:, first : n - 1] > threshold[:, None])
     k = k + first
     peak = (power_map[ch, k] > power_map[ch, k - 1]) & (power_map[ch, k] >= power_map[ch, k + 1])
