@@ -548,148 +548,6 @@ def _sort_descending(keys: Any, values: Any, count: int) -> None:  # pragma: no 
 
 
 @njit(cache=True)
-def _fit_group(
-    table: Any,
-    u: int,
-    half: int,
-    row: Any,
-    n: int,
-    grid_b: Any,
-    grid_w: Any,
-    amps: Any,
-    n_echo: int,
-    start: int,
-    stop: int,
-    fit_half: int,
-    complex_iterations: int,
-    real_iterations: int,
-    t: Any,
-    a: Any,
-    joint_data: Any,
-    joint_valid: Any,
-    joint_work: Any,
-    joint_new: Any,
-) -> None:  # pragma: no cover - compiled
-    """Echoes start..stop-1 (delays ``t``, amplitudes ``a``, in place) fitted together to the
-    correlation ``row`` over their span and half a main lobe beyond, less the other echoes'
-    model (``grid_b``/``grid_w``, ``amps``): ``complex_iterations`` steps with complex
-    amplitudes (none: skipped), then ``real_iterations`` with real ones."""
-    lo = math.floor(t[0]) - fit_half
-    hi = math.ceil(t[-1]) + fit_half + 1
-    w = hi - lo
-    data = joint_data[:w]
-    valid = joint_valid[:w]
-    for j in range(w):
-        s = lo + j
-        data[j, 0] = data[j, 1] = 0.0
-        valid[j] = 0 <= s < n
-        if valid[j]:
-            other = _model(table, half, grid_b, grid_w, amps, n_echo, s, start, stop)
-            data[j, 0] = row[2 * s] - other.real
-            data[j, 1] = row[2 * s + 1] - other.imag
-    if complex_iterations > 0:
-        _joint_fit_into(
-            table,
-            u,
-            half,
-            data,
-            lo,
-            valid,
-            t,
-            a,
-            False,
-            complex_iterations,
-            False,
-            0.0,
-            1e-6,
-            0.0,
-            joint_work,
-            joint_new,
-        )
-    for i in range(len(a)):
-        a[i] = abs(a[i]) if a[i].real >= 0 else -abs(a[i])
-    _joint_fit_into(
-        table,
-        u,
-        half,
-        data,
-        lo,
-        valid,
-        t,
-        a,
-        True,
-        real_iterations,
-        False,
-        0.0,
-        1e-6,
-        0.0,
-        joint_work,
-        joint_new,
-    )
-
-
-@njit(cache=True)
-def _check_channel(
-    table: Any,
-    half: int,
-    row: Any,
-    n: int,
-    grid_b: Any,
-    grid_w: Any,
-    fitted_tofs: Any,
-    fitted_amps: Any,
-    n_echo: int,
-    peaks: Any,
-    cand_k: Any,
-    accepted: Any,
-    m: int,
-    fit_half: int,
-    span: int,
-    threshold: float,
-    power: float,
-    acf_energy: float,
-    residual_power: Any,
-) -> int:  # pragma: no cover - compiled
-    """The batch path's checks of a channel's model (``grid_b``/``grid_w`` prepared for
-    ``fitted_tofs``): it explains the main lobe around each echo's peak, every rejected
-    candidate, and (CLEAN's split test) two main lobes around each echo. Returns OK or the
-    first failure (LEFT_OVER, UNEXPLAINED); the residual around an echo is computed once for
-    the two windows around it (its peak's main lobe lies within the two main lobes)."""
-    for e in range(n_echo):
-        centre = int(np.round(fitted_tofs[e]))
-        lo = min(centre - span, peaks[e] - fit_half)
-        hi = max(centre + span, peaks[e] + fit_half)
-        for s in range(max(lo, 0), min(hi, n - 1) + 1):
-            r = complex(row[2 * s], row[2 * s + 1]) - _model(
-                table, half, grid_b, grid_w, fitted_amps, n_echo, s, 0, 0
-            )
-            residual_power[s] = r.real * r.real + r.imag * r.imag
-        for i in range(2 * fit_half + 1):
-            s = min(max(peaks[e] - fit_half + i, 0), n - 1)
-            if residual_power[s] > threshold:
-                return LEFT_OVER
-        cost = 0.0
-        inside = 0
-        for i in range(2 * span + 1):
-            s = centre - span + i
-            if 0 <= s < n:
-                cost += residual_power[s]
-                inside += 1
-        magnitude = abs(fitted_amps[e])
-        if cost >= 3.0 * power * inside and cost >= 0.003 * magnitude * magnitude * acf_energy:
-            return UNEXPLAINED
-    for j in range(m):
-        if not accepted[j]:
-            s = cand_k[j]
-            r = complex(row[2 * s], row[2 * s + 1]) - _model(
-                table, half, grid_b, grid_w, fitted_amps, n_echo, s, 0, 0
-            )
-            if r.real * r.real + r.imag * r.imag > threshold:
-                return LEFT_OVER
-    return OK
-
-
-@njit(cache=True)
 def batch_echoes(
     corr: Any,
     n: int,
@@ -718,8 +576,7 @@ def batch_echoes(
     """Echoes of every channel of ``corr`` this path can vouch for (echoes._isolated_echoes).
 
     Clusters of echoes within two main lobes get ``complex_iterations`` and then
-    ``real_iterations`` Levenberg-Marquardt steps; a lone echo keeps its phase-refined fit
-    unless the checks fail, when it gets ``lone_iterations`` real ones and the checks rerun.
+    ``real_iterations`` Levenberg-Marquardt steps; a lone echo ``lone_iterations`` real ones.
 
     ``corr`` is the complex correlation (n_ch, >= n) viewed as (n_ch, >= 2 n) reals, of
     which the first ``n`` samples of each row are read (the rows of a longer FFT output can
@@ -846,83 +703,121 @@ def batch_echoes(
         for e in range(1, n_echo):
             if tofs[e] - tofs[e - 1] < mainlobe / 4:
                 status = CLOSE
+        _prepare(u, tofs[:n_echo], grid_b, grid_w)
         fitted_tofs[:n_echo] = tofs[:n_echo]
         fitted_amps[:n_echo] = amps[:n_echo]
-        # First the clusters alone; if the checks then fail, once more with the lone echoes
-        # refined by least squares too (an echo unlike the template: :data:`echoes._LONE_ITERATIONS`).
-        attempts = 2 if lone_iterations > 0 else 1
-        for attempt in range(attempts):
-            _prepare(u, tofs[:n_echo], grid_b, grid_w)  # the others' sidelobes: the single fits
-            lone_echoes = 0
-            start = 0
-            while start < n_echo and status == OK:
-                stop = start + 1
-                while stop < n_echo and tofs[stop] - tofs[stop - 1] < 2 * mainlobe:
-                    stop += 1
-                size = stop - start
-                lone_echoes += size == 1
-                if (
-                    size > max_joint
-                    or math.ceil(tofs[stop - 1]) - math.floor(tofs[start]) + 2 * fit_half + 1 > joint_w
-                ):
-                    status = TOO_BIG
-                elif (size > 1) == (attempt == 0):
-                    t = joint_t[:size]
-                    a = joint_a[:size]
-                    t[:] = tofs[start:stop]
-                    a[:] = amps[start:stop]
-                    _fit_group(
+        start = 0
+        while start < n_echo and status == OK:
+            stop = start + 1
+            while stop < n_echo and tofs[stop] - tofs[stop - 1] < 2 * mainlobe:
+                stop += 1
+            size = stop - start
+            if (
+                size > max_joint
+                or math.ceil(tofs[stop - 1]) - math.floor(tofs[start]) + 2 * fit_half + 1 > joint_w
+            ):
+                status = TOO_BIG
+            elif size > 1 or lone_iterations > 0:
+                lo = math.floor(tofs[start]) - fit_half
+                hi = math.ceil(tofs[stop - 1]) + fit_half + 1
+                w = hi - lo
+                data = joint_data[:w]
+                valid = joint_valid[:w]
+                for j in range(w):
+                    s = lo + j
+                    data[j, 0] = data[j, 1] = 0.0
+                    valid[j] = 0 <= s < n
+                    if valid[j]:
+                        other = _model(table, half, grid_b, grid_w, amps, n_echo, s, start, stop)
+                        data[j, 0] = row[2 * s] - other.real
+                        data[j, 1] = row[2 * s + 1] - other.imag
+                t = joint_t[:size]
+                a = joint_a[:size]
+                t[:] = tofs[start:stop]
+                a[:] = amps[start:stop]
+                if size > 1:  # a lone echo's delay is phase-refined: it needs no complex steps
+                    _joint_fit_into(
                         table,
                         u,
                         half,
-                        row,
-                        n,
-                        grid_b,
-                        grid_w,
-                        amps,
-                        n_echo,
-                        start,
-                        stop,
-                        fit_half,
-                        complex_iterations if size > 1 else 0,
-                        real_iterations if size > 1 else lone_iterations,
+                        data,
+                        lo,
+                        valid,
                         t,
                         a,
-                        joint_data,
-                        joint_valid,
+                        False,
+                        complex_iterations,
+                        False,
+                        0.0,
+                        1e-6,
+                        0.0,
                         joint_work,
                         joint_new,
                     )
-                    fitted_tofs[start:stop] = t
-                    fitted_amps[start:stop] = a
-                start = stop
+                for i in range(size):
+                    a[i] = abs(a[i]) if a[i].real >= 0 else -abs(a[i])
+                _joint_fit_into(
+                    table,
+                    u,
+                    half,
+                    data,
+                    lo,
+                    valid,
+                    t,
+                    a,
+                    True,
+                    real_iterations if size > 1 else lone_iterations,
+                    False,
+                    0.0,
+                    1e-6,
+                    0.0,
+                    joint_work,
+                    joint_new,
+                )
+                fitted_tofs[start:stop] = t
+                fitted_amps[start:stop] = a
+            start = stop
+        if status != OK:
+            out_status[ch] = status
+            continue
+        _prepare(u, fitted_tofs[:n_echo], grid_b, grid_w)
+        # Checks: the model explains the main lobe around each echo's peak, every rejected
+        # candidate, and (CLEAN's split test) two main lobes around each echo. The first
+        # failed check decides; the residual around an echo is computed once for the two
+        # windows around it (its peak's main lobe lies within the two main lobes).
+        for e in range(n_echo):
+            centre = int(np.round(fitted_tofs[e]))
+            lo = min(centre - span, peaks[e] - fit_half)
+            hi = max(centre + span, peaks[e] + fit_half)
+            for s in range(max(lo, 0), min(hi, n - 1) + 1):
+                window_r = complex(row[2 * s], row[2 * s + 1]) - _model(
+                    table, half, grid_b, grid_w, fitted_amps, n_echo, s, 0, 0
+                )
+                residual_power[s] = window_r.real * window_r.real + window_r.imag * window_r.imag
+            for i in range(2 * fit_half + 1):
+                s = min(max(peaks[e] - fit_half + i, 0), n - 1)
+                if residual_power[s] > threshold:
+                    status = LEFT_OVER
+            cost = 0.0
+            inside = 0
+            for i in range(2 * span + 1):
+                s = centre - span + i
+                if 0 <= s < n:
+                    cost += residual_power[s]
+                    inside += 1
+            magnitude = abs(fitted_amps[e])
+            if cost >= 3.0 * power * inside and cost >= 0.003 * magnitude * magnitude * acf_energy:
+                status = UNEXPLAINED
             if status != OK:
                 break
-            _prepare(u, fitted_tofs[:n_echo], grid_b, grid_w)
-            status = _check_channel(
-                table,
-                half,
-                row,
-                n,
-                grid_b,
-                grid_w,
-                fitted_tofs,
-                fitted_amps,
-                n_echo,
-                peaks,
-                cand_k,
-                accepted,
-                m,
-                fit_half,
-                span,
-                threshold,
-                power,
-                acf_energy,
-                residual_power,
-            )
-            if status == OK or lone_echoes == 0 or attempt == attempts - 1:
-                break
-            status = OK  # the second try
+        for j in range(m):
+            if status == OK and not accepted[j]:
+                s = cand_k[j]
+                r = complex(row[2 * s], row[2 * s + 1]) - _model(
+                    table, half, grid_b, grid_w, fitted_amps, n_echo, s, 0, 0
+                )
+                if r.real * r.real + r.imag * r.imag > threshold:
+                    status = LEFT_OVER
         out_status[ch] = status
         if status != OK:
             continue

@@ -1333,13 +1333,13 @@ def _isolated_echoes(
     the echoes already accepted explain it: its magnitude is below 1.5 times the sum
     of their amplitudes times the template's sidelobe envelope at that lag. Each
     accepted echo is fitted as CLEAN fits an isolated echo (envelope parabola, then
-    the carrier phase; least-squares amplitude over the main lobe), and echoes within two
-    main lobes of each other jointly. If the model then fails the checks
-    (:class:`_CheckProbes`), the channel's lone echoes are refitted by least squares and the
-    checks run again (:data:`_LONE_ITERATIONS`). A channel is returned as None, for CLEAN,
-    when two echoes lie within a quarter main lobe, when a cluster is too big for one joint
-    fit, when the model still fails the checks, or when it has more candidates than
-    ``4 max_echoes``.
+    the carrier phase; least-squares amplitude over the main lobe); then echoes within two
+    main lobes of each other are fitted jointly and a lone echo by one least-squares step
+    (:data:`_LONE_ITERATIONS`). A channel is returned as None, for CLEAN, when two echoes
+    lie within a quarter main lobe, when a cluster is too big for one joint fit, when the
+    model leaves anything above the threshold around an echo or at a rejected candidate
+    or more than CLEAN's split test lets pass over two main lobes, or when it has more
+    candidates than ``4 max_echoes``.
     """
     n_ch, n = correlation.shape
     power_map = correlation.real**2 + correlation.imag**2
@@ -1403,8 +1403,8 @@ def _isolated_echoes(
         tof, amplitude = _fit_peaks(
             mf, values - others_near, neighbours, np.where(in_frame, window_values - others_window, 0), window
         )
-    # Echoes within two main lobes of each other (CLEAN's clusters) are fitted jointly; a lone
-    # echo keeps its fit unless its channel fails the checks (:data:`_LONE_ITERATIONS`).
+    # Echoes within two main lobes of each other (CLEAN's clusters) are fitted jointly, and a
+    # lone echo is refined by real-amplitude steps (:data:`_LONE_ITERATIONS`).
     order = np.lexsort((tof, ach))
     ach, tof, amplitude, peak_k = ach[order], tof[order], amplitude[order], peak_k[order]
     window, in_frame = window[order], in_frame[order]
@@ -1433,18 +1433,36 @@ def _isolated_echoes(
             _COMPLEX_ITERATIONS,
             _REAL_ITERATIONS,
         )
-    probes = _CheckProbes(correlation, ach, window, accepted, cand_a, cand_k, threshold, power)
-    failed = probes.failed(mf, tof, amplitude)
-    # A channel that fails with lone echoes in it: once more with them refined by least squares.
     lone = (sizes[group] == 1) & ~bad[ach]
-    retry = failed & ~bad & (np.bincount(ach[lone], minlength=n_ch) > 0)
-    if np.any(retry) and _LONE_ITERATIONS > 0:
-        refit = lone & retry[ach]
-        tof[refit], amplitude[refit] = _fit_clusters(
-            mf, correlation, ach, single_tof, single_amplitude, group, refit, fit_half, 0, _LONE_ITERATIONS
+    if np.any(lone) and _LONE_ITERATIONS > 0:
+        tof[lone], amplitude[lone] = _fit_clusters(
+            mf, correlation, ach, single_tof, single_amplitude, group, lone, fit_half, 0, _LONE_ITERATIONS
         )
-        failed = np.where(retry, probes.failed(mf, tof, amplitude), failed)
-    bad |= failed
+    # Checks: the model explains the data around each echo (its main lobe) and at every
+    # rejected candidate (one sample), sidelobes included; and over two main lobes around
+    # each echo it leaves no more than CLEAN's split test lets pass (:meth:`_Clean._choose_order`).
+    rejected_ch, rejected_j = np.nonzero(~accepted & (cand_a > 0))
+    for probe_ch, probe in (
+        (ach, window),
+        (rejected_ch, cand_k[rejected_ch, rejected_j][:, None]),
+    ):
+        left = np.abs(
+            correlation[probe_ch[:, None], probe].astype(complex)
+            - _model_at(mf, ach, tof, amplitude, probe_ch, probe)
+        )
+        bad[probe_ch[np.any(left**2 > threshold[probe_ch, None], axis=1)]] = True
+    span = math.ceil(mainlobe)
+    around = np.round(tof).astype(np.int64)[:, None] + np.arange(-span, span + 1)
+    inside = (around >= 0) & (around < n)
+    around = np.clip(around, 0, n - 1)
+    model = _model_at(mf, ach, tof, amplitude, ach, around)
+    left = np.where(inside, correlation[ach[:, None], around].astype(complex) - model, 0)
+    cost = np.sum(left.real**2 + left.imag**2, axis=1)
+    acf_energy = mf.acf_energy
+    unexplained = (cost >= 3.0 * power[ach] * np.sum(inside, axis=1)) & (
+        cost >= 0.003 * np.abs(amplitude) ** 2 * acf_energy
+    )
+    bad[ach[unexplained]] = True
     for channel in range(n_ch):
         if bad[channel]:
             results[channel] = None
@@ -1453,54 +1471,6 @@ def _isolated_echoes(
         rows = mine & (ach == channel)
         results[channel] = (tof[rows], np.abs(amplitude[rows]), float(power[channel]))
     return results
-
-
-@dataclass(frozen=True, eq=False)
-class _CheckProbes:
-    """What the batch path's checks of a model read (:func:`_isolated_echoes`): each echo's
-    window (``window``, samples) and the rejected candidates of every channel."""
-
-    correlation: NDArray[np.complexfloating[Any, Any]]
-    ach: NDArray[np.int64]  # channel of each echo
-    window: NDArray[np.int64]
-    accepted: NDArray[np.bool_]
-    cand_a: NDArray[np.float64]
-    cand_k: NDArray[np.int64]
-    threshold: NDArray[np.float64]  # per channel
-    power: NDArray[np.float64]  # per channel
-
-    def failed(
-        self, mf: MatchedFilter, tof: NDArray[np.float64], amplitude: NDArray[np.complex128]
-    ) -> NDArray[np.bool_]:
-        """Channels whose model (echoes ``tof``, ``amplitude``) fails a check: it leaves more than
-        the threshold around an echo (its main lobe) or at a rejected candidate (one sample),
-        sidelobes included, or more over two main lobes around an echo than CLEAN's split test
-        lets pass (:meth:`_Clean._choose_order`)."""
-        correlation, ach, threshold = self.correlation, self.ach, self.threshold
-        n_ch, n = correlation.shape
-        failed = np.zeros(n_ch, dtype=bool)
-        rejected_ch, rejected_j = np.nonzero(~self.accepted & (self.cand_a > 0))
-        for probe_ch, probe in (
-            (ach, self.window),
-            (rejected_ch, self.cand_k[rejected_ch, rejected_j][:, None]),
-        ):
-            left = np.abs(
-                correlation[probe_ch[:, None], probe].astype(complex)
-                - _model_at(mf, ach, tof, amplitude, probe_ch, probe)
-            )
-            failed[probe_ch[np.any(left**2 > threshold[probe_ch, None], axis=1)]] = True
-        span = math.ceil(mf.mainlobe_samples)
-        around = np.round(tof).astype(np.int64)[:, None] + np.arange(-span, span + 1)
-        inside = (around >= 0) & (around < n)
-        around = np.clip(around, 0, n - 1)
-        model = _model_at(mf, ach, tof, amplitude, ach, around)
-        left = np.where(inside, correlation[ach[:, None], around].astype(complex) - model, 0)
-        cost = np.sum(left.real**2 + left.imag**2, axis=1)
-        unexplained = (cost >= 3.0 * self.power[ach] * np.sum(inside, axis=1)) & (
-            cost >= 0.003 * np.abs(amplitude) ** 2 * mf.acf_energy
-        )
-        failed[ach[unexplained]] = True
-        return failed
 
 
 _MAX_JOINT = 4
@@ -1524,16 +1494,14 @@ of their basin (Gauss-Newton steps on the table's piecewise-linear slopes zig-za
 of a sample) or drift a faint echo outward. On the bench scenes' CLEAN channels this cuts the
 candidate fits' time by two fifths and moves no answer by more than 1e-9 samples."""
 _LONE_ITERATIONS = 1
-"""Levenberg-Marquardt steps (real amplitude) of the batch path's second try at a channel
-whose model failed the checks: its lone echoes (no neighbour within two main lobes), fitted
-at first by their carrier phase at three lags, are refitted by least squares over their
-main lobe, and the checks run again. The phase fits an echo of exactly the template's shape
-at the bound (RMSE 1.02 x CRLB at SNR 13, against 1.05 for the least-squares step); an echo
-that differs from it (the transducers' response off their axis) is fitted better by least
-squares. At decimation 2, where the three lags span 4 samples, the difference reached the
-checks: without the second try 33 of the report scene's 160 channels (all on the receiver
-whose third-ball echo fits the template worst) went to CLEAN, with it 1. One step settles
-it: more moved no delay of the calibration test's by 0.01 ns."""
+"""Levenberg-Marquardt steps (real amplitude) of the batch path's fit of an echo with no
+neighbour within two main lobes, from its phase-refined estimate. The carrier phase at
+three lags fits an echo of exactly the template's shape; an echo that differs from it (the
+transducers' response off their axis) is fitted better by least squares over its main lobe.
+At decimation 2, where the three lags span 4 samples, the difference reached the residual
+checks: without this step 33 of the report scene's 160 channels (all on the receiver whose
+third-ball echo fits the template worst) went to CLEAN, with it 1. One step settles it: more
+moved no delay of the calibration test's by 0.01 ns."""
 _COMPLEX_ITERATIONS = 2
 _REAL_ITERATIONS = 3
 """Levenberg-Marquardt steps of the batched cluster fits: they start from the
