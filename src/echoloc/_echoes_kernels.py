@@ -548,6 +548,522 @@ def _sort_descending(keys: Any, values: Any, count: int) -> None:  # pragma: no 
 
 
 @njit(cache=True)
+def _channel_checks(
+    table: Any,
+    half: int,
+    row: Any,
+    n: int,
+    grid_b: Any,
+    grid_w: Any,
+    tofs: Any,
+    amps: Any,
+    peaks: Any,
+    count: int,
+    cand_k: Any,
+    accepted: Any,
+    n_cand: int,
+    fit_half: int,
+    span: int,
+    threshold: float,
+    power: float,
+    acf_energy: float,
+    residual_power: Any,
+    state: Any,
+) -> tuple[int, int]:  # pragma: no cover - compiled
+    """The batch path's checks of a channel's fitted echoes (``grid_b``/``grid_w`` prepared for
+    ``tofs[:count]``): its status, and the echo that failed (-1: none, or a rejected candidate).
+
+    The model must explain the main lobe around each echo's peak, every rejected candidate,
+    and (CLEAN's split test) two main lobes around each echo. Of the echoes that fail, the one
+    whose two main lobes hold the most unexplained energy (against what the test allows) is
+    returned: a pair fitted as one echo leaves its sidelobes' misfit on its neighbours too.
+    The residual around an echo is computed once for the two windows around it (its peak's
+    main lobe lies within the two main lobes). WAIVED echoes (``state``) are not checked, nor
+    rejected candidates within their template's reach (where CLEAN, merging the pair into one
+    echo, leaves the pair's misfit too).
+    """
+    worst_status, worst, worst_excess = OK, -1, -1.0
+    for e in range(count):
+        if state[e] == WAIVED:
+            continue
+        status = OK
+        centre = int(np.round(tofs[e]))
+        lo = min(centre - span, peaks[e] - fit_half)
+        hi = max(centre + span, peaks[e] + fit_half)
+        for s in range(max(lo, 0), min(hi, n - 1) + 1):
+            window_r = complex(row[2 * s], row[2 * s + 1]) - _model(
+                table, half, grid_b, grid_w, amps, count, s, 0, 0
+            )
+            residual_power[s] = window_r.real * window_r.real + window_r.imag * window_r.imag
+        for i in range(2 * fit_half + 1):
+            s = min(max(peaks[e] - fit_half + i, 0), n - 1)
+            if residual_power[s] > threshold:
+                status = LEFT_OVER
+        cost = 0.0
+        inside = 0
+        for i in range(2 * span + 1):
+            s = centre - span + i
+            if 0 <= s < n:
+                cost += residual_power[s]
+                inside += 1
+        magnitude = abs(amps[e])
+        allowed = max(3.0 * power * inside, 0.003 * magnitude * magnitude * acf_energy)
+        if cost >= allowed:
+            status = UNEXPLAINED
+        if status != OK and cost / allowed > worst_excess:
+            worst_status, worst, worst_excess = status, e, cost / allowed
+    if worst >= 0:
+        return worst_status, worst
+    for j in range(n_cand):
+        if not accepted[j]:
+            s = cand_k[j]
+            near_waived = False
+            for e in range(count):
+                near_waived |= state[e] == WAIVED and abs(s - tofs[e]) <= half
+            if near_waived:
+                continue
+            r = complex(row[2 * s], row[2 * s + 1]) - _model(
+                table, half, grid_b, grid_w, amps, count, s, 0, 0
+            )
+            if r.real * r.real + r.imag * r.imag > threshold:
+                return LEFT_OVER, -1
+    return OK, -1
+
+
+FREE, BORN, WAIVED = 0, 1, 2
+"""State of an echo in the batch path: as found, one of a split's pair, or one echo standing for
+a pair too close to resolve (the checks pass it over)."""
+NO_PAIR, MERGED = -1, -2
+"""What :func:`_split_echo` returns instead of a count: no plausible pair, or a pair too close to resolve."""
+
+_SPLIT_STEP = 0.5
+"""Lags between the delays of the grid a split searches: its gain varies over the envelope's
+scale (the complex amplitudes take up the carrier phase), a main lobe of 8.5 lags."""
+_SPLIT_ITERATIONS = 200
+"""Most Levenberg-Marquardt steps of a split's fits, each stopping once converged (as CLEAN's)."""
+
+
+@njit(cache=True)
+def _pair_plausible(
+    t: Any, a: Any, lo: int, hi: int, merge_samples: float, mainlobe: float, threshold: float
+) -> bool:  # pragma: no cover - compiled
+    """Whether two fitted echoes make a pair CLEAN's model choice would keep: inside the window,
+    both above the threshold (on |a|^2), a quarter main lobe apart, and _clean_plausible."""
+    for i in range(2):
+        if not (np.isfinite(t[i]) and lo <= t[i] < hi and abs(a[i]) ** 2 >= threshold):
+            return False
+    if abs(t[1] - t[0]) < merge_samples:
+        return False
+    return _clean_plausible(t, a, mainlobe)
+
+
+@njit(cache=True)
+def _split_echo(
+    table: Any,
+    u: int,
+    half: int,
+    rate: float,
+    row: Any,
+    n: int,
+    tofs: Any,
+    amps: Any,
+    peaks: Any,
+    state: Any,
+    count: int,
+    e: int,
+    reach: float,
+    grid_b: Any,
+    grid_w: Any,
+    fit_half: int,
+    mainlobe: float,
+    threshold: float,
+    data: Any,
+    valid: Any,
+    shapes: Any,
+    overlap: Any,
+    energy: Any,
+    work: Any,
+    new_amps: Any,
+    pair_t: Any,
+    pair_a: Any,
+) -> int:  # pragma: no cover - compiled
+    """Echo ``e`` of ``tofs``/``amps[:count]`` (real amplitudes; ``grid_b``/``grid_w`` prepared)
+    refitted as two echoes within a main lobe of it, in place, together with the echoes within
+    ``reach`` of it (the members: the rest of a pair whose joint fit settled wrong, or peaks
+    of the pair's interference). Returns the new count: the members replaced
+    by the pair, sorted by delay, the pair BORN in ``state`` with the first and last members'
+    peaks. Else
+    nothing changes: MERGED when ``e`` stands alone and the best pair lies closer than a
+    quarter main lobe (CLEAN would merge it into one echo), NO_PAIR when no plausible pair fits.
+
+    The data are the correlation less the other echoes' model, from a main lobe before the
+    first member to a main lobe after the last and half a main lobe beyond. The pair starts
+    from the global least-squares fit with complex amplitudes over a grid of delays
+    :data:`_SPLIT_STEP` apart (variable projection: for shapes S_g, S_h the fit removes
+    ``b^H G^-1 b`` of the data's energy, b their inner products with the data, G their Gram
+    matrix), so no local minimum traps it. Levenberg-Marquardt with complex, then real
+    amplitudes settles it; as CLEAN's model choice does, each member is then tried half a
+    carrier cycle either way (amplitude negated), and the lowest cost among plausible pairs
+    (:func:`_pair_plausible`) wins.
+    """
+    first_member = last_member = e
+    while first_member > 0 and tofs[e] - tofs[first_member - 1] <= reach:
+        first_member -= 1
+    while last_member < count - 1 and tofs[last_member + 1] - tofs[e] <= reach:
+        last_member += 1
+    members = last_member - first_member + 1
+    start, stop = tofs[first_member] - mainlobe, tofs[last_member] + mainlobe
+    lo = max(math.floor(start) - fit_half, 0)
+    hi = min(math.ceil(stop) + fit_half + 1, n, lo + data.shape[0])
+    w = hi - lo
+    if w < 4:
+        return NO_PAIR
+    d = data[:w]
+    ok = valid[:w]
+    for j in range(w):
+        s = lo + j
+        other = _model(table, half, grid_b, grid_w, amps, count, s, first_member, last_member + 1)
+        d[j, 0] = row[2 * s] - other.real
+        d[j, 1] = row[2 * s + 1] - other.imag
+        ok[j] = True
+    first = math.floor(start / _SPLIT_STEP) * _SPLIT_STEP
+    n_grid = min(int((stop - start) / _SPLIT_STEP) + 3, shapes.shape[0])
+    for g in range(n_grid):
+        b0, r0, b1, r1, wt = _grid(u, first + _SPLIT_STEP * g)
+        re = im = total = 0.0
+        for j in range(w):
+            v = _clean_shape(table, half, b0, r0, b1, r1, wt, lo + j)
+            shapes[g, j] = v
+            re += v.real * d[j, 0] + v.imag * d[j, 1]
+            im += v.real * d[j, 1] - v.imag * d[j, 0]
+            total += v.real * v.real + v.imag * v.imag
+        overlap[g] = complex(re, im)
+        energy[g] = total
+    merge_samples = mainlobe / 4
+    nearest = math.ceil(merge_samples / _SPLIT_STEP)
+    farthest = math.floor(mainlobe / _SPLIT_STEP)
+    best_gain = 0.0
+    closest_gain = 0.0  # the best pair closer than that
+    for g in range(n_grid):
+        bg, eg = overlap[g], energy[g]
+        for h in range(g + 1, min(g + farthest, n_grid - 1) + 1):
+            re = im = 0.0
+            for j in range(w):
+                x, y = shapes[g, j], shapes[h, j]
+                re += x.real * y.real + x.imag * y.imag
+                im += x.real * y.imag - x.imag * y.real
+            c = complex(re, im)
+            bh, eh = overlap[h], energy[h]
+            det = eg * eh - (re * re + im * im)
+            if not det > 1e-9 * eg * eh:
+                continue
+            cross = bg.conjugate() * c * bh
+            gain = (eh * abs(bg) ** 2 + eg * abs(bh) ** 2 - 2 * cross.real) / det
+            if h - g < nearest:
+                closest_gain = max(closest_gain, gain)
+            elif gain > best_gain:
+                best_gain = gain
+                pair_t[0], pair_t[1] = first + _SPLIT_STEP * g, first + _SPLIT_STEP * h
+                pair_a[0] = (eh * bg - c * bh) / det
+                pair_a[1] = (eg * bh - c.conjugate() * bg) / det
+    if closest_gain > best_gain:
+        return MERGED if members == 1 else NO_PAIR
+    if best_gain <= 0.0:
+        return NO_PAIR
+    t, a = pair_t, pair_a
+    _joint_fit_into(
+        table, u, half, d, lo, ok, t, a, False, _SPLIT_ITERATIONS, True, rate, 1e-3, 1e-2, work, new_amps
+    )
+    for i in range(2):
+        a[i] = abs(a[i]) if a[i].real >= 0 else -abs(a[i])
+    cost = _joint_fit_into(
+        table, u, half, d, lo, ok, t, a, True, _SPLIT_ITERATIONS, True, 0.0, 1e-6, 0.0, work, new_amps
+    )
+    best_cost = cost if _pair_plausible(t, a, lo, hi, merge_samples, mainlobe, threshold) else np.inf
+    best_t0, best_t1, best_a0, best_a1 = t[0], t[1], a[0], a[1]
+    settled_t = t.copy()
+    settled_a = a.copy()
+    period = math.pi / rate
+    for member in range(2):
+        for step in (-period, period):
+            t[:] = settled_t
+            a[:] = settled_a
+            t[member] += step
+            a[member] = -a[member]
+            cost = _joint_fit_into(
+                table, u, half, d, lo, ok, t, a, True, _SPLIT_ITERATIONS, True, 0.0, 1e-6, 0.0, work, new_amps
+            )
+            if cost < best_cost and _pair_plausible(t, a, lo, hi, merge_samples, mainlobe, threshold):
+                best_cost = cost
+                best_t0, best_t1, best_a0, best_a1 = t[0], t[1], a[0], a[1]
+    if not np.isfinite(best_cost):
+        return NO_PAIR
+    # The members make way for the pair at first_member: the echoes after them move by 2 - members.
+    peak_first, peak_last = peaks[first_member], peaks[last_member]
+    total = count + 2 - members
+    if members == 1:
+        for i in range(count, e + 1, -1):
+            tofs[i], amps[i], peaks[i], state[i] = tofs[i - 1], amps[i - 1], peaks[i - 1], state[i - 1]
+    elif members > 2:
+        for i in range(first_member + 2, total):
+            j = i + members - 2
+            tofs[i], amps[i], peaks[i], state[i] = tofs[j], amps[j], peaks[j], state[j]
+    e = first_member
+    tofs[e], amps[e], tofs[e + 1], amps[e + 1] = best_t0, best_a0, best_t1, best_a1
+    peaks[e], peaks[e + 1] = peak_first, peak_last
+    state[e] = state[e + 1] = BORN
+    for i in range(1, total):  # stable insertion sort by delay
+        t0, a0, p0, b0 = tofs[i], amps[i], peaks[i], state[i]
+        j = i
+        while j > 0 and tofs[j - 1] > t0:
+            tofs[j], amps[j], peaks[j], state[j] = tofs[j - 1], amps[j - 1], peaks[j - 1], state[j - 1]
+            j -= 1
+        tofs[j], amps[j], peaks[j], state[j] = t0, a0, p0, b0
+    return total
+
+
+@njit(cache=True)
+def _refine_echoes(
+    table: Any,
+    u: int,
+    half: int,
+    rate: float,
+    row: Any,
+    n: int,
+    peaks: Any,
+    tofs: Any,
+    amps: Any,
+    state: Any,
+    n_echo: int,
+    fit_half: int,
+    mainlobe: float,
+    grid_b: Any,
+    grid_w: Any,
+    new_tofs: Any,
+    new_amps: Any,
+    window: Any,
+    fitted_tofs: Any,
+    fitted_amps: Any,
+    max_joint: int,
+    joint_w: int,
+    joint_data: Any,
+    joint_valid: Any,
+    joint_t: Any,
+    joint_a: Any,
+    joint_work: Any,
+    joint_new: Any,
+    complex_iterations: int,
+    real_iterations: int,
+    lone_iterations: int,
+) -> int:  # pragma: no cover - compiled
+    """The batch path's fits from the echoes' first estimates ``tofs``/``amps[:n_echo]``: twice
+    each echo refitted at its peak with the others' model taken out (all updated together;
+    BORN ones keep theirs), sorted by delay (stable, with ``peaks`` and ``state``), then
+    clusters within two main lobes fitted jointly and lone echoes stepped, into
+    ``fitted_tofs``/``fitted_amps``. Returns OK, CLOSE (two within a quarter main lobe) or
+    TOO_BIG (a cluster beyond the joint fit's reach)."""
+    for _ in range(2):
+        _prepare(u, tofs[:n_echo], grid_b, grid_w)
+        for e in range(n_echo):
+            if state[e] == BORN:
+                new_tofs[e], new_amps[e] = tofs[e], amps[e]
+                continue
+            # An echo none of whose neighbours reaches its window refits to what it is
+            # (their model there is exactly zero): it keeps its fit.
+            alone = True
+            for j in range(n_echo):
+                if j != e and abs(peaks[e] - grid_b[j, 0]) <= half + fit_half + 1:
+                    alone = False
+            if alone:
+                new_tofs[e], new_amps[e] = tofs[e], amps[e]
+                continue
+            new_tofs[e], new_amps[e] = _fit_peak(
+                table, u, half, rate, row, n, peaks[e], fit_half, grid_b, grid_w, amps, n_echo, e, window
+            )
+        tofs[:n_echo] = new_tofs[:n_echo]
+        amps[:n_echo] = new_amps[:n_echo]
+    # Sort by delay (stable); clusters of echoes within two main lobes are fitted jointly.
+    for i in range(1, n_echo):
+        t, a, pk, f = tofs[i], amps[i], peaks[i], state[i]
+        j = i
+        while j > 0 and tofs[j - 1] > t:
+            tofs[j], amps[j], peaks[j], state[j] = tofs[j - 1], amps[j - 1], peaks[j - 1], state[j - 1]
+            j -= 1
+        tofs[j], amps[j], peaks[j], state[j] = t, a, pk, f
+    status = OK
+    for e in range(1, n_echo):
+        if tofs[e] - tofs[e - 1] < mainlobe / 4:
+            status = CLOSE
+    _prepare(u, tofs[:n_echo], grid_b, grid_w)
+    fitted_tofs[:n_echo] = tofs[:n_echo]
+    fitted_amps[:n_echo] = amps[:n_echo]
+    start = 0
+    while start < n_echo and status == OK:
+        stop = start + 1
+        while stop < n_echo and tofs[stop] - tofs[stop - 1] < 2 * mainlobe:
+            stop += 1
+        size = stop - start
+        if (
+            size > max_joint
+            or math.ceil(tofs[stop - 1]) - math.floor(tofs[start]) + 2 * fit_half + 1 > joint_w
+        ):
+            status = TOO_BIG
+        elif size > 1 or lone_iterations > 0:
+            lo = math.floor(tofs[start]) - fit_half
+            hi = math.ceil(tofs[stop - 1]) + fit_half + 1
+            w = hi - lo
+            data = joint_data[:w]
+            valid = joint_valid[:w]
+            for j in range(w):
+                s = lo + j
+                data[j, 0] = data[j, 1] = 0.0
+                valid[j] = 0 <= s < n
+                if valid[j]:
+                    other = _model(table, half, grid_b, grid_w, amps, n_echo, s, start, stop)
+                    data[j, 0] = row[2 * s] - other.real
+                    data[j, 1] = row[2 * s + 1] - other.imag
+            t = joint_t[:size]
+            a = joint_a[:size]
+            t[:] = tofs[start:stop]
+            a[:] = amps[start:stop]
+            if size > 1:  # a lone echo's delay is phase-refined: it needs no complex steps
+                _joint_fit_into(
+                    table,
+                    u,
+                    half,
+                    data,
+                    lo,
+                    valid,
+                    t,
+                    a,
+                    False,
+                    complex_iterations,
+                    False,
+                    0.0,
+                    1e-6,
+                    0.0,
+                    joint_work,
+                    joint_new,
+                )
+            for i in range(size):
+                a[i] = abs(a[i]) if a[i].real >= 0 else -abs(a[i])
+            _joint_fit_into(
+                table,
+                u,
+                half,
+                data,
+                lo,
+                valid,
+                t,
+                a,
+                True,
+                real_iterations if size > 1 else lone_iterations,
+                False,
+                0.0,
+                1e-6,
+                0.0,
+                joint_work,
+                joint_new,
+            )
+            fitted_tofs[start:stop] = t
+            fitted_amps[start:stop] = a
+        start = stop
+    return status
+
+
+@njit(cache=True)
+def _refit_around_pair(
+    table: Any,
+    u: int,
+    half: int,
+    rate: float,
+    row: Any,
+    n: int,
+    peaks: Any,
+    tofs: Any,
+    amps: Any,
+    state: Any,
+    n_echo: int,
+    fit_half: int,
+    mainlobe: float,
+    grid_b: Any,
+    grid_w: Any,
+    new_tofs: Any,
+    new_amps: Any,
+    window: Any,
+    fitted_tofs: Any,
+    fitted_amps: Any,
+    max_joint: int,
+    joint_w: int,
+    joint_data: Any,
+    joint_valid: Any,
+    joint_t: Any,
+    joint_a: Any,
+    joint_work: Any,
+    joint_new: Any,
+    complex_iterations: int,
+    real_iterations: int,
+    lone_iterations: int,
+    threshold: float,
+    cand_k: Any,
+    accepted: Any,
+    n_cand: int,
+) -> int:  # pragma: no cover - compiled
+    """After a split: the other echoes fitted again around the pair (:func:`_refine_echoes` from
+    ``fitted_tofs``/``fitted_amps``), then those left below the threshold dropped (they stood
+    for what the single echo's model left over; their peaks are checked as rejected
+    candidates'). The new count, or -1 when the fits fail (CLOSE or TOO_BIG)."""
+    tofs[:n_echo] = fitted_tofs[:n_echo]
+    amps[:n_echo] = fitted_amps[:n_echo]
+    status = _refine_echoes(
+        table,
+        u,
+        half,
+        rate,
+        row,
+        n,
+        peaks,
+        tofs,
+        amps,
+        state,
+        n_echo,
+        fit_half,
+        mainlobe,
+        grid_b,
+        grid_w,
+        new_tofs,
+        new_amps,
+        window,
+        fitted_tofs,
+        fitted_amps,
+        max_joint,
+        joint_w,
+        joint_data,
+        joint_valid,
+        joint_t,
+        joint_a,
+        joint_work,
+        joint_new,
+        complex_iterations,
+        real_iterations,
+        lone_iterations,
+    )
+    if status != OK:
+        return -1
+    kept = 0
+    for e in range(n_echo):
+        if state[e] != FREE or abs(fitted_amps[e]) ** 2 >= threshold:
+            fitted_tofs[kept], fitted_amps[kept] = fitted_tofs[e], fitted_amps[e]
+            tofs[kept], amps[kept], peaks[kept], state[kept] = tofs[e], amps[e], peaks[e], state[e]
+            kept += 1
+            continue
+        for j in range(n_cand):
+            if accepted[j] and cand_k[j] == peaks[e]:
+                accepted[j] = False
+    return kept
+
+
+@njit(cache=True)
 def batch_echoes(
     corr: Any,
     n: int,
@@ -566,6 +1082,7 @@ def batch_echoes(
     complex_iterations: int,
     real_iterations: int,
     lone_iterations: int,
+    max_splits: int,
     noise_step: int,
     out_tof: Any,
     out_amp: Any,
@@ -577,6 +1094,8 @@ def batch_echoes(
 
     Clusters of echoes within two main lobes get ``complex_iterations`` and then
     ``real_iterations`` Levenberg-Marquardt steps; a lone echo ``lone_iterations`` real ones.
+    An echo the checks find unexplained is split in two (:func:`_split_echo`), at most
+    ``max_splits`` times a channel.
 
     ``corr`` is the complex correlation (n_ch, >= n) viewed as (n_ch, >= 2 n) reals, of
     which the first ``n`` samples of each row are read (the rows of a longer FFT output can
@@ -607,12 +1126,29 @@ def batch_echoes(
     # A cluster's fit spans at most max_joint echoes two main lobes apart and half a main lobe
     # beyond each end.
     joint_w = math.ceil((max_joint - 1) * 2 * mainlobe) + 2 * fit_half + 4
-    joint_work = np.empty(_fit_scratch_size(max_joint, joint_w))
+    # A split's window: its members (within a main lobe and a half of the echo either side), a
+    # main lobe either side of them and half a main lobe beyond.
+    split_w = 4 * span + 4 * fit_half + 4
+    joint_work = np.empty(max(_fit_scratch_size(max_joint, joint_w), _fit_scratch_size(2, split_w)))
     joint_data = np.zeros((joint_w, 2))
     joint_valid = np.zeros(joint_w, dtype=np.bool_)
     joint_t = np.zeros(max_joint)
     joint_a = np.zeros(max_joint, dtype=np.complex128)
-    joint_new = np.zeros(max_joint, dtype=np.complex128)
+    joint_new = np.zeros(max(max_joint, 2), dtype=np.complex128)
+    split_grid = int((4 * span + 2 * fit_half) / _SPLIT_STEP) + 4
+    split_data = np.zeros((split_w, 2))
+    split_valid = np.ones(split_w, dtype=np.bool_)
+    split_shapes = np.zeros((split_grid, split_w), dtype=np.complex128)
+    split_overlap = np.zeros(split_grid, dtype=np.complex128)
+    split_energy = np.zeros(split_grid)
+    split_t = np.zeros(2)
+    split_a = np.zeros(2, dtype=np.complex128)
+    state = np.zeros(max_candidates, dtype=np.int8)
+    kept_tofs = np.zeros(max_candidates)
+    kept_amps = np.zeros(max_candidates, dtype=np.complex128)
+    kept_peaks = np.zeros(max_candidates, dtype=np.int64)
+    kept_state = np.zeros(max_candidates, dtype=np.int8)
+    kept_accepted = np.zeros(max_candidates, dtype=np.bool_)
     for ch in range(n_ch):
         out_count[ch] = 0
         out_status[ch] = OK
@@ -674,150 +1210,193 @@ def batch_echoes(
             tofs[e], amps[e] = _fit_peak(
                 table, u, half, rate, row, n, peaks[e], fit_half, grid_b, grid_w, amps, 0, 0, window
             )
-        for _ in range(2):
-            _prepare(u, tofs[:n_echo], grid_b, grid_w)
-            for e in range(n_echo):
-                # An echo none of whose neighbours reaches its window refits to what it is
-                # (their model there is exactly zero): it keeps its fit.
-                alone = True
-                for j in range(n_echo):
-                    if j != e and abs(peaks[e] - grid_b[j, 0]) <= half + fit_half + 1:
-                        alone = False
-                if alone:
-                    new_tofs[e], new_amps[e] = tofs[e], amps[e]
-                    continue
-                new_tofs[e], new_amps[e] = _fit_peak(
-                    table, u, half, rate, row, n, peaks[e], fit_half, grid_b, grid_w, amps, n_echo, e, window
-                )
-            tofs[:n_echo] = new_tofs[:n_echo]
-            amps[:n_echo] = new_amps[:n_echo]
-        # Sort by delay (stable); clusters of echoes within two main lobes are fitted jointly.
-        for i in range(1, n_echo):
-            t, a, pk = tofs[i], amps[i], peaks[i]
-            j = i
-            while j > 0 and tofs[j - 1] > t:
-                tofs[j], amps[j], peaks[j] = tofs[j - 1], amps[j - 1], peaks[j - 1]
-                j -= 1
-            tofs[j], amps[j], peaks[j] = t, a, pk
-        status = OK
-        for e in range(1, n_echo):
-            if tofs[e] - tofs[e - 1] < mainlobe / 4:
-                status = CLOSE
-        _prepare(u, tofs[:n_echo], grid_b, grid_w)
-        fitted_tofs[:n_echo] = tofs[:n_echo]
-        fitted_amps[:n_echo] = amps[:n_echo]
-        start = 0
-        while start < n_echo and status == OK:
-            stop = start + 1
-            while stop < n_echo and tofs[stop] - tofs[stop - 1] < 2 * mainlobe:
-                stop += 1
-            size = stop - start
-            if (
-                size > max_joint
-                or math.ceil(tofs[stop - 1]) - math.floor(tofs[start]) + 2 * fit_half + 1 > joint_w
-            ):
-                status = TOO_BIG
-            elif size > 1 or lone_iterations > 0:
-                lo = math.floor(tofs[start]) - fit_half
-                hi = math.ceil(tofs[stop - 1]) + fit_half + 1
-                w = hi - lo
-                data = joint_data[:w]
-                valid = joint_valid[:w]
-                for j in range(w):
-                    s = lo + j
-                    data[j, 0] = data[j, 1] = 0.0
-                    valid[j] = 0 <= s < n
-                    if valid[j]:
-                        other = _model(table, half, grid_b, grid_w, amps, n_echo, s, start, stop)
-                        data[j, 0] = row[2 * s] - other.real
-                        data[j, 1] = row[2 * s + 1] - other.imag
-                t = joint_t[:size]
-                a = joint_a[:size]
-                t[:] = tofs[start:stop]
-                a[:] = amps[start:stop]
-                if size > 1:  # a lone echo's delay is phase-refined: it needs no complex steps
-                    _joint_fit_into(
-                        table,
-                        u,
-                        half,
-                        data,
-                        lo,
-                        valid,
-                        t,
-                        a,
-                        False,
-                        complex_iterations,
-                        False,
-                        0.0,
-                        1e-6,
-                        0.0,
-                        joint_work,
-                        joint_new,
-                    )
-                for i in range(size):
-                    a[i] = abs(a[i]) if a[i].real >= 0 else -abs(a[i])
-                _joint_fit_into(
-                    table,
-                    u,
-                    half,
-                    data,
-                    lo,
-                    valid,
-                    t,
-                    a,
-                    True,
-                    real_iterations if size > 1 else lone_iterations,
-                    False,
-                    0.0,
-                    1e-6,
-                    0.0,
-                    joint_work,
-                    joint_new,
-                )
-                fitted_tofs[start:stop] = t
-                fitted_amps[start:stop] = a
-            start = stop
+        state[:n_echo] = FREE
+        status = _refine_echoes(
+            table,
+            u,
+            half,
+            rate,
+            row,
+            n,
+            peaks,
+            tofs,
+            amps,
+            state,
+            n_echo,
+            fit_half,
+            mainlobe,
+            grid_b,
+            grid_w,
+            new_tofs,
+            new_amps,
+            window,
+            fitted_tofs,
+            fitted_amps,
+            max_joint,
+            joint_w,
+            joint_data,
+            joint_valid,
+            joint_t,
+            joint_a,
+            joint_work,
+            joint_new,
+            complex_iterations,
+            real_iterations,
+            lone_iterations,
+        )
         if status != OK:
             out_status[ch] = status
             continue
         _prepare(u, fitted_tofs[:n_echo], grid_b, grid_w)
-        # Checks: the model explains the main lobe around each echo's peak, every rejected
-        # candidate, and (CLEAN's split test) two main lobes around each echo. The first
-        # failed check decides; the residual around an echo is computed once for the two
-        # windows around it (its peak's main lobe lies within the two main lobes).
-        for e in range(n_echo):
-            centre = int(np.round(fitted_tofs[e]))
-            lo = min(centre - span, peaks[e] - fit_half)
-            hi = max(centre + span, peaks[e] + fit_half)
-            for s in range(max(lo, 0), min(hi, n - 1) + 1):
-                window_r = complex(row[2 * s], row[2 * s + 1]) - _model(
-                    table, half, grid_b, grid_w, fitted_amps, n_echo, s, 0, 0
+        status, failed = _channel_checks(
+            table,
+            half,
+            row,
+            n,
+            grid_b,
+            grid_w,
+            fitted_tofs,
+            fitted_amps,
+            peaks,
+            n_echo,
+            cand_k,
+            accepted,
+            m,
+            fit_half,
+            span,
+            threshold,
+            power,
+            acf_energy,
+            residual_power,
+            state,
+        )
+        # An echo its model leaves unexplained may be two within a main lobe (their main lobes
+        # merged into one peak): split it, fit the others again around the pair, and check the
+        # channel again; a pair that fails goes to CLEAN.
+        splits = 0
+        while status != OK and failed >= 0 and state[failed] == FREE and splits < max_splits:
+            splits += 1
+            target = failed
+            kept_n = n_echo
+            kept_tofs[:n_echo], kept_amps[:n_echo] = fitted_tofs[:n_echo], fitted_amps[:n_echo]
+            kept_peaks[:n_echo], kept_state[:n_echo] = peaks[:n_echo], state[:n_echo]
+            kept_accepted[:m] = accepted[:m]
+            # First with the echoes within a main lobe as the pair's other members, then within a
+            # main lobe and a half (the pair's interference can put two peaks either side of it).
+            holds = False
+            for reach in (mainlobe, mainlobe + fit_half):
+                n_echo = kept_n
+                fitted_tofs[:n_echo], fitted_amps[:n_echo] = kept_tofs[:n_echo], kept_amps[:n_echo]
+                peaks[:n_echo], state[:n_echo] = kept_peaks[:n_echo], kept_state[:n_echo]
+                accepted[:m] = kept_accepted[:m]
+                _prepare(u, fitted_tofs[:n_echo], grid_b, grid_w)
+                outcome = NO_PAIR
+                if n_echo < max_candidates:
+                    outcome = _split_echo(
+                        table,
+                        u,
+                        half,
+                        rate,
+                        row,
+                        n,
+                        fitted_tofs,
+                        fitted_amps,
+                        peaks,
+                        state,
+                        n_echo,
+                        target,
+                        reach,
+                        grid_b,
+                        grid_w,
+                        fit_half,
+                        mainlobe,
+                        threshold,
+                        split_data,
+                        split_valid,
+                        split_shapes,
+                        split_overlap,
+                        split_energy,
+                        joint_work,
+                        joint_new,
+                        split_t,
+                        split_a,
+                    )
+                if outcome == NO_PAIR:
+                    continue
+                if outcome == MERGED:
+                    state[target] = WAIVED
+                else:
+                    n_echo = outcome
+                    status = _refit_around_pair(
+                        table,
+                        u,
+                        half,
+                        rate,
+                        row,
+                        n,
+                        peaks,
+                        tofs,
+                        amps,
+                        state,
+                        n_echo,
+                        fit_half,
+                        mainlobe,
+                        grid_b,
+                        grid_w,
+                        new_tofs,
+                        new_amps,
+                        window,
+                        fitted_tofs,
+                        fitted_amps,
+                        max_joint,
+                        joint_w,
+                        joint_data,
+                        joint_valid,
+                        joint_t,
+                        joint_a,
+                        joint_work,
+                        joint_new,
+                        complex_iterations,
+                        real_iterations,
+                        lone_iterations,
+                        threshold,
+                        cand_k,
+                        accepted,
+                        m,
+                    )
+                    if status < 0:
+                        continue
+                    n_echo = status
+                _prepare(u, fitted_tofs[:n_echo], grid_b, grid_w)
+                status, failed = _channel_checks(
+                    table,
+                    half,
+                    row,
+                    n,
+                    grid_b,
+                    grid_w,
+                    fitted_tofs,
+                    fitted_amps,
+                    peaks,
+                    n_echo,
+                    cand_k,
+                    accepted,
+                    m,
+                    fit_half,
+                    span,
+                    threshold,
+                    power,
+                    acf_energy,
+                    residual_power,
+                    state,
                 )
-                residual_power[s] = window_r.real * window_r.real + window_r.imag * window_r.imag
-            for i in range(2 * fit_half + 1):
-                s = min(max(peaks[e] - fit_half + i, 0), n - 1)
-                if residual_power[s] > threshold:
-                    status = LEFT_OVER
-            cost = 0.0
-            inside = 0
-            for i in range(2 * span + 1):
-                s = centre - span + i
-                if 0 <= s < n:
-                    cost += residual_power[s]
-                    inside += 1
-            magnitude = abs(fitted_amps[e])
-            if cost >= 3.0 * power * inside and cost >= 0.003 * magnitude * magnitude * acf_energy:
+                # The split holds unless the checks still fault the pair (or the merged echo).
+                holds = status == OK or (failed >= 0 and state[failed] == FREE)
+                if holds:
+                    break
+            if not holds:
                 status = UNEXPLAINED
-            if status != OK:
                 break
-        for j in range(m):
-            if status == OK and not accepted[j]:
-                s = cand_k[j]
-                r = complex(row[2 * s], row[2 * s + 1]) - _model(
-                    table, half, grid_b, grid_w, fitted_amps, n_echo, s, 0, 0
-                )
-                if r.real * r.real + r.imag * r.imag > threshold:
-                    status = LEFT_OVER
         out_status[ch] = status
         if status != OK:
             continue
@@ -848,6 +1427,7 @@ def batch_echoes_parallel(
     complex_iterations: int,
     real_iterations: int,
     lone_iterations: int,
+    max_splits: int,
     noise_step: int,
     out_tof: Any,
     out_amp: Any,
@@ -880,6 +1460,7 @@ def batch_echoes_parallel(
             complex_iterations,
             real_iterations,
             lone_iterations,
+            max_splits,
             noise_step,
             out_tof[lo:hi],
             out_amp[lo:hi],

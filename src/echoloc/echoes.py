@@ -967,10 +967,13 @@ def matched_filter_batch(
     The correlation of every channel is computed at once in single precision; then
     every channel goes through the batch path (:func:`_isolated_echoes`, run as
     compiled loops by :func:`_compiled_batch` and :func:`_finish_batch`), which fits
-    isolated echoes as CLEAN does and clusters of echoes within two main lobes jointly. A channel whose echoes
-    it cannot vouch for (echoes within a quarter main lobe, anything left in the
-    correlation that its echoes do not explain, a stretch CLEAN's split test would
-    look at) is handed to CLEAN (:class:`_Clean`) on its double-precision correlation.
+    isolated echoes as CLEAN does and clusters of echoes within two main lobes jointly. An
+    echo whose model leaves its two main lobes unexplained is split there into the best
+    pair (:func:`echoloc._echoes_kernels._split_echo`: two echoes whose main lobes merged,
+    or one echo when they lie closer than CLEAN resolves). A channel whose echoes it still
+    cannot vouch for (echoes within a quarter main lobe, anything left in the correlation
+    that its echoes do not explain) is handed to CLEAN (:class:`_Clean`) on its
+    double-precision correlation.
     With ``options.workers`` above 1, the channels of both stages are spread over threads.
     """
     frames = np.asarray(frames)
@@ -1208,13 +1211,16 @@ def _compiled_echoes(
     mf: MatchedFilter,
     options: EchoOptions,
     noise_step: int = _NOISE_STEP,
+    max_splits: int | None = None,
 ) -> list[_FastResult | None]:
     """:func:`_isolated_echoes` in compiled loops (:mod:`echoloc._echoes_kernels`), channel by channel.
 
     The same candidates, fits and checks; only the noise power comes from every
-    ``noise_step``-th sample (1: all of them, as :func:`_isolated_echoes`).
+    ``noise_step``-th sample (1: all of them, as :func:`_isolated_echoes`), and an echo the
+    checks find unexplained is split in two, up to ``max_splits`` times a channel (None:
+    :data:`_MAX_SPLITS`; 0: never, as :func:`_isolated_echoes`).
     """
-    out = _compiled_batch(correlation, mf, options, noise_step)
+    out = _compiled_batch(correlation, mf, options, noise_step, max_splits=max_splits)
     return [
         (out.tof[c, : out.count[c]].copy(), out.amplitude[c, : out.count[c]].copy(), float(out.power[c]))
         if out.ok[c]
@@ -1241,6 +1247,7 @@ def _compiled_batch(
     noise_step: int = _NOISE_STEP,
     n_samples: int | None = None,
     threads: int = 1,
+    max_splits: int | None = None,
 ) -> _BatchOutput:
     """Run the compiled batch path (:func:`echoloc._echoes_kernels.batch_echoes`) on every channel.
 
@@ -1281,6 +1288,7 @@ def _compiled_batch(
         _COMPLEX_ITERATIONS,
         _REAL_ITERATIONS,
         _LONE_ITERATIONS,
+        _MAX_SPLITS if max_splits is None else max_splits,
         max(1, noise_step // mf.decimation),
         out_tof,
         out_amplitude,
@@ -1502,6 +1510,9 @@ At decimation 2, where the three lags span 4 samples, the difference reached the
 checks: without this step 33 of the report scene's 160 channels (all on the receiver whose
 third-ball echo fits the template worst) went to CLEAN, with it 1. One step settles it: more
 moved no delay of the calibration test's by 0.01 ns."""
+_MAX_SPLITS = 2
+"""Echoes a channel's batch path may split in two (:func:`echoloc._echoes_kernels._split_echo`)
+when its model leaves one unexplained, before the channel goes to CLEAN."""
 _COMPLEX_ITERATIONS = 2
 _REAL_ITERATIONS = 3
 """Levenberg-Marquardt steps of the batched cluster fits: they start from the
