@@ -702,9 +702,10 @@ def _split_echo(
     :data:`_SPLIT_STEP` apart (variable projection: for shapes S_g, S_h the fit removes
     ``b^H G^-1 b`` of the data's energy, b their inner products with the data, G their Gram
     matrix), so no local minimum traps it. Levenberg-Marquardt with complex, then real
-    amplitudes settles it; as CLEAN's model choice does, each member is then tried half a
-    carrier cycle either way (amplitude negated), and the lowest cost among plausible pairs
-    (:func:`_pair_plausible`) wins.
+    amplitudes settles it; as CLEAN's model choice does, each member, and then both
+    together, is tried half a carrier cycle either way (amplitude negated: with real
+    amplitudes the fit has a minimum every half cycle), and the lowest cost among plausible
+    pairs (:func:`_pair_plausible`) wins.
     """
     first_member = last_member = e
     while first_member > 0 and tofs[e] - tofs[first_member - 1] <= reach:
@@ -774,8 +775,16 @@ def _split_echo(
     _joint_fit_into(
         table, u, half, d, lo, ok, t, a, False, _SPLIT_ITERATIONS, True, rate, 1e-3, 1e-2, work, new_amps
     )
+    # To real amplitudes, the phase read as delay: a R(s - tau) with a = |a| exp(i phi) is
+    # |a| R(s - tau + phi / rate) to within the envelope's shift (the nearer of the two signs).
     for i in range(2):
-        a[i] = abs(a[i]) if a[i].real >= 0 else -abs(a[i])
+        phase = math.atan2(a[i].imag, a[i].real)
+        sign = 1.0
+        if abs(phase) > math.pi / 2:
+            phase -= math.copysign(math.pi, phase)
+            sign = -1.0
+        t[i] -= phase / rate
+        a[i] = sign * abs(a[i])
     cost = _joint_fit_into(
         table, u, half, d, lo, ok, t, a, True, _SPLIT_ITERATIONS, True, 0.0, 1e-6, 0.0, work, new_amps
     )
@@ -784,12 +793,14 @@ def _split_echo(
     settled_t = t.copy()
     settled_a = a.copy()
     period = math.pi / rate
-    for member in range(2):
+    for moved in range(3):  # the first member, the second, both
         for step in (-period, period):
             t[:] = settled_t
             a[:] = settled_a
-            t[member] += step
-            a[member] = -a[member]
+            for member in range(2):
+                if moved == member or moved == 2:
+                    t[member] += step
+                    a[member] = -a[member]
             cost = _joint_fit_into(
                 table, u, half, d, lo, ok, t, a, True, _SPLIT_ITERATIONS, True, 0.0, 1e-6, 0.0, work, new_amps
             )
