@@ -11,7 +11,11 @@ Gauss-Newton kernels with the compiled path) the tests hold these loops to;
 this module holds only the loops, with the same arithmetic in the same order.
 Every function works in D = 2 or 3 dimensions. Small helpers are inlined
 (``inline="always"``): called, each passed its array views through reference
-counting, which cost a quarter of the seed loop.
+counting, which cost a quarter of the seed loop. Inlined, a helper with loops still
+counts references to its array arguments and to the views it takes (atomic
+operations, again a quarter of the seed loop): the larger helpers that allocate
+nothing (:func:`_exact_work`, the Gauss-Newton row and fit) are compiled without
+the runtime (:func:`_without_runtime`) and called, at no count at all.
 
 ``cache=True`` keeps the machine code in ``__pycache__``: the first call in a fresh
 environment compiles (about half a minute), later processes load it (about 1 s).
@@ -19,12 +23,22 @@ environment compiles (about half a minute), later processes load it (about 1 s).
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Callable
+from typing import Any, TypeVar, cast
 
 import numpy as np
 from numba import njit
 
 OWN, SHARED, NONE = 0, 1, 2
+
+_Function = TypeVar("_Function", bound=Callable[..., Any])
+
+
+def _without_runtime(function: _Function) -> _Function:
+    """``njit(cache=True)`` without numba's runtime (``_nrt=False``, as numba's own string
+    helpers): no reference counts on arrays and views; allocating fails to compile."""
+    options: dict[str, Any] = {"cache": True, "_nrt": False}
+    return cast(_Function, njit(**options)(function))
 
 
 @njit(cache=True, inline="always")
@@ -54,6 +68,15 @@ def _solve_in_place(m: Any, v: Any, x: Any) -> bool:  # pragma: no cover - compi
             s -= m[row, k] * x[k]
         x[row] = s / m[row, row]
     return True
+
+
+@njit(cache=True, inline="always")
+def _copy(source: Any, target: Any) -> None:  # pragma: no cover - compiled
+    """``target[:, :] = source`` in loops: the slice assignment checks the two views for
+    overlap, which needs the runtime (unavailable in the ``_nrt=False`` helpers)."""
+    for i in range(source.shape[0]):
+        for j in range(source.shape[1]):
+            target[i, j] = source[i, j]
 
 
 @njit(cache=True, inline="always")
@@ -89,7 +112,7 @@ def _exact(t: Any, receivers: Any, paths: Any, points: Any) -> int:  # pragma: n
     return _exact_work(t, receivers, paths, points, np.empty((4 * d + 4, d + 1)))
 
 
-@njit(cache=True, inline="always")
+@_without_runtime
 def _exact_work(t: Any, receivers: Any, paths: Any, points: Any, work: Any) -> int:  # pragma: no cover
     """:func:`_exact` in the scratch rows ``work`` (4 D + 4, D + 1): no allocation per combination."""
     d = paths.shape[0]
@@ -130,9 +153,11 @@ def _exact_work(t: Any, receivers: Any, paths: Any, points: Any, work: Any) -> i
         trace += gram[i, i]
     if not abs(_det(gram)) > 1e-18 * max(trace, 1e-30) ** d:
         return 0
-    scratch[:, :] = gram
     rhs = minor[0]  # the minors are done with: one row holds a copy of b
-    rhs[:] = b
+    for i in range(d):
+        rhs[i] = b[i]
+        for k in range(d):
+            scratch[i, k] = gram[i, k]
     if not _solve_in_place(scratch, rhs, y):
         return 0
     for j in range(d + 1):
@@ -179,14 +204,28 @@ def _exact_work(t: Any, receivers: Any, paths: Any, points: Any, work: Any) -> i
 
 
 @njit(cache=True, inline="always")
-def _in_beam(point: Any, origin: Any, axis: Any, cos_fov: float) -> bool:  # pragma: no cover - compiled
+def _in_beam(point: Any, origins: Any, axes: Any, c: int, cos_fov: float) -> bool:  # pragma: no cover
+    """Whether ``point`` is inside the beam of channel c's ``origins``/``axes`` (rows, not row
+    views: a view in the seed loop costs two atomic reference counts)."""
     along = 0.0
     dist2 = 0.0
     for j in range(point.shape[0]):
-        o = point[j] - origin[j]
-        along += o * axis[j]
+        o = point[j] - origins[c, j]
+        along += o * axes[c, j]
         dist2 += o * o
     return bool(along >= cos_fov * np.sqrt(dist2))
+
+
+@njit(cache=True, inline="always")
+def _insertion(values: Any, lo: int, hi: int, value: float) -> int:  # pragma: no cover - compiled
+    """``lo + np.searchsorted(values[lo:hi], value)`` (NaN last) without the slice's view."""
+    while lo < hi:
+        mid = lo + ((hi - lo) >> 1)
+        if values[mid] < value or (np.isnan(value) and not np.isnan(values[mid])):
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
 
 
 @njit(cache=True)
@@ -234,6 +273,7 @@ def seed_candidates(
     seed_sigmas = np.empty(d)
     seed_rx = np.empty((d, d))
     points = np.empty((2, d))
+    p = np.empty(d)
     jac = np.empty((n_ch, d))
     seed_jac = np.empty((d, d))
     predicted = np.empty(n_ch)
@@ -297,7 +337,8 @@ def seed_candidates(
                 continue
             n_points = _exact_work(t, seed_rx, seed_paths, points, work)
             for r in range(n_points):
-                p = points[r]
+                for j in range(d):
+                    p[j] = points[r, j]
                 ahead = 0.0
                 for j in range(d):
                     ahead += (p[j] - transmitters[0, j]) * boresight[j]
@@ -306,8 +347,8 @@ def seed_candidates(
                 ok = True
                 for k in range(d):
                     c = seed[k]
-                    ok = ok and _in_beam(p, transmitters[c], transmitter_axes[c], cos_fov)
-                    ok = ok and _in_beam(p, receivers[c], receiver_axes[c], cos_fov)
+                    ok = ok and _in_beam(p, transmitters, transmitter_axes, c, cos_fov)
+                    ok = ok and _in_beam(p, receivers, receiver_axes, c, cos_fov)
                 if not ok:
                     continue
                 for c in range(n_ch):
@@ -346,8 +387,8 @@ def seed_candidates(
                         continue
                     row_echo[c] = -1
                     row_use[c] = NONE
-                    visible = _in_beam(p, transmitters[c], transmitter_axes[c], cos_fov)
-                    visible = visible and _in_beam(p, receivers[c], receiver_axes[c], cos_fov)
+                    visible = _in_beam(p, transmitters, transmitter_axes, c, cos_fov)
+                    visible = visible and _in_beam(p, receivers, receiver_axes, c, cos_fov)
                     outside = predicted[c] < window_low or predicted[c] > window_high
                     if not visible or outside:
                         continue  # this channel cannot see the point: no echo, none needed
@@ -364,7 +405,7 @@ def seed_candidates(
                         var += gain[k] ** 2 * seed_sigmas[k] ** 2
                     lo, hi = offset[c], offset[c + 1]
                     if hi > lo:
-                        pos = lo + np.searchsorted(sorted_paths[lo:hi], predicted[c])
+                        pos = _insertion(sorted_paths, lo, hi, predicted[c])
                         best = -1
                         gap = np.inf
                         for cand in (pos - 1, pos):
@@ -428,7 +469,7 @@ def gauss_newton(
     return positions, covariances, chi2, converged
 
 
-@njit(cache=True)
+@_without_runtime
 def _gauss_newton_row(
     transmitters: Any,
     receivers: Any,
@@ -487,13 +528,13 @@ def _gauss_newton_row(
             for j in range(d):
                 for i in range(d):
                     unit[i] = 1.0 if i == j else 0.0
-                lhs[:, :] = normal
+                _copy(normal, lhs)
                 _solve_in_place(lhs, unit, column)
                 for i in range(d):
                     covariance[i, j] = column[i]
             chi2 = total
             break
-        lhs[:, :] = normal
+        _copy(normal, lhs)
         if not _solve_in_place(lhs, rhs, delta):
             return np.nan, False
         step = 0.0
@@ -506,7 +547,7 @@ def _gauss_newton_row(
     return chi2, bool(step < 1e-6 and np.isfinite(chi2))
 
 
-@njit(cache=True)
+@_without_runtime
 def _fit_row(
     transmitters: Any,
     receivers: Any,
@@ -550,8 +591,8 @@ def _fit_row(
     if ok and check_beams:
         for c in range(n_ch):
             if use[c] != NONE:
-                ok = ok and _in_beam(position, transmitters[c], transmitter_axes[c], cos_fov)
-                ok = ok and _in_beam(position, receivers[c], receiver_axes[c], cos_fov)
+                ok = ok and _in_beam(position, transmitters, transmitter_axes, c, cos_fov)
+                ok = ok and _in_beam(position, receivers, receiver_axes, c, cos_fov)
     return chi2, converged, ok
 
 
