@@ -109,12 +109,46 @@ def _well_conditioned(normal: Any) -> bool:  # pragma: no cover - compiled
 def _exact(t: Any, receivers: Any, paths: Any, points: Any) -> int:  # pragma: no cover - compiled
     """Points meeting D paths exactly (locate.exact_solutions for one row); returns how many (0-2)."""
     d = paths.shape[0]
-    return _exact_work(t, receivers, paths, points, np.empty((4 * d + 4, d + 1)))
+    work = np.empty((5 * d + 5, d + 1))
+    _exact_prepare(t, receivers, work)
+    return _exact_work(t, paths, points, work)
 
 
 @_without_runtime
-def _exact_work(t: Any, receivers: Any, paths: Any, points: Any, work: Any) -> int:  # pragma: no cover
-    """:func:`_exact` in the scratch rows ``work`` (4 D + 4, D + 1): no allocation per combination."""
+def _exact_prepare(t: Any, receivers: Any, work: Any) -> None:  # pragma: no cover - compiled
+    """What :func:`_exact_work` computes from ``t`` and the D ``receivers`` alone, into ``work``
+    (5 D + 5, D + 1), once for all the combinations of their paths: the receivers' columns
+    of M, their squared distances from ``t``, the last component of the null vector and
+    the path-free part of each sum of M M^T (the same sums, from the same start)."""
+    d = receivers.shape[0]
+    m = work[:d, :]
+    v = work[d + 1, :]
+    minor = work[d + 2 : 2 * d + 2, :d]
+    norm2 = work[4 * d + 4, :d]
+    partial_gram = work[4 * d + 5 : 5 * d + 5, :d]
+    for i in range(d):
+        total = 0.0
+        for j in range(d):
+            r = receivers[i, j] - t[j]
+            m[i, j] = 2.0 * r
+            total += r * r
+        norm2[i] = total
+    for i in range(d):
+        for j in range(d):
+            minor[i, j] = m[i, j]
+    v[d] = (1.0 if d % 2 == 0 else -1.0) * _det(minor)
+    for i in range(d):
+        for k in range(d):
+            s = 0.0
+            for j in range(d):
+                s += m[i, j] * m[k, j]
+            partial_gram[i, k] = s
+
+
+@_without_runtime
+def _exact_work(t: Any, paths: Any, points: Any, work: Any) -> int:  # pragma: no cover - compiled
+    """:func:`_exact` in the scratch rows ``work`` (5 D + 5, D + 1) that :func:`_exact_prepare`
+    filled for ``t`` and the receivers: no allocation per combination of paths."""
     d = paths.shape[0]
     m = work[:d, :]
     b = work[d, :d]
@@ -124,16 +158,13 @@ def _exact_work(t: Any, receivers: Any, paths: Any, points: Any, work: Any) -> i
     y = work[3 * d + 2, :d]
     u0 = work[3 * d + 3, :]
     scratch = work[3 * d + 4 : 4 * d + 4, :d]
+    norm2 = work[4 * d + 4, :d]
+    partial_gram = work[4 * d + 5 : 5 * d + 5, :d]
     for i in range(d):
-        norm2 = 0.0
-        for j in range(d):
-            r = receivers[i, j] - t[j]
-            m[i, j] = 2.0 * r
-            norm2 += r * r
         m[i, d] = -2.0 * paths[i]
-        b[i] = norm2 - paths[i] * paths[i]
-    # Null vector: v_j = (-1)^j det(M without column j).
-    for j in range(d + 1):
+        b[i] = norm2[i] - paths[i] * paths[i]
+    # Null vector: v_j = (-1)^j det(M without column j) (v_D, without the paths, is prepared).
+    for j in range(d):
         for i in range(d):
             k = 0
             for col in range(d + 1):
@@ -144,10 +175,7 @@ def _exact_work(t: Any, receivers: Any, paths: Any, points: Any, work: Any) -> i
     # Particular solution u0 = M^T (M M^T)^-1 b.
     for i in range(d):
         for k in range(d):
-            s = 0.0
-            for j in range(d + 1):
-                s += m[i, j] * m[k, j]
-            gram[i, k] = s
+            gram[i, k] = partial_gram[i, k] + m[i, d] * m[k, d]
     trace = 0.0
     for i in range(d):
         trace += gram[i, i]
@@ -283,7 +311,7 @@ def seed_candidates(
     normal = np.empty((d, d))
     lhs = np.empty((d, d))
     column = np.empty(d)
-    work = np.empty((4 * d + 4, d + 1))
+    work = np.empty((5 * d + 5, d + 1))
     sizes = np.empty(d, dtype=np.int64)
     pair_reach = np.zeros((d, d))
     for s_index in range(seeds.shape[0]):
@@ -300,6 +328,7 @@ def seed_candidates(
         for k in range(d):
             for j in range(d):
                 seed_rx[k, j] = receivers[seed[k], j]
+        _exact_prepare(t, seed_rx, work)
         for k in range(d):
             for q in range(k):
                 a, b = seed[k], seed[q]
@@ -335,7 +364,7 @@ def seed_candidates(
             if level < d - 1:
                 level += 1
                 continue
-            n_points = _exact_work(t, seed_rx, seed_paths, points, work)
+            n_points = _exact_work(t, seed_paths, points, work)
             for r in range(n_points):
                 for j in range(d):
                     p[j] = points[r, j]
