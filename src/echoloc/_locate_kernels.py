@@ -676,20 +676,45 @@ def refine(
             row_echo[c] = echo[row, c]
             row_use[c] = use[row, c]
             optional = optional or (use[row, c] != NONE and not required[c])
-        args = (transmitters, receivers, transmitter_axes, receiver_axes, boresight, paths, sigmas, offset)
-        fit = (start[row], merge_sigma, gates, check_beams, cos_fov, iterations)
-        scratch = (measured, weights, position, covariance, work)
-        chi2, converged, ok = _fit_row(*args, row_echo, row_use, *fit, *scratch)
-        if not ok and optional:
-            own = 0
-            for c in range(n_ch):
-                if not required[c]:
-                    row_use[c] = NONE
-                if row_use[c] == NONE:
-                    row_echo[c] = -1
-                own += row_use[c] == OWN
-            if own >= min_own:
-                chi2, converged, ok = _fit_row(*args, row_echo, row_use, *fit, *scratch)
+        # Fitted with the optional channels and, failing that, once more without them (one
+        # call with the arrays as they are: a tuple of them would count references per row).
+        chi2, converged, ok = np.nan, False, False
+        for attempt in range(2):
+            if attempt == 1:
+                if ok or not optional:
+                    break
+                own = 0
+                for c in range(n_ch):
+                    if not required[c]:
+                        row_use[c] = NONE
+                    if row_use[c] == NONE:
+                        row_echo[c] = -1
+                    own += row_use[c] == OWN
+                if own < min_own:
+                    break
+            chi2, converged, ok = _fit_row(
+                transmitters,
+                receivers,
+                transmitter_axes,
+                receiver_axes,
+                boresight,
+                paths,
+                sigmas,
+                offset,
+                row_echo,
+                row_use,
+                start[row],
+                merge_sigma,
+                gates,
+                check_beams,
+                cos_fov,
+                iterations,
+                measured,
+                weights,
+                position,
+                covariance,
+                work,
+            )
         if not ok:
             continue
         echo_out[kept] = row_echo
