@@ -70,6 +70,13 @@ def _solve_in_place(m: Any, v: Any, x: Any) -> bool:  # pragma: no cover - compi
     return True
 
 
+@_without_runtime
+def _solve(m: Any, v: Any, x: Any) -> bool:  # pragma: no cover - compiled
+    """:func:`_solve_in_place`, called: inlined in the seed loop it counted references to its
+    three arrays (atomic operations), which cost more than the call."""
+    return _solve_in_place(m, v, x)
+
+
 @njit(cache=True, inline="always")
 def _copy(source: Any, target: Any) -> None:  # pragma: no cover - compiled
     """``target[:, :] = source`` in loops: the slice assignment checks the two views for
@@ -426,7 +433,7 @@ def seed_candidates(
                         column[i] = jac[c, i]
                         for j in range(d):
                             lhs[i, j] = seed_jac[j, i]
-                    if not _solve_in_place(lhs, column, gain):
+                    if not _solve(lhs, column, gain):
                         keep = False
                         break
                     var = 0.0
