@@ -373,6 +373,21 @@ def path_sigmas_m(
     return np.asarray(np.sqrt(sigma2))
 
 
+def _flat_path_sigmas(
+    snr_db: NDArray[np.float64], speed_of_sound_m_s: float, options: LocateOptions
+) -> NDArray[np.float64]:
+    """:func:`path_sigmas_m` as float64, m; of float64 SNRs with a carrier after numpy's
+    power in one compiled loop (:func:`echoloc._locate_kernels.path_sigmas`, the same bits)."""
+    if not (options.carrier_hz and snr_db.dtype == np.float64):
+        return path_sigmas_m(snr_db, speed_of_sound_m_s, options).astype(float, copy=False)
+    from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
+
+    sigmas: NDArray[np.float64] = kernels.path_sigmas(
+        10 ** (snr_db / 10), speed_of_sound_m_s, options.path_sigma_m**2, 2 * np.pi * options.carrier_hz
+    )
+    return sigmas
+
+
 AMPLITUDE_LOG_SIGMA = 0.1
 """Assumed spread of echo amplitudes about the spreading model, natural-log units (10 %)."""
 
@@ -1409,9 +1424,7 @@ def locate_frame(
             echoes = _Echoes(
                 offset,
                 (np.concatenate([ch.tof_s for ch in channels]) * c).astype(float, copy=False),
-                path_sigmas_m(np.concatenate([ch.snr_db for ch in channels]), c, options).astype(
-                    float, copy=False
-                ),
+                _flat_path_sigmas(np.concatenate([ch.snr_db for ch in channels]), c, options),
                 np.concatenate([ch.amplitude for ch in channels]).astype(float, copy=False),
             )
             objects = _objects(setup, echoes, options, n_ch)
