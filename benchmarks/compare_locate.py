@@ -2,12 +2,14 @@
 
 The other commit's ``locate.py`` and ``_locate_kernels.py`` (``git show REF:...``) are
 loaded as a package of their own beside ``echoloc``, so both run in the same process
-on the same echoes (those of ``bench_locate.py``'s scene), in alternating rounds: on
-this shared, noisy machine only the ratio of the two means much. Every frame's
-objects must come out the same in both (positions, covariances, chi2 and scores
-bit for bit, support and order), else the script stops.
+on the same echoes (those of ``bench_locate.py``'s scene, or with ``--reflectors N``
+those of ``echoloc.benchmark.bench_scene(N)``, N random reflectors in every frame),
+in alternating rounds: on this shared, noisy machine only the ratio of the two means
+much. Every frame's objects must come out the same in both (positions, covariances,
+chi2 and scores bit for bit, support and order), else the script stops.
 
     python benchmarks/compare_locate.py --base main --frames 1000 --rounds 5
+    python benchmarks/compare_locate.py --base main --frames 1000 --rounds 5 --reflectors 5
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from echoloc import locate, pipeline
+from echoloc.benchmark import bench_scene
 from echoloc.scenefile import scene_from_dict
 from echoloc.simulate import simulate
 
@@ -76,11 +79,18 @@ def main() -> None:
     parser.add_argument("--base", default="main", help="commit or branch to compare with")
     parser.add_argument("--frames", type=int, default=1000)
     parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument(
+        "--reflectors", type=int, default=None, help="bench_scene(N) instead of the example scene"
+    )
     args = parser.parse_args()
 
     base = _base_locate(args.base)
-    data = tomllib.loads((ROOT / "examples" / "random-1m3-six.toml").read_text())
-    recording = simulate(scene_from_dict(data, "random-1m3-six.toml"), args.frames)
+    if args.reflectors is None:
+        data = tomllib.loads((ROOT / "examples" / "random-1m3-six.toml").read_text())
+        scene = scene_from_dict(data, "random-1m3-six.toml")
+    else:
+        scene = bench_scene(args.reflectors)
+    recording = simulate(scene, args.frames)
     chain = pipeline.prepare(recording)
     echoes = [pipeline.frame_echoes(chain, i) for i in range(recording.n_frames)]
     assert recording.truth_positions_m is not None

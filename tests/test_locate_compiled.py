@@ -164,6 +164,24 @@ def test_the_compiled_sort_within_channels_matches_lexsort(channels: list) -> No
     np.testing.assert_array_equal(sorted_index, order - offset[channel[order]])
 
 
+@settings(max_examples=100, deadline=None)
+@given(
+    snr_db=st.lists(st.floats(-20.0, 80.0), max_size=12),
+    speed=st.floats(300.0, 360.0),
+    carrier=st.floats(20e3, 200e3),
+    prior=st.floats(0.0, 2e-3),
+)
+def test_the_compiled_path_sigmas_match_path_sigmas_m(
+    snr_db: list[float], speed: float, carrier: float, prior: float
+) -> None:
+    """locate_frame's compiled path sigmas are path_sigmas_m's to the bit."""
+    options = LocateOptions(path_sigma_m=prior, carrier_hz=carrier)
+    snr = np.array(snr_db, dtype=float)
+    np.testing.assert_array_equal(
+        locate._flat_path_sigmas(snr, speed, options), locate.path_sigmas_m(snr, speed, options)
+    )
+
+
 @settings(max_examples=200, deadline=None)
 @given(rows=st.lists(st.tuples(st.integers(-1, 2), st.integers(-1, 2), st.integers(0, 2)), max_size=40))
 def test_the_compiled_first_of_each_matches_the_reference(rows: list) -> None:

@@ -5,13 +5,19 @@ combination) and then packs a few dozen candidates into objects. As numpy calls
 and Python sets each cost microseconds of overhead, which kept a frame of five
 objects at ~2.5 ms, then ~0.6 ms with only the seeds and Gauss-Newton compiled;
 :func:`associate` runs every step (seeds, refinement, choice) in one call, about
-0.15 ms. The formulas are those documented in :mod:`echoloc.locate`, whose numpy
+0.15 ms (0.065 ms against 0.085 before on the five-reflector bench scene, once
+without the reference counts below). The formulas are those documented in :mod:`echoloc.locate`, whose numpy
 and Python references (``locate._COMPILED = False``; they share the seed search and
 Gauss-Newton kernels with the compiled path) the tests hold these loops to;
 this module holds only the loops, with the same arithmetic in the same order.
 Every function works in D = 2 or 3 dimensions. Small helpers are inlined
 (``inline="always"``): called, each passed its array views through reference
-counting, which cost a quarter of the seed loop.
+counting, which cost a quarter of the seed loop. Inlined, a helper with loops still
+counts references to its array arguments and to the views it takes (atomic
+operations, again a quarter of the seed loop): the larger helpers that allocate
+nothing (:func:`_exact_work`, the Gauss-Newton row and fit, the prediction
+variance's solve) are compiled without the runtime (:func:`_without_runtime`) and
+called, at no count at all; hot loops read rows by index rather than through views.
 
 ``cache=True`` keeps the machine code in ``__pycache__``: the first call in a fresh
 environment compiles (about half a minute), later processes load it (about 1 s).
@@ -19,12 +25,22 @@ environment compiles (about half a minute), later processes load it (about 1 s).
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Callable
+from typing import Any, TypeVar, cast
 
 import numpy as np
 from numba import njit
 
 OWN, SHARED, NONE = 0, 1, 2
+
+_Function = TypeVar("_Function", bound=Callable[..., Any])
+
+
+def _without_runtime(function: _Function) -> _Function:
+    """``njit(cache=True)`` without numba's runtime (``_nrt=False``, as numba's own string
+    helpers): no reference counts on arrays and views; allocating fails to compile."""
+    options: dict[str, Any] = {"cache": True, "_nrt": False}
+    return cast(_Function, njit(**options)(function))
 
 
 @njit(cache=True, inline="always")
@@ -54,6 +70,22 @@ def _solve_in_place(m: Any, v: Any, x: Any) -> bool:  # pragma: no cover - compi
             s -= m[row, k] * x[k]
         x[row] = s / m[row, row]
     return True
+
+
+@_without_runtime
+def _solve(m: Any, v: Any, x: Any) -> bool:  # pragma: no cover - compiled
+    """:func:`_solve_in_place`, called: inlined in the seed loop it counted references to its
+    three arrays (atomic operations), which cost more than the call."""
+    return _solve_in_place(m, v, x)
+
+
+@njit(cache=True, inline="always")
+def _copy(source: Any, target: Any) -> None:  # pragma: no cover - compiled
+    """``target[:, :] = source`` in loops: the slice assignment checks the two views for
+    overlap, which needs the runtime (unavailable in the ``_nrt=False`` helpers)."""
+    for i in range(source.shape[0]):
+        for j in range(source.shape[1]):
+            target[i, j] = source[i, j]
 
 
 @njit(cache=True, inline="always")
@@ -86,12 +118,46 @@ def _well_conditioned(normal: Any) -> bool:  # pragma: no cover - compiled
 def _exact(t: Any, receivers: Any, paths: Any, points: Any) -> int:  # pragma: no cover - compiled
     """Points meeting D paths exactly (locate.exact_solutions for one row); returns how many (0-2)."""
     d = paths.shape[0]
-    return _exact_work(t, receivers, paths, points, np.empty((4 * d + 4, d + 1)))
+    work = np.empty((5 * d + 5, d + 1))
+    _exact_prepare(t, receivers, work)
+    return _exact_work(t, paths, points, work)
 
 
-@njit(cache=True, inline="always")
-def _exact_work(t: Any, receivers: Any, paths: Any, points: Any, work: Any) -> int:  # pragma: no cover
-    """:func:`_exact` in the scratch rows ``work`` (4 D + 4, D + 1): no allocation per combination."""
+@_without_runtime
+def _exact_prepare(t: Any, receivers: Any, work: Any) -> None:  # pragma: no cover - compiled
+    """What :func:`_exact_work` computes from ``t`` and the D ``receivers`` alone, into ``work``
+    (5 D + 5, D + 1), once for all the combinations of their paths: the receivers' columns
+    of M, their squared distances from ``t``, the last component of the null vector and
+    the path-free part of each sum of M M^T (the same sums, from the same start)."""
+    d = receivers.shape[0]
+    m = work[:d, :]
+    v = work[d + 1, :]
+    minor = work[d + 2 : 2 * d + 2, :d]
+    norm2 = work[4 * d + 4, :d]
+    partial_gram = work[4 * d + 5 : 5 * d + 5, :d]
+    for i in range(d):
+        total = 0.0
+        for j in range(d):
+            r = receivers[i, j] - t[j]
+            m[i, j] = 2.0 * r
+            total += r * r
+        norm2[i] = total
+    for i in range(d):
+        for j in range(d):
+            minor[i, j] = m[i, j]
+    v[d] = (1.0 if d % 2 == 0 else -1.0) * _det(minor)
+    for i in range(d):
+        for k in range(d):
+            s = 0.0
+            for j in range(d):
+                s += m[i, j] * m[k, j]
+            partial_gram[i, k] = s
+
+
+@_without_runtime
+def _exact_work(t: Any, paths: Any, points: Any, work: Any) -> int:  # pragma: no cover - compiled
+    """:func:`_exact` in the scratch rows ``work`` (5 D + 5, D + 1) that :func:`_exact_prepare`
+    filled for ``t`` and the receivers: no allocation per combination of paths."""
     d = paths.shape[0]
     m = work[:d, :]
     b = work[d, :d]
@@ -101,16 +167,13 @@ def _exact_work(t: Any, receivers: Any, paths: Any, points: Any, work: Any) -> i
     y = work[3 * d + 2, :d]
     u0 = work[3 * d + 3, :]
     scratch = work[3 * d + 4 : 4 * d + 4, :d]
+    norm2 = work[4 * d + 4, :d]
+    partial_gram = work[4 * d + 5 : 5 * d + 5, :d]
     for i in range(d):
-        norm2 = 0.0
-        for j in range(d):
-            r = receivers[i, j] - t[j]
-            m[i, j] = 2.0 * r
-            norm2 += r * r
         m[i, d] = -2.0 * paths[i]
-        b[i] = norm2 - paths[i] * paths[i]
-    # Null vector: v_j = (-1)^j det(M without column j).
-    for j in range(d + 1):
+        b[i] = norm2[i] - paths[i] * paths[i]
+    # Null vector: v_j = (-1)^j det(M without column j) (v_D, without the paths, is prepared).
+    for j in range(d):
         for i in range(d):
             k = 0
             for col in range(d + 1):
@@ -121,18 +184,17 @@ def _exact_work(t: Any, receivers: Any, paths: Any, points: Any, work: Any) -> i
     # Particular solution u0 = M^T (M M^T)^-1 b.
     for i in range(d):
         for k in range(d):
-            s = 0.0
-            for j in range(d + 1):
-                s += m[i, j] * m[k, j]
-            gram[i, k] = s
+            gram[i, k] = partial_gram[i, k] + m[i, d] * m[k, d]
     trace = 0.0
     for i in range(d):
         trace += gram[i, i]
     if not abs(_det(gram)) > 1e-18 * max(trace, 1e-30) ** d:
         return 0
-    scratch[:, :] = gram
     rhs = minor[0]  # the minors are done with: one row holds a copy of b
-    rhs[:] = b
+    for i in range(d):
+        rhs[i] = b[i]
+        for k in range(d):
+            scratch[i, k] = gram[i, k]
     if not _solve_in_place(scratch, rhs, y):
         return 0
     for j in range(d + 1):
@@ -179,14 +241,28 @@ def _exact_work(t: Any, receivers: Any, paths: Any, points: Any, work: Any) -> i
 
 
 @njit(cache=True, inline="always")
-def _in_beam(point: Any, origin: Any, axis: Any, cos_fov: float) -> bool:  # pragma: no cover - compiled
+def _in_beam(point: Any, origins: Any, axes: Any, c: int, cos_fov: float) -> bool:  # pragma: no cover
+    """Whether ``point`` is inside the beam of channel c's ``origins``/``axes`` (rows, not row
+    views: a view in the seed loop costs two atomic reference counts)."""
     along = 0.0
     dist2 = 0.0
     for j in range(point.shape[0]):
-        o = point[j] - origin[j]
-        along += o * axis[j]
+        o = point[j] - origins[c, j]
+        along += o * axes[c, j]
         dist2 += o * o
     return bool(along >= cos_fov * np.sqrt(dist2))
+
+
+@njit(cache=True, inline="always")
+def _insertion(values: Any, lo: int, hi: int, value: float) -> int:  # pragma: no cover - compiled
+    """``lo + np.searchsorted(values[lo:hi], value)`` (NaN last) without the slice's view."""
+    while lo < hi:
+        mid = lo + ((hi - lo) >> 1)
+        if values[mid] < value or (np.isnan(value) and not np.isnan(values[mid])):
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
 
 
 @njit(cache=True)
@@ -234,6 +310,7 @@ def seed_candidates(
     seed_sigmas = np.empty(d)
     seed_rx = np.empty((d, d))
     points = np.empty((2, d))
+    p = np.empty(d)
     jac = np.empty((n_ch, d))
     seed_jac = np.empty((d, d))
     predicted = np.empty(n_ch)
@@ -243,7 +320,7 @@ def seed_candidates(
     normal = np.empty((d, d))
     lhs = np.empty((d, d))
     column = np.empty(d)
-    work = np.empty((4 * d + 4, d + 1))
+    work = np.empty((5 * d + 5, d + 1))
     sizes = np.empty(d, dtype=np.int64)
     pair_reach = np.zeros((d, d))
     for s_index in range(seeds.shape[0]):
@@ -260,6 +337,7 @@ def seed_candidates(
         for k in range(d):
             for j in range(d):
                 seed_rx[k, j] = receivers[seed[k], j]
+        _exact_prepare(t, seed_rx, work)
         for k in range(d):
             for q in range(k):
                 a, b = seed[k], seed[q]
@@ -295,9 +373,10 @@ def seed_candidates(
             if level < d - 1:
                 level += 1
                 continue
-            n_points = _exact_work(t, seed_rx, seed_paths, points, work)
+            n_points = _exact_work(t, seed_paths, points, work)
             for r in range(n_points):
-                p = points[r]
+                for j in range(d):
+                    p[j] = points[r, j]
                 ahead = 0.0
                 for j in range(d):
                     ahead += (p[j] - transmitters[0, j]) * boresight[j]
@@ -306,8 +385,8 @@ def seed_candidates(
                 ok = True
                 for k in range(d):
                     c = seed[k]
-                    ok = ok and _in_beam(p, transmitters[c], transmitter_axes[c], cos_fov)
-                    ok = ok and _in_beam(p, receivers[c], receiver_axes[c], cos_fov)
+                    ok = ok and _in_beam(p, transmitters, transmitter_axes, c, cos_fov)
+                    ok = ok and _in_beam(p, receivers, receiver_axes, c, cos_fov)
                 if not ok:
                     continue
                 for c in range(n_ch):
@@ -346,8 +425,8 @@ def seed_candidates(
                         continue
                     row_echo[c] = -1
                     row_use[c] = NONE
-                    visible = _in_beam(p, transmitters[c], transmitter_axes[c], cos_fov)
-                    visible = visible and _in_beam(p, receivers[c], receiver_axes[c], cos_fov)
+                    visible = _in_beam(p, transmitters, transmitter_axes, c, cos_fov)
+                    visible = visible and _in_beam(p, receivers, receiver_axes, c, cos_fov)
                     outside = predicted[c] < window_low or predicted[c] > window_high
                     if not visible or outside:
                         continue  # this channel cannot see the point: no echo, none needed
@@ -356,7 +435,7 @@ def seed_candidates(
                         column[i] = jac[c, i]
                         for j in range(d):
                             lhs[i, j] = seed_jac[j, i]
-                    if not _solve_in_place(lhs, column, gain):
+                    if not _solve(lhs, column, gain):
                         keep = False
                         break
                     var = 0.0
@@ -364,7 +443,7 @@ def seed_candidates(
                         var += gain[k] ** 2 * seed_sigmas[k] ** 2
                     lo, hi = offset[c], offset[c + 1]
                     if hi > lo:
-                        pos = lo + np.searchsorted(sorted_paths[lo:hi], predicted[c])
+                        pos = _insertion(sorted_paths, lo, hi, predicted[c])
                         best = -1
                         gap = np.inf
                         for cand in (pos - 1, pos):
@@ -428,7 +507,7 @@ def gauss_newton(
     return positions, covariances, chi2, converged
 
 
-@njit(cache=True)
+@_without_runtime
 def _gauss_newton_row(
     transmitters: Any,
     receivers: Any,
@@ -487,13 +566,13 @@ def _gauss_newton_row(
             for j in range(d):
                 for i in range(d):
                     unit[i] = 1.0 if i == j else 0.0
-                lhs[:, :] = normal
+                _copy(normal, lhs)
                 _solve_in_place(lhs, unit, column)
                 for i in range(d):
                     covariance[i, j] = column[i]
             chi2 = total
             break
-        lhs[:, :] = normal
+        _copy(normal, lhs)
         if not _solve_in_place(lhs, rhs, delta):
             return np.nan, False
         step = 0.0
@@ -506,7 +585,7 @@ def _gauss_newton_row(
     return chi2, bool(step < 1e-6 and np.isfinite(chi2))
 
 
-@njit(cache=True)
+@_without_runtime
 def _fit_row(
     transmitters: Any,
     receivers: Any,
@@ -550,8 +629,8 @@ def _fit_row(
     if ok and check_beams:
         for c in range(n_ch):
             if use[c] != NONE:
-                ok = ok and _in_beam(position, transmitters[c], transmitter_axes[c], cos_fov)
-                ok = ok and _in_beam(position, receivers[c], receiver_axes[c], cos_fov)
+                ok = ok and _in_beam(position, transmitters, transmitter_axes, c, cos_fov)
+                ok = ok and _in_beam(position, receivers, receiver_axes, c, cos_fov)
     return chi2, converged, ok
 
 
@@ -606,20 +685,45 @@ def refine(
             row_echo[c] = echo[row, c]
             row_use[c] = use[row, c]
             optional = optional or (use[row, c] != NONE and not required[c])
-        args = (transmitters, receivers, transmitter_axes, receiver_axes, boresight, paths, sigmas, offset)
-        fit = (start[row], merge_sigma, gates, check_beams, cos_fov, iterations)
-        scratch = (measured, weights, position, covariance, work)
-        chi2, converged, ok = _fit_row(*args, row_echo, row_use, *fit, *scratch)
-        if not ok and optional:
-            own = 0
-            for c in range(n_ch):
-                if not required[c]:
-                    row_use[c] = NONE
-                if row_use[c] == NONE:
-                    row_echo[c] = -1
-                own += row_use[c] == OWN
-            if own >= min_own:
-                chi2, converged, ok = _fit_row(*args, row_echo, row_use, *fit, *scratch)
+        # Fitted with the optional channels and, failing that, once more without them (one
+        # call with the arrays as they are: a tuple of them would count references per row).
+        chi2, converged, ok = np.nan, False, False
+        for attempt in range(2):
+            if attempt == 1:
+                if ok or not optional:
+                    break
+                own = 0
+                for c in range(n_ch):
+                    if not required[c]:
+                        row_use[c] = NONE
+                    if row_use[c] == NONE:
+                        row_echo[c] = -1
+                    own += row_use[c] == OWN
+                if own < min_own:
+                    break
+            chi2, converged, ok = _fit_row(
+                transmitters,
+                receivers,
+                transmitter_axes,
+                receiver_axes,
+                boresight,
+                paths,
+                sigmas,
+                offset,
+                row_echo,
+                row_use,
+                start[row],
+                merge_sigma,
+                gates,
+                check_beams,
+                cos_fov,
+                iterations,
+                measured,
+                weights,
+                position,
+                covariance,
+                work,
+            )
         if not ok:
             continue
         echo_out[kept] = row_echo
@@ -1179,6 +1283,19 @@ def _measure(
         measured[c] = paths[k]
         weights[c] = 1.0 / sigma**2
     return n_used
+
+
+@njit(cache=True, error_model="numpy")  # a zero SNR divides as numpy does (inf, no exception)
+def path_sigmas(snr: Any, speed: float, prior_variance: float, omega: float) -> Any:  # pragma: no cover
+    """locate.path_sigmas_m, m, from the linear SNR ``10 ** (snr_db / 10)`` (numpy's: its
+    power need not round as libm's), the carrier's angular frequency ``omega`` (rad/s)
+    and the a-priori variance (m^2): the same operations in the same order, one loop
+    instead of eight numpy calls."""
+    sigmas = np.empty(snr.shape[0])
+    for i in range(snr.shape[0]):
+        phase = speed / (omega * np.sqrt(2.0 * snr[i]))
+        sigmas[i] = np.sqrt(prior_variance + phase * phase)
+    return sigmas
 
 
 @njit(cache=True)

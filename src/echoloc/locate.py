@@ -373,6 +373,21 @@ def path_sigmas_m(
     return np.asarray(np.sqrt(sigma2))
 
 
+def _flat_path_sigmas(
+    snr_db: NDArray[np.float64], speed_of_sound_m_s: float, options: LocateOptions
+) -> NDArray[np.float64]:
+    """:func:`path_sigmas_m` as float64, m; of float64 SNRs with a carrier after numpy's
+    power in one compiled loop (:func:`echoloc._locate_kernels.path_sigmas`, the same bits)."""
+    if not (options.carrier_hz and snr_db.dtype == np.float64):
+        return path_sigmas_m(snr_db, speed_of_sound_m_s, options).astype(float, copy=False)
+    from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
+
+    sigmas: NDArray[np.float64] = kernels.path_sigmas(
+        10 ** (snr_db / 10), speed_of_sound_m_s, options.path_sigma_m**2, 2 * np.pi * options.carrier_hz
+    )
+    return sigmas
+
+
 AMPLITUDE_LOG_SIGMA = 0.1
 """Assumed spread of echo amplitudes about the spreading model, natural-log units (10 %)."""
 
@@ -469,7 +484,7 @@ def associate(
     receivers = np.asarray(receivers_m, dtype=float)
     n_ch, dim = receivers.shape
     setup = _setup(transmitter_m, receivers, usable, transmitter_index, receiver_index, required, options)
-    active = setup[1]
+    active = setup.active
     if len(active) < max(options.min_receivers, dim):
         return []
     echoes = _flatten(
@@ -482,9 +497,9 @@ def associate(
 
 def _objects(setup: _Setup, echoes: _Echoes, options: LocateOptions, n_ch: int) -> list[LocatedObject]:
     """Steps 1-4 of :func:`associate` on the usable channels' echoes, as located objects."""
-    geometry, _, origin, receiver_of, transmitter_of, _ = setup
+    geometry, receiver_of, transmitter_of = setup.geometry, setup.receiver_of, setup.transmitter_of
     if _COMPILED:
-        compiled = _associate_compiled(geometry, echoes, options)
+        compiled = _associate_compiled(setup, echoes, options)
         if not isinstance(compiled, list):
             return _located(setup, *compiled, n_ch)
         chosen = compiled
@@ -507,7 +522,7 @@ def _objects(setup: _Setup, echoes: _Echoes, options: LocateOptions, n_ch: int) 
         )
         for obj in chosen
     ]
-    objects.sort(key=lambda o: _distance(o.position_m - origin))
+    objects.sort(key=lambda o: _distance(o.position_m - setup.origin))
     return objects
 
 
@@ -521,60 +536,69 @@ def _located(
 ) -> list[LocatedObject]:
     """:func:`_objects` from the compiled choice's surviving rows (``echo_use``: each row's
     echo indices, then its use), with the same scores and order as from ``_Chosen``."""
-    geometry, _, origin, receiver_of, transmitter_of, supports = setup
     if len(chi2) == 0:
         return []
-    n_channels = geometry.n
+    n_channels = len(setup.receiver_of)
+    supports = setup.supports
     rows: list[list[int]] = echo_use.tolist()
     support = []
     for row in rows:
         use = tuple(row[n_channels:])
         found = supports.get(use)
         if found is None:
-            found = supports[use] = _support(use, receiver_of, transmitter_of)
+            found = supports[use] = _support(use, setup)
         support.append(found)
-    dof = [len(s.channels) - geometry.dim for s in support]
-    tail: list[float] = special.chdtrc(np.maximum(dof, 1), chi2).tolist()
+    tail: list[float] = special.chdtrc([s.tail_dof for s in support], chi2).tolist()
     chi2_rows: list[float] = chi2.tolist()
     order: Any = range(len(rows))
     if len(rows) > 1:
-        distance = [math.sqrt(float(offset.dot(offset))) for offset in position - origin]
+        distance = [math.sqrt(offset.dot(offset)) for offset in position - setup.origin]
         order = sorted(order, key=distance.__getitem__)  # stable, as objects.sort
-    return [
-        LocatedObject(
-            position[k],
-            covariance[k],
-            support[k].receivers,
-            support[k].pick(rows[k]),
-            chi2_rows[k],
-            (tail[k] if dof[k] > 0 else 1.0) * len(support[k].channels) / n_ch,
-            support[k].transmitters,
-            support[k].shared,
+    objects = []
+    for k in order:
+        s = support[k]
+        score = (tail[k] if s.dof > 0 else 1.0) * len(s.channels) / n_ch
+        objects.append(
+            LocatedObject(
+                position[k],
+                covariance[k],
+                s.receivers,
+                s.pick(rows[k]),
+                chi2_rows[k],
+                score,
+                s.transmitters,
+                s.shared,
+            )
         )
-        for k in order
-    ]
+    return objects
 
 
 class _Support(NamedTuple):
     """What an object's use of the channels gives: its channels, receivers and transmitters,
-    how to pick its echo indices from its row, how many echoes it shares."""
+    how to pick its echo indices from its row, how many echoes it shares, its degrees of
+    freedom (channels - D) and those its score's chi-square tail takes (at least 1)."""
 
     channels: list[int]
     receivers: tuple[int, ...]
     transmitters: tuple[int, ...]
     pick: Callable[[list[int]], tuple[int, ...]]
     shared: int
+    dof: int
+    tail_dof: int
 
 
-def _support(use: tuple[int, ...], receiver_of: list[int], transmitter_of: list[int]) -> _Support:
+def _support(use: tuple[int, ...], setup: _Setup) -> _Support:
     channels = [c for c, u in enumerate(use) if u != _NONE]
     get = itemgetter(*channels)
+    dof = len(channels) - setup.geometry.dim
     return _Support(
         channels,
-        tuple([receiver_of[c] for c in channels]),
-        tuple([transmitter_of[c] for c in channels]),
+        tuple([setup.receiver_of[c] for c in channels]),
+        tuple([setup.transmitter_of[c] for c in channels]),
         get if len(channels) > 1 else lambda row: (get(row),),
         use.count(_SHARED),
+        dof,
+        max(dof, 1),
     )
 
 
@@ -583,9 +607,21 @@ def _distance(offset: NDArray[np.float64]) -> float:
     return math.sqrt(float(offset.dot(offset)))
 
 
-_Setup = tuple[
-    _Geometry, list[int], NDArray[np.float64], list[int], list[int], dict[tuple[int, ...], "_Support"]
-]
+class _Setup(NamedTuple):
+    """What every frame of a stream shares (cached by :func:`_setup`)."""
+
+    geometry: _Geometry  # of the usable channels
+    active: list[int]  # the usable channels' indices
+    origin: NDArray[np.float64]  # of the objects' order (the first transmitter)
+    receiver_of: list[int]  # each usable channel's receiver
+    transmitter_of: list[int]  # and transmitter
+    # Memos, filled as frames come (the same key always gives the same value: no state
+    # leaks from one frame to the next): _support per use of the channels, and the
+    # compiled association's seeds and options per options (_kernel_tail).
+    supports: dict[tuple[int, ...], _Support]
+    kernel_tails: dict[LocateOptions, tuple[Any, ...]]
+
+
 _SETUPS: dict[tuple[Any, ...], _Setup] = {}
 
 
@@ -593,7 +629,8 @@ def _key(a: Any) -> tuple[Any, ...] | None:
     """Hashable value of an array argument (None stays None)."""
     if a is None:
         return None
-    a = np.asarray(a)
+    if type(a) is not np.ndarray:
+        a = np.asarray(a)
     return (a.shape, a.dtype.str, a.tobytes())
 
 
@@ -653,9 +690,9 @@ def _make_setup(
     geometry = _geometry(
         tx[active], receivers[active], tx_index[active], rx_index[active], must[active], options, dim
     )
-    # The last: a memo of _support per use of the channels, filled as objects come (the
-    # same use always gives the same support: no state leaks from one frame to the next).
-    return geometry, active.tolist(), tx[0].copy(), rx_index[active].tolist(), tx_index[active].tolist(), {}
+    return _Setup(
+        geometry, active.tolist(), tx[0].copy(), rx_index[active].tolist(), tx_index[active].tolist(), {}, {}
+    )
 
 
 def _geometry(
@@ -714,7 +751,7 @@ def _seed_sets_cached(tx_index: bytes, required: bytes, dim: int) -> list[tuple[
 
 
 def _associate_compiled(
-    geometry: _Geometry, echoes: _Echoes, options: LocateOptions
+    setup: _Setup, echoes: _Echoes, options: LocateOptions
 ) -> list[_Chosen] | tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Steps 1-4 of :func:`associate` in one compiled call (:func:`_seed_candidates`,
     :func:`_refine` and :func:`_choose` in turn, without the calls between them): the
@@ -722,6 +759,7 @@ def _associate_compiled(
     leaves the choice to the reference (tied weights), the reference's choice."""
     from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
 
+    geometry = setup.geometry
     args = (
         geometry.transmitters_m,
         geometry.receivers_m,
@@ -733,8 +771,7 @@ def _associate_compiled(
         echoes.sigmas,
         _NO_AMPLITUDES if echoes.amplitudes is None else echoes.amplitudes,
         echoes.offset,
-        _seed_array(geometry),
-        *_kernel_options(options, geometry.dim, geometry.n),  # (its options come as one tuple)
+        *_kernel_tail(setup, options),
         _NODE_LIMIT,
         _MAX_SEED_ROWS,
     )
@@ -754,6 +791,25 @@ def _associate_compiled(
         candidates = _Candidates(echo, use, Solution(position, covariance, chi2, converged), amplitude_chi2)
         return _choose_reference(geometry, candidates, echoes, options)
     return echo_use, position, covariance, chi2
+
+
+def _kernel_tail(setup: _Setup, options: LocateOptions) -> tuple[Any, ...]:
+    """The compiled association's arguments between the echoes and the limits: the seeds and
+    the options (memo per options)."""
+    try:
+        return setup.kernel_tails[options]
+    except KeyError:
+        pass
+    except TypeError:  # options holding unhashable values (a list for a tuple): no memo
+        return _make_kernel_tail(setup.geometry, options)
+    if len(setup.kernel_tails) >= 16:
+        setup.kernel_tails.clear()
+    tail = setup.kernel_tails[options] = _make_kernel_tail(setup.geometry, options)
+    return tail
+
+
+def _make_kernel_tail(geometry: _Geometry, options: LocateOptions) -> tuple[Any, ...]:
+    return (_seed_array(geometry), *_kernel_options(options, geometry.dim, geometry.n))
 
 
 def _kernel_options(options: LocateOptions, dim: int, n_channels: int) -> tuple[Any, ...]:
@@ -1363,14 +1419,12 @@ def locate_frame(
         receivers = np.asarray(receivers_m, dtype=float)
         n_ch, dim = receivers.shape
         setup = _setup(transmitter_m, receivers, usable, None, None, None, options)
-        if len(setup[1]) == n_ch == len(channels) and n_ch >= max(options.min_receivers, dim):
+        if len(setup.active) == n_ch == len(channels) and n_ch >= max(options.min_receivers, dim):
             offset = np.array([0, *accumulate([len(ch.tof_s) for ch in channels])], dtype=np.int64)
             echoes = _Echoes(
                 offset,
                 (np.concatenate([ch.tof_s for ch in channels]) * c).astype(float, copy=False),
-                path_sigmas_m(np.concatenate([ch.snr_db for ch in channels]), c, options).astype(
-                    float, copy=False
-                ),
+                _flat_path_sigmas(np.concatenate([ch.snr_db for ch in channels]), c, options),
                 np.concatenate([ch.amplitude for ch in channels]).astype(float, copy=False),
             )
             objects = _objects(setup, echoes, options, n_ch)
