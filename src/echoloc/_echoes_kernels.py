@@ -650,6 +650,45 @@ lowers the cost by less than this fraction of it: they only choose the basin (ha
 cycle wide), and the cluster's joint fit after the split settles the pair in it."""
 
 
+@njit(cache=True, inline="always")
+def _sort_by_delay(tofs: Any, amps: Any, peaks: Any, state: Any, count: int) -> None:  # pragma: no cover
+    """Sort the first ``count`` echoes by delay, their amplitudes, peaks and states alongside
+    (stable insertion sort: a channel has a handful, and np.argsort would allocate)."""
+    for i in range(1, count):
+        t, a, pk, st = tofs[i], amps[i], peaks[i], state[i]
+        j = i
+        while j > 0 and tofs[j - 1] > t:
+            tofs[j], amps[j], peaks[j], state[j] = tofs[j - 1], amps[j - 1], peaks[j - 1], state[j - 1]
+            j -= 1
+        tofs[j], amps[j], peaks[j], state[j] = t, a, pk, st
+
+
+@njit(cache=True, inline="always")
+def _settle_real(
+    table: Any, u: int, half: int, data: Any, lo: int, valid: Any, t: Any, a: Any, work: Any, new_amps: Any
+) -> float:  # pragma: no cover - compiled
+    """A split's real-amplitude fit of the pair ``t``/``a`` to ``data``, in place, to the basin's
+    floor (:data:`_SPLIT_TOLERANCE`, :data:`_SPLIT_GAIN`); its cost."""
+    return _joint_fit_into(
+        table,
+        u,
+        half,
+        data,
+        lo,
+        valid,
+        t,
+        a,
+        True,
+        _SPLIT_ITERATIONS,
+        True,
+        0.0,
+        _SPLIT_TOLERANCE,
+        _SPLIT_GAIN,
+        work,
+        new_amps,
+    )
+
+
 @njit(cache=True)
 def _pair_plausible(
     t: Any, a: Any, lo: int, hi: int, merge_samples: float, mainlobe: float, threshold: float
@@ -697,9 +736,8 @@ def _split_echo(
     """Echo ``e`` of ``tofs``/``amps[:count]`` (real amplitudes; ``grid_b``/``grid_w`` prepared)
     refitted as two echoes within a main lobe of it, in place, together with the echoes within
     ``reach`` of it (the members: the rest of a pair whose joint fit settled wrong, or peaks
-    of the pair's interference). Returns the new count: the members replaced
-    by the pair, sorted by delay, the pair BORN in ``state`` with the first and last members'
-    peaks. Else
+    of the pair's interference). Returns the new count: the members replaced by the pair,
+    sorted by delay, the pair BORN in ``state`` with the first and last members' peaks. Else
     nothing changes: MERGED when ``e`` stands alone and the best pair, started closer than a
     quarter main lobe, settles no farther apart (CLEAN would merge it into one echo), NO_PAIR
     when no plausible pair fits.
@@ -790,24 +828,7 @@ def _split_echo(
             sign = -1.0
         t[i] -= phase / rate
         a[i] = sign * abs(a[i])
-    cost = _joint_fit_into(
-        table,
-        u,
-        half,
-        d,
-        lo,
-        ok,
-        t,
-        a,
-        True,
-        _SPLIT_ITERATIONS,
-        True,
-        0.0,
-        _SPLIT_TOLERANCE,
-        _SPLIT_GAIN,
-        work,
-        new_amps,
-    )
+    cost = _settle_real(table, u, half, d, lo, ok, t, a, work, new_amps)
     best_cost = cost if _pair_plausible(t, a, lo, hi, merge_samples, mainlobe, threshold) else np.inf
     best_t0, best_t1, best_a0, best_a1 = t[0], t[1], a[0], a[1]
     settled_t = t.copy()
@@ -821,24 +842,7 @@ def _split_echo(
                 if moved == member or moved == 2:
                     t[member] += step
                     a[member] = -a[member]
-            cost = _joint_fit_into(
-                table,
-                u,
-                half,
-                d,
-                lo,
-                ok,
-                t,
-                a,
-                True,
-                _SPLIT_ITERATIONS,
-                True,
-                0.0,
-                _SPLIT_TOLERANCE,
-                _SPLIT_GAIN,
-                work,
-                new_amps,
-            )
+            cost = _settle_real(table, u, half, d, lo, ok, t, a, work, new_amps)
             if cost < best_cost and _pair_plausible(t, a, lo, hi, merge_samples, mainlobe, threshold):
                 best_cost = cost
                 best_t0, best_t1, best_a0, best_a1 = t[0], t[1], a[0], a[1]
@@ -858,13 +862,7 @@ def _split_echo(
     tofs[e], amps[e], tofs[e + 1], amps[e + 1] = best_t0, best_a0, best_t1, best_a1
     peaks[e], peaks[e + 1] = peak_first, peak_last
     state[e] = state[e + 1] = BORN
-    for i in range(1, total):  # stable insertion sort by delay
-        t0, a0, p0, b0 = tofs[i], amps[i], peaks[i], state[i]
-        j = i
-        while j > 0 and tofs[j - 1] > t0:
-            tofs[j], amps[j], peaks[j], state[j] = tofs[j - 1], amps[j - 1], peaks[j - 1], state[j - 1]
-            j -= 1
-        tofs[j], amps[j], peaks[j], state[j] = t0, a0, p0, b0
+    _sort_by_delay(tofs, amps, peaks, state, total)
     return total
 
 
@@ -929,13 +927,7 @@ def _refine_echoes(
         tofs[:n_echo] = new_tofs[:n_echo]
         amps[:n_echo] = new_amps[:n_echo]
     # Sort by delay (stable); clusters of echoes within two main lobes are fitted jointly.
-    for i in range(1, n_echo):
-        t, a, pk, f = tofs[i], amps[i], peaks[i], state[i]
-        j = i
-        while j > 0 and tofs[j - 1] > t:
-            tofs[j], amps[j], peaks[j], state[j] = tofs[j - 1], amps[j - 1], peaks[j - 1], state[j - 1]
-            j -= 1
-        tofs[j], amps[j], peaks[j], state[j] = t, a, pk, f
+    _sort_by_delay(tofs, amps, peaks, state, n_echo)
     status = OK
     for e in range(1, n_echo):
         if tofs[e] - tofs[e - 1] < mainlobe / 4:
@@ -1018,84 +1010,22 @@ def _refine_echoes(
 
 
 @njit(cache=True)
-def _refit_around_pair(
-    table: Any,
-    u: int,
-    half: int,
-    rate: float,
-    row: Any,
-    n: int,
-    peaks: Any,
-    tofs: Any,
-    amps: Any,
-    state: Any,
-    n_echo: int,
-    fit_half: int,
-    mainlobe: float,
-    grid_b: Any,
-    grid_w: Any,
-    new_tofs: Any,
-    new_amps: Any,
-    window: Any,
+def _drop_faint(
     fitted_tofs: Any,
     fitted_amps: Any,
-    max_joint: int,
-    joint_w: int,
-    joint_data: Any,
-    joint_valid: Any,
-    joint_t: Any,
-    joint_a: Any,
-    joint_work: Any,
-    joint_new: Any,
-    complex_iterations: int,
-    real_iterations: int,
-    lone_iterations: int,
+    tofs: Any,
+    amps: Any,
+    peaks: Any,
+    state: Any,
+    n_echo: int,
     threshold: float,
     cand_k: Any,
     accepted: Any,
     n_cand: int,
 ) -> int:  # pragma: no cover - compiled
-    """After a split: the other echoes fitted again around the pair (:func:`_refine_echoes` from
-    ``fitted_tofs``/``fitted_amps``), then those left below the threshold dropped (they stood
-    for what the single echo's model left over; their peaks are checked as rejected
-    candidates'). The new count, or -1 when the fits fail (CLOSE or TOO_BIG)."""
-    tofs[:n_echo] = fitted_tofs[:n_echo]
-    amps[:n_echo] = fitted_amps[:n_echo]
-    status = _refine_echoes(
-        table,
-        u,
-        half,
-        rate,
-        row,
-        n,
-        peaks,
-        tofs,
-        amps,
-        state,
-        n_echo,
-        fit_half,
-        mainlobe,
-        grid_b,
-        grid_w,
-        new_tofs,
-        new_amps,
-        window,
-        fitted_tofs,
-        fitted_amps,
-        max_joint,
-        joint_w,
-        joint_data,
-        joint_valid,
-        joint_t,
-        joint_a,
-        joint_work,
-        joint_new,
-        complex_iterations,
-        real_iterations,
-        lone_iterations,
-    )
-    if status != OK:
-        return -1
+    """After a split and the refits around it: drop the echoes (not of a pair) that fell below
+    the threshold on |a|^2, in place in every array; they stood for what the single echo's model
+    left over, and their peaks are checked as rejected candidates' from now on. The new count."""
     kept = 0
     for e in range(n_echo):
         if state[e] != FREE or abs(fitted_amps[e]) ** 2 >= threshold:
@@ -1403,8 +1333,11 @@ def batch_echoes(
                 if outcome == MERGED:
                     state[target] = WAIVED
                 else:
+                    # The other echoes fitted again around the pair, from the fits so far.
                     n_echo = outcome
-                    status = _refit_around_pair(
+                    tofs[:n_echo] = fitted_tofs[:n_echo]
+                    amps[:n_echo] = fitted_amps[:n_echo]
+                    refit = _refine_echoes(
                         table,
                         u,
                         half,
@@ -1436,14 +1369,22 @@ def batch_echoes(
                         complex_iterations,
                         real_iterations,
                         lone_iterations,
+                    )
+                    if refit != OK:
+                        continue
+                    n_echo = _drop_faint(
+                        fitted_tofs,
+                        fitted_amps,
+                        tofs,
+                        amps,
+                        peaks,
+                        state,
+                        n_echo,
                         threshold,
                         cand_k,
                         accepted,
                         m,
                     )
-                    if status < 0:
-                        continue
-                    n_echo = status
                 _prepare(u, fitted_tofs[:n_echo], grid_b, grid_w)
                 status, failed = _channel_checks(
                     table,
