@@ -151,13 +151,13 @@ def test_main_lobe_is_one_chip_wide() -> None:
     """The -6 dB width of a Barker code's ACF envelope is one chip (triangle of half-base one chip)."""
     mf = MatchedFilter(PULSE, N_SAMPLES, FS)
     chip_samples = 4 / 50e3 * FS
-    assert mf.mainlobe_samples == pytest.approx(chip_samples, abs=1.5)
+    assert mf.mainlobe_lags == pytest.approx(chip_samples, abs=1.5)
 
 
 def test_phase_rate_is_the_carrier() -> None:
     """The ACF phase advances by 2 pi f_c / f_s per sample: 90 degrees at 4 samples per cycle."""
     mf = MatchedFilter(PULSE, N_SAMPLES, FS)
-    assert mf.phase_rate_rad_per_sample == pytest.approx(np.pi / 2, rel=0.01)
+    assert mf.phase_rate_rad_per_lag == pytest.approx(np.pi / 2, rel=0.01)
 
 
 @pytest.mark.parametrize("decimation", [2, 3])
@@ -184,8 +184,8 @@ def test_the_decimated_tables_are_the_full_ones_every_second_lag() -> None:
     assert half.half_width * 2 == full.half_width
     for j in (0, 1, 37, 127):
         assert half.acf_table[j] == pytest.approx(full.acf_table[2 * j, ::2], abs=1e-12)
-    assert half.mainlobe_samples == pytest.approx(full.mainlobe_samples / 2)
-    assert half.phase_rate_rad_per_sample == pytest.approx(2 * full.phase_rate_rad_per_sample)
+    assert half.mainlobe_lags == pytest.approx(full.mainlobe_lags / 2)
+    assert half.phase_rate_rad_per_lag == pytest.approx(2 * full.phase_rate_rad_per_lag)
     assert half.lag_rate_hz == FS / 2
     # The sidelobe envelope bounds |R| at every sample within a lag, not only at even ones.
     envelope = np.abs(full.autocorrelation)

@@ -386,7 +386,7 @@ def test_carrier_turning_fit_reaches_the_same_minimum() -> None:
     )
     data = np.ascontiguousarray(np.stack([model.real, model.imag], axis=-1))
     valid = np.ones(hi - lo, dtype=bool)
-    rate = MF.phase_rate_rad_per_sample
+    rate = MF.phase_rate_rad_per_lag
     for rotation, offset in ((0.0, 0.3), (rate, 0.3), (rate, 2.0)):
         tofs, amps = delays + np.array([offset, -offset]), amplitudes * 0.8
         cost = kernels.joint_fit(
@@ -426,7 +426,7 @@ def test_compiled_clean_matches_on_three_overlapping_echoes(
         return choose(self, residual, group, power)
 
     monkeypatch.setattr(_Clean, "_choose_overlapping", recording)
-    lobe = MF.mainlobe_samples
+    lobe = MF.mainlobe_lags
     for _ in range(3):
         first = rng.uniform(300, 1800)
         delays = [first, first + rng.uniform(0.35, 0.5) * lobe, first + rng.uniform(0.8, 1.0) * lobe]
@@ -453,7 +453,7 @@ def test_stopping_the_complex_fit_on_a_small_gain_leaves_the_minimum() -> None:
     noisy = model + 0.03 * (rng.normal(size=hi - lo) + 1j * rng.normal(size=hi - lo))
     data = np.ascontiguousarray(np.stack([noisy.real, noisy.imag], axis=-1))
     valid = np.ones(hi - lo, dtype=bool)
-    rate = MF.phase_rate_rad_per_sample
+    rate = MF.phase_rate_rad_per_lag
     args = (MF.acf_table, MF.oversample, MF.half_width, data, lo, valid)
     for offset in (0.3, 2.0):
         found = []

@@ -421,7 +421,7 @@ class EchoModel:
             acf = self.matched.autocorrelation
             h = self.matched.half_width
             lags = np.arange(-h, h + 1)
-            envelope = acf * np.exp(-1j * self.matched.phase_rate_rad_per_sample * lags)
+            envelope = acf * np.exp(-1j * self.matched.phase_rate_rad_per_lag * lags)
             # -R''(0)/R(0) of the baseband autocorrelation = beta^2.
             curvature = np.polyfit(lags[h - 3 : h + 4], envelope.real[h - 3 : h + 4], 2)[0]
             return float(np.sqrt(max(-2 * curvature, 1e-12)))

@@ -263,7 +263,7 @@ class MatchedFilter:
         return np.ascontiguousarray(self._lags_of(rows))
 
     @cached_property
-    def phase_rate_rad_per_sample(self) -> float:
+    def phase_rate_rad_per_lag(self) -> float:
         """d(arg R)/d(lag) at lag 0: 2 pi times the power-weighted mean frequency, rad per lag."""
         power = self._template_power
         freqs = np.arange(len(power)) / self.n_fft
@@ -281,7 +281,7 @@ class MatchedFilter:
         return self._lags_of(self._autocorrelation_full)
 
     @cached_property
-    def mainlobe_samples(self) -> float:
+    def mainlobe_lags(self) -> float:
         """Full width of the autocorrelation envelope's main lobe at -6 dB, in lags.
 
         Measured on every sample and divided by the decimation (the physical width, not
@@ -392,9 +392,9 @@ class _Clean:
         self.compiled = compiled
         self.table = mf.acf_table
         self.half = mf.half_width
-        self.fit_half = max(1, round(mf.mainlobe_samples / 2))
-        self.merge_samples = mf.mainlobe_samples / 4
-        self.cluster_samples = 2 * mf.mainlobe_samples
+        self.fit_half = max(1, round(mf.mainlobe_lags / 2))
+        self.merge_samples = mf.mainlobe_lags / 4
+        self.cluster_samples = 2 * mf.mainlobe_lags
 
     def _fit(self, values: NDArray[np.complex128], peak: int) -> _Component:
         """Delay and complex amplitude of one echo whose envelope peaks at index ``peak``.
@@ -417,7 +417,7 @@ class _Clean:
             if denominator < 0:
                 offset = min(max(0.5 * (a - c) / denominator, -0.5), 0.5)
         coarse = peak + offset
-        rate = self.mf.phase_rate_rad_per_sample
+        rate = self.mf.phase_rate_rad_per_lag
         period = math.pi / rate  # half a carrier cycle, in samples
         weighted = total = 0.0
         for m, (value, magnitude) in enumerate(zip(samples, env, strict=True), start=lo):
@@ -532,7 +532,7 @@ class _Clean:
             first,
             np.ones(len(values), bool),
         )
-        rate = self.mf.phase_rate_rad_per_sample
+        rate = self.mf.phase_rate_rad_per_lag
         amplitudes = amplitudes.copy()
         # Every argument given: numba's dispatcher takes a slow path (~60 us) for omitted defaults.
         complex_stop = (_CLEAN_COMPLEX_ITERATIONS, True, rate, _CLEAN_COMPLEX_TOLERANCE, _CLEAN_COMPLEX_GAIN)
@@ -618,7 +618,7 @@ class _Clean:
     ) -> list[_Component]:
         """A joint fit of a cluster whose main lobes overlap by more than half; else as it is."""
         delays = sorted(c.tof_samples for c in cluster)
-        if min(np.diff(delays)) < self.mf.mainlobe_samples:
+        if min(np.diff(delays)) < self.mf.mainlobe_lags:
             return self._joint_fit(residual, cluster, power)
         return cluster
 
@@ -684,9 +684,9 @@ class _Clean:
             self.table,
             self.mf.oversample,
             self.half,
-            self.mf.phase_rate_rad_per_sample,
+            self.mf.phase_rate_rad_per_lag,
             self.fit_half,
-            self.mf.mainlobe_samples,
+            self.mf.mainlobe_lags,
             self.merge_samples,
             self.cluster_samples,
             self.mf.acf_energy,
@@ -747,7 +747,7 @@ class _Clean:
         if len(group) > 1:
             return self._choose_overlapping(residual, group, power)
         tofs = [c.tof_samples for c in group]
-        span = math.ceil(self.mf.mainlobe_samples)
+        span = math.ceil(self.mf.mainlobe_lags)
         lo = max(math.floor(min(tofs)) - span, 0)
         hi = min(math.ceil(max(tofs)) + span + 1, len(residual))
         base_cost = self._window_cost(residual, lo, hi)
@@ -759,7 +759,7 @@ class _Clean:
             # tiny misfit, not a second echo merged into it.
             return group
         candidates: list[list[_Component]] = []
-        quarter = self.mf.mainlobe_samples / 4
+        quarter = self.mf.mainlobe_lags / 4
         for i, member in enumerate(group):
             for offset in (quarter, 2 * quarter):
                 half = _Component(member.tof_samples, member.amplitude / 2)
@@ -789,7 +789,7 @@ class _Clean:
         """
         ordered = sorted(components, key=lambda c: c.tof_samples)
         for first, second in itertools.pairwise(ordered):
-            if second.tof_samples - first.tof_samples >= self.mf.mainlobe_samples:
+            if second.tof_samples - first.tof_samples >= self.mf.mainlobe_lags:
                 continue
             a, b = first.amplitude.real, second.amplitude.real
             if a * b < 0 or min(abs(a), abs(b)) < 0.25 * max(abs(a), abs(b)):
@@ -816,7 +816,7 @@ class _Clean:
         the group in ``residual``.
         """
         tofs = [c.tof_samples for c in group]
-        span = math.ceil(self.mf.mainlobe_samples)
+        span = math.ceil(self.mf.mainlobe_lags)
         lo = max(math.floor(min(tofs)) - span, 0)
         hi = min(math.ceil(max(tofs)) + span + 1, len(residual))
         if not candidates or hi - lo < 2:
@@ -902,9 +902,9 @@ class _Clean:
         repeated from it while it improves (at most ``len(group)`` rounds).
         """
         delays = sorted(c.tof_samples for c in group)
-        if len(group) < 2 or min(np.diff(delays)) >= self.mf.mainlobe_samples:
+        if len(group) < 2 or min(np.diff(delays)) >= self.mf.mainlobe_lags:
             return group
-        period = math.pi / self.mf.phase_rate_rad_per_sample  # half a carrier cycle, samples
+        period = math.pi / self.mf.phase_rate_rad_per_lag  # half a carrier cycle, samples
         # The whole stretch read afresh as two echoes either side of its centroid (a quarter
         # and half a main lobe apart), as the split test reads a single echo.
         weights = np.array([abs(c.amplitude) ** 2 for c in group])
@@ -912,7 +912,7 @@ class _Clean:
         half_amplitude = complex(sum(abs(c.amplitude) for c in group) / 2)
         fresh = [
             [_Component(centroid - offset, half_amplitude), _Component(centroid + offset, half_amplitude)]
-            for offset in (self.mf.mainlobe_samples / 4, self.mf.mainlobe_samples / 2)
+            for offset in (self.mf.mainlobe_lags / 4, self.mf.mainlobe_lags / 2)
         ]
         for round_ in range(len(group)):
             candidates: list[list[_Component]] = fresh if round_ == 0 else []
@@ -1173,7 +1173,7 @@ def _fit_peaks(
     concave = curvature < 0
     offset = np.where(concave, np.clip(0.5 * (a - c) / np.where(concave, curvature, -1.0), -0.5, 0.5), 0.0)
     coarse = neighbours[:, 1] + offset
-    rate = mf.phase_rate_rad_per_sample
+    rate = mf.phase_rate_rad_per_lag
     period = math.pi / rate
     estimates = neighbours - np.angle(values) / rate
     estimates += period * np.round((coarse[:, None] - estimates) / period)
@@ -1276,9 +1276,9 @@ def _compiled_batch(
         mf.acf_table,
         mf.oversample,
         mf.half_width,
-        mf.phase_rate_rad_per_sample,
+        mf.phase_rate_rad_per_lag,
         mf.sidelobe_envelope,
-        mf.mainlobe_samples,
+        mf.mainlobe_lags,
         mf.acf_energy,
         10 ** (options.threshold_db / 10),
         10 ** (-options.dynamic_range_db / 10),
@@ -1383,7 +1383,7 @@ def _isolated_echoes(
     cand_k[ch[kept], rank[kept]] = k[kept]
     cand_a[ch[kept], rank[kept]] = strength[kept]
     dilated = _sidelobe_envelope(mf)
-    mainlobe = mf.mainlobe_samples
+    mainlobe = mf.mainlobe_lags
     # Strongest first, a candidate is an echo unless the echoes already accepted explain it.
     accepted = np.zeros((n_ch, width), dtype=bool)
     for j in range(width):

@@ -93,7 +93,7 @@ def prepare(
             mf = MatchedFilter(
                 np.asarray(recording.waveform, float), recording.n_samples, recording.sample_rate_hz
             )
-            resolution_m = mf.mainlobe_samples / recording.sample_rate_hz * c
+            resolution_m = mf.mainlobe_lags / mf.lag_rate_hz * c
         else:
             resolution_m = None
         axes = recording.transmitter_axes
