@@ -748,10 +748,10 @@ def _split_echo(
     :data:`_SPLIT_STEP` apart (variable projection: for shapes S_g, S_h the fit removes
     ``b^H G^-1 b`` of the data's energy, b their inner products with the data, G their Gram
     matrix), so no local minimum traps it. Levenberg-Marquardt with complex, then real
-    amplitudes settles it; as CLEAN's model choice does, each member, and then both
-    together, is tried half a carrier cycle either way (amplitude negated: with real
-    amplitudes the fit has a minimum every half cycle), and the lowest cost among plausible
-    pairs (:func:`_pair_plausible`) wins.
+    amplitudes settles it. When that leaves more than ``threshold`` in the window, then as
+    CLEAN's model choice does, each member, and then both together, is tried half a carrier
+    cycle either way (amplitude negated: with real amplitudes the fit has a minimum every
+    half cycle), and the lowest cost among plausible pairs (:func:`_pair_plausible`) wins.
     """
     first_member = last_member = e
     while first_member > 0 and tofs[e] - tofs[first_member - 1] <= reach:
@@ -834,7 +834,10 @@ def _split_echo(
     settled_t = t.copy()
     settled_a = a.copy()
     period = math.pi / rate
-    for moved in range(3):  # the first member, the second, both
+    # The other basins are tried only when this fit leaves more in its window than the threshold
+    # (an echo's peak power just detectable): on 200 noisy pairs 7 mm apart, each of the 10 whose
+    # better fit lay in another basin left 1.3-9.8 times it, 186 of the other 190 under it.
+    for moved in range(3 if cost > threshold else 0):  # the first member, the second, both
         for step in (-period, period):
             t[:] = settled_t
             a[:] = settled_a
