@@ -34,15 +34,23 @@ def test_scipy_chain_finds_the_true_paths_and_positions(recording):
 
 
 def test_bench_figures_are_consistent(recording):
-    report = bench_chains(recording, baseline_frames=1, warmup_frames=1)
-    ours, theirs = report["echoloc"], report["scipy"]
-    assert ours["frames"] == 6
+    report = bench_chains(recording, baseline_frames=1, warmup_frames=1, rounds=3, backlog_frames=4)
+    ours, backlog, theirs = report["echoloc"], report["echoloc_backlog"], report["scipy"]
+    assert ours["frames"] == backlog["frames"] == 6
+    assert ours["rounds"] == backlog["rounds"] == 3
+    assert backlog["batch_frames"] == 4
     assert theirs["frames"] == 1
-    assert ours["recall"] == 1.0
-    for figures in (ours, theirs):
+    assert ours["recall"] == backlog["recall"] == 1.0
+    for figures in (ours, backlog, theirs):
         assert 0 < figures["latency_p50_ms"] <= figures["latency_p99_ms"]
         assert figures["frames_per_s"] == pytest.approx(1e3 / figures["ms_per_frame"])
-        assert figures["peak_mib"] > 0
+    for figures in (ours, backlog):  # the median pass lies within the passes' range
+        low, high = figures["ms_per_frame_range"]
+        assert low <= figures["ms_per_frame"] <= high
+    assert ours["peak_mib"] > 0 and theirs["peak_mib"] > 0
+    assert report["backlog_times_physics"] == pytest.approx(
+        backlog["frames_per_s"] / report["physics_frames_per_s"]
+    )
     assert report["speedup"] == pytest.approx(theirs["ms_per_frame"] / ours["ms_per_frame"])
     # Sound: 2 m of range is 4 m of path, 11.7 ms at 343 m/s: 85.8 frames/s.
     assert report["physics_frames_per_s"] == pytest.approx(report["speed_of_sound_m_s"] / 4.0)
@@ -51,7 +59,9 @@ def test_bench_figures_are_consistent(recording):
     assert report["times_physics"] == pytest.approx(ours["frames_per_s"] / report["physics_frames_per_s"])
     text = format_bench(report)
     assert "x the scipy chain" in text
-    assert "| echoloc (stream) | 6 |" in text
+    assert "| echoloc (stream, a frame a call) | 6 |" in text
+    assert "| echoloc (stream, a backlog 4 frames a call) | 6 |" in text
+    assert "median of 3 passes" in text
     assert report["workers"] == 1
     if report["cpus"] is not None:
         assert len(report["cpus"]) == 1

@@ -2207,8 +2207,17 @@ def record_command(
     show_default=True,
     help="Cores to pin the bench to, and threads for echoloc's echoes stage.",
 )
+@click.option(
+    "--rounds",
+    type=click.IntRange(1, 100),
+    default=3,
+    show_default=True,
+    help="Passes of echoloc's stream over the frames, each way; the median pass is reported.",
+)
 @click.option("--json", "as_json", is_flag=True, help="One JSON object with the figures.")
-def bench_command(reflectors: int, n_frames: int, baseline_frames: int, workers: int, as_json: bool) -> None:
+def bench_command(
+    reflectors: int, n_frames: int, baseline_frames: int, workers: int, rounds: int, as_json: bool
+) -> None:
     """Frames/s, latency p50/p99 and peak memory of the full chain, beside a plain scipy chain."""
     from echoloc.benchmark import bench_chains, bench_scene, format_bench
 
@@ -2218,7 +2227,7 @@ def bench_command(reflectors: int, n_frames: int, baseline_frames: int, workers:
         markup=False,
     )
     recording = simulate(bench_scene(reflectors), n_frames)
-    report = bench_chains(recording, baseline_frames=baseline_frames, workers=workers)
+    report = bench_chains(recording, baseline_frames=baseline_frames, workers=workers, rounds=rounds)
     if as_json:
         click.echo(json.dumps(report, allow_nan=False))
         return
