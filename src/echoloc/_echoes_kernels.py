@@ -1557,6 +1557,92 @@ def finish_channels(
         kept[ch] = m
 
 
+@njit(cache=True)
+def batch_channels(
+    corr: Any, n: int, constants: Any, finishing: Any, out: Any, kept: Any, ok: Any
+) -> None:  # pragma: no cover - compiled
+    """:func:`batch_echoes`, then :func:`finish_channels`, in one call: a frame's channels as
+    ChannelEchoes' arrays, for the one-frame calls of a stream (each call from Python costs
+    its arguments' unboxing and its outputs' allocation).
+
+    ``constants`` are batch_echoes' arguments from ``table`` to ``noise_step``, ``finishing``
+    finish_channels' from ``lag_rate_hz`` to ``floor_ratio``; ``out`` (3, n_ch, slots) takes the
+    delays (s), amplitudes and SNRs (dB), ``kept`` their counts and ``ok`` False for the channels
+    left to CLEAN.
+    """
+    (
+        table,
+        u,
+        half,
+        rate,
+        dilated,
+        mainlobe,
+        acf_energy,
+        threshold_factor,
+        dynamic_range,
+        first,
+        max_candidates,
+        max_joint,
+        complex_iterations,
+        real_iterations,
+        lone_iterations,
+        max_splits,
+        noise_step,
+    ) = constants
+    lag_rate_hz, arrival_s, blanking_s, threshold_db, floor_ratio = finishing
+    n_ch = corr.shape[0]
+    slots = out.shape[2]
+    out_tof = np.zeros((n_ch, slots))
+    out_amp = np.zeros((n_ch, slots))
+    out_count = np.zeros(n_ch, dtype=np.int64)
+    out_power = np.zeros(n_ch)
+    out_status = np.zeros(n_ch, dtype=np.int64)
+    batch_echoes(
+        corr,
+        n,
+        table,
+        u,
+        half,
+        rate,
+        dilated,
+        mainlobe,
+        acf_energy,
+        threshold_factor,
+        dynamic_range,
+        first,
+        max_candidates,
+        max_joint,
+        complex_iterations,
+        real_iterations,
+        lone_iterations,
+        max_splits,
+        noise_step,
+        out_tof,
+        out_amp,
+        out_count,
+        out_power,
+        out_status,
+    )
+    for ch in range(n_ch):
+        ok[ch] = out_status[ch] == OK
+    finish_channels(
+        out_tof,
+        out_amp,
+        out_count,
+        out_power,
+        ok,
+        lag_rate_hz,
+        arrival_s,
+        blanking_s,
+        threshold_db,
+        floor_ratio,
+        out[0],
+        out[1],
+        out[2],
+        kept,
+    )
+
+
 # --- CLEAN (echoes._Clean) -----------------------------------------------------------
 #
 # The same arithmetic as _Clean's methods, on one channel's double-precision residual

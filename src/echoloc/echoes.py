@@ -188,6 +188,11 @@ class MatchedFilter:
         return math.ceil(blanking_s * self.lag_rate_hz)
 
     @cached_property
+    def kernel_constants_memo(self) -> dict[tuple[float, ...], Any]:
+        """The compiled batch path's per-options arguments, built once each (:func:`_kernel_constants`)."""
+        return {}
+
+    @cached_property
     def n_fft(self) -> int:
         """The FFT length: no wrap-around into the frame's lags, fast, a multiple of the decimation."""
         n = int(scipy.fft.next_fast_len(self.n_samples + len(self.template), real=True))
@@ -982,8 +987,12 @@ def matched_filter_batch(
     correlation = mf.correlate_single_rows(frames, fft_workers(threads, n_frames * n_rx)).reshape(
         n_frames * n_rx, -1
     )
-    batch = _compiled_batch(correlation, mf, options, n_samples=mf.n_lags, threads=threads)
-    channels = _finish_batch(batch, mf, options)
+    if _kernel_threads(threads, n_frames * n_rx) == 1:
+        channels = _batch_channels(correlation, mf, options)
+    else:
+        channels = _finish_batch(
+            _compiled_batch(correlation, mf, options, n_samples=mf.n_lags, threads=threads), mf, options
+        )
     hard = [index for index, found in enumerate(channels) if found is None]
     if hard:
         clean = _Clean(mf, options)
@@ -1240,6 +1249,79 @@ class _BatchOutput:
     ok: NDArray[np.bool_]  # False: the channel goes to CLEAN
 
 
+_KernelConstants = tuple[tuple[Any, ...], tuple[float, float, float, float, float]]
+
+
+def _kernel_constants(
+    mf: MatchedFilter, options: EchoOptions, noise_step: int, max_splits: int
+) -> _KernelConstants:
+    """The arguments of the compiled batch path that stay the same from frame to frame:
+    :func:`echoloc._echoes_kernels.batch_echoes`' from ``table`` to ``noise_step``, and
+    :func:`echoloc._echoes_kernels.finish_channels`' from ``lag_rate_hz`` to ``floor_ratio``.
+    Built once for each ``mf`` and set of options (:attr:`MatchedFilter.kernel_constants_memo`)."""
+    key = (
+        options.threshold_db,
+        options.dynamic_range_db,
+        options.blanking_s,
+        options.max_echoes,
+        noise_step,
+        max_splits,
+    )
+    memo = mf.kernel_constants_memo
+    found = memo.get(key)
+    if found is None:
+        batch = (
+            mf.acf_table,
+            mf.oversample,
+            mf.half_width,
+            mf.phase_rate_rad_per_lag,
+            mf.sidelobe_envelope,
+            mf.mainlobe_lags,
+            mf.acf_energy,
+            10 ** (options.threshold_db / 10),
+            10 ** (-options.dynamic_range_db / 10),
+            max(mf.first_lag(options.blanking_s), 1),
+            4 * options.max_echoes,
+            _MAX_JOINT,
+            _COMPLEX_ITERATIONS,
+            _REAL_ITERATIONS,
+            _LONE_ITERATIONS,
+            max_splits,
+            max(1, noise_step // mf.decimation),
+        )
+        finishing = (
+            mf.lag_rate_hz,
+            mf.arrival_s,
+            options.blanking_s,
+            options.threshold_db,
+            10 ** (-options.dynamic_range_db / 20),
+        )
+        found = memo[key] = (batch, finishing)
+    return found
+
+
+def _batch_channels(
+    correlation: NDArray[np.complexfloating[Any, Any]], mf: MatchedFilter, options: EchoOptions
+) -> list[ChannelEchoes | None]:
+    """:func:`_finish_batch` of :func:`_compiled_batch` on one thread, in one compiled call
+    (:func:`echoloc._echoes_kernels.batch_channels`): the same echoes, without the Python
+    between the two, which a stream's one-frame calls would pay every frame."""
+    from echoloc import _echoes_kernels as kernels
+
+    constants, finishing = _kernel_constants(mf, options, _NOISE_STEP, _MAX_SPLITS)
+    n_ch = correlation.shape[0]
+    out = np.zeros((3, n_ch, 4 * options.max_echoes))
+    kept = np.zeros(n_ch, dtype=np.int64)
+    ok = np.zeros(n_ch, dtype=np.bool_)
+    rows = np.ascontiguousarray(correlation, dtype=np.complex64).view(np.float32)
+    kernels.batch_channels(rows, mf.n_lags, constants, finishing, out, kept, ok)
+    tof_s, amplitude, snr_db = out
+    return [
+        ChannelEchoes(tof_s[c, : kept[c]], amplitude[c, : kept[c]], snr_db[c, : kept[c]]) if ok[c] else None
+        for c in range(n_ch)
+    ]
+
+
 def _compiled_batch(
     correlation: NDArray[np.complexfloating[Any, Any]],
     mf: MatchedFilter,
@@ -1269,27 +1351,16 @@ def _compiled_batch(
     if not 0 < n <= correlation.shape[-1]:
         raise ValueError(f"{n} samples asked of correlation rows of {correlation.shape[-1]}")
     parts = _kernel_threads(threads, n_ch)
-    run = kernels.batch_echoes if parts == 1 else partial(kernels.batch_echoes_parallel, parts)
+    run: Callable[..., None] = (
+        kernels.batch_echoes if parts == 1 else partial(kernels.batch_echoes_parallel, parts)
+    )
+    constants, _ = _kernel_constants(
+        mf, options, noise_step, _MAX_SPLITS if max_splits is None else max_splits
+    )
     run(
         np.ascontiguousarray(correlation, dtype=np.complex64).view(np.float32),
         n,
-        mf.acf_table,
-        mf.oversample,
-        mf.half_width,
-        mf.phase_rate_rad_per_lag,
-        mf.sidelobe_envelope,
-        mf.mainlobe_lags,
-        mf.acf_energy,
-        10 ** (options.threshold_db / 10),
-        10 ** (-options.dynamic_range_db / 10),
-        max(mf.first_lag(options.blanking_s), 1),
-        cap,
-        _MAX_JOINT,
-        _COMPLEX_ITERATIONS,
-        _REAL_ITERATIONS,
-        _LONE_ITERATIONS,
-        _MAX_SPLITS if max_splits is None else max_splits,
-        max(1, noise_step // mf.decimation),
+        *constants,
         out_tof,
         out_amplitude,
         out_count,
@@ -1307,17 +1378,14 @@ def _finish_batch(out: _BatchOutput, mf: MatchedFilter, options: EchoOptions) ->
     shape = out.tof.shape
     tof_s, amplitude, snr_db = np.zeros(shape), np.zeros(shape), np.zeros(shape)
     kept = np.zeros(shape[0], dtype=np.int64)
+    _, finishing = _kernel_constants(mf, options, _NOISE_STEP, _MAX_SPLITS)
     kernels.finish_channels(
         out.tof,
         out.amplitude,
         out.count,
         out.power,
         out.ok,
-        mf.lag_rate_hz,
-        mf.arrival_s,
-        options.blanking_s,
-        options.threshold_db,
-        10 ** (-options.dynamic_range_db / 20),
+        *finishing,
         tof_s,
         amplitude,
         snr_db,
