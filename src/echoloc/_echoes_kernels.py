@@ -636,11 +636,11 @@ a pair too close to resolve (the checks pass it over)."""
 NO_PAIR, MERGED = -1, -2
 """What :func:`_split_echo` returns instead of a count: no plausible pair, or a pair too close to resolve."""
 
-_SPLIT_STEP = 1.0
-"""Lags between the delays of the grid a split searches: its gain varies over the envelope's
-scale (the complex amplitudes take up the carrier phase), a main lobe of 8.5 lags. Half a lag
-cost half as much again on the five-reflector bench frames (70 µs a channel split against 47)
-and kept 130 of their 141 unexplained channels from CLEAN against 126."""
+# A split searches a grid of delays one lag apart: its gain varies over the envelope's scale (the
+# complex amplitudes take up the carrier phase), a main lobe of 8.5 lags. Half a lag cost half as
+# much again on the five-reflector bench frames (70 µs a channel split against 47) and kept 130 of
+# their 141 unexplained channels from CLEAN against 126. On whole lags every shape is the one
+# before it moved by a sample, which _split_echo's Gram matrix is built on.
 _SPLIT_ITERATIONS = 200
 """Most Levenberg-Marquardt steps of a split's fits, each stopping once converged (as CLEAN's)."""
 _SPLIT_TOLERANCE = 1e-3
@@ -745,7 +745,7 @@ def _split_echo(
     The data are the correlation less the other echoes' model, from a main lobe before the
     first member to a main lobe after the last and half a main lobe beyond. The pair starts
     from the global least-squares fit with complex amplitudes over a grid of delays
-    :data:`_SPLIT_STEP` apart (variable projection: for shapes S_g, S_h the fit removes
+    a lag apart (variable projection: for shapes S_g, S_h the fit removes
     ``b^H G^-1 b`` of the data's energy, b their inner products with the data, G their Gram
     matrix), so no local minimum traps it. Levenberg-Marquardt with complex, then real
     amplitudes settles it. When that leaves more than ``threshold`` in the window, then as
@@ -773,32 +773,58 @@ def _split_echo(
         d[j, 0] = row[2 * s] - other.real
         d[j, 1] = row[2 * s + 1] - other.imag
         ok[j] = True
-    first = math.floor(start / _SPLIT_STEP) * _SPLIT_STEP
-    n_grid = min(int((stop - start) / _SPLIT_STEP) + 3, shapes.shape[0])
+    first = float(math.floor(start))
+    n_grid = min(int(stop - start) + 3, shapes.shape[0])
+    b0, r0, b1, r1, wt = _grid(u, first)
     for g in range(n_grid):
-        b0, r0, b1, r1, wt = _grid(u, first + _SPLIT_STEP * g)
+        # The shape of delay first + g is that of first + g - 1 a sample later: one new sample.
+        if g == 0:
+            for j in range(w):
+                shapes[0, j] = _clean_shape(table, half, b0, r0, b1, r1, wt, lo + j)
+        else:
+            shapes[g, 1:w] = shapes[g - 1, 0 : w - 1]
+            shapes[g, 0] = _clean_shape(table, half, b0 + g, r0, b1 + g, r1, wt, lo)
         re = im = total = 0.0
         for j in range(w):
-            v = _clean_shape(table, half, b0, r0, b1, r1, wt, lo + j)
-            shapes[g, j] = v
+            v = shapes[g, j]
             re += v.real * d[j, 0] + v.imag * d[j, 1]
             im += v.real * d[j, 1] - v.imag * d[j, 0]
             total += v.real * v.real + v.imag * v.imag
         overlap[g] = complex(re, im)
         energy[g] = total
     merge_samples = mainlobe / 4
-    nearest = math.ceil(merge_samples / _SPLIT_STEP)
-    farthest = math.floor(mainlobe / _SPLIT_STEP)
+    nearest = math.ceil(merge_samples)
+    farthest = math.floor(mainlobe)
     best_gain = 0.0
     close = False  # the best pair's grid delays lie closer than a quarter main lobe
+    # Gram entries G[g, h] = sum_j conj(S_g(j)) S_h(j), by diagonals h - g: as S_g(j) = S_{g-1}(j - 1),
+    # G[g, h] = G[g - 1, h - 1] + conj(S_g(0)) S_h(0) - conj(S_{g-1}(w - 1)) S_{h-1}(w - 1), one sample
+    # into the window and one out; gram[delta] holds the diagonal's last entry.
+    gram = work[: 2 * (farthest + 1)]
     for g in range(n_grid):
         bg, eg = overlap[g], energy[g]
         for h in range(g + 1, min(g + farthest, n_grid - 1) + 1):
-            re = im = 0.0
-            for j in range(w):
-                x, y = shapes[g, j], shapes[h, j]
-                re += x.real * y.real + x.imag * y.imag
-                im += x.real * y.imag - x.imag * y.real
+            delta = h - g
+            if g == 0:
+                re = im = 0.0
+                for j in range(w):
+                    x, y = shapes[0, j], shapes[h, j]
+                    re += x.real * y.real + x.imag * y.imag
+                    im += x.real * y.imag - x.imag * y.real
+            else:
+                x, y = shapes[g, 0], shapes[h, 0]
+                xo, yo = shapes[g - 1, w - 1], shapes[h - 1, w - 1]
+                re = (
+                    gram[2 * delta]
+                    + (x.real * y.real + x.imag * y.imag)
+                    - (xo.real * yo.real + xo.imag * yo.imag)
+                )
+                im = (
+                    gram[2 * delta + 1]
+                    + (x.real * y.imag - x.imag * y.real)
+                    - (xo.real * yo.imag - xo.imag * yo.real)
+                )
+            gram[2 * delta], gram[2 * delta + 1] = re, im
             c = complex(re, im)
             bh, eh = overlap[h], energy[h]
             det = eg * eh - (re * re + im * im)
@@ -809,7 +835,7 @@ def _split_echo(
             if gain > best_gain:
                 best_gain = gain
                 close = h - g < nearest
-                pair_t[0], pair_t[1] = first + _SPLIT_STEP * g, first + _SPLIT_STEP * h
+                pair_t[0], pair_t[1] = first + g, first + h
                 pair_a[0] = (eh * bg - c * bh) / det
                 pair_a[1] = (eg * bh - c.conjugate() * bg) / det
     if best_gain <= 0.0:
@@ -1144,7 +1170,7 @@ def batch_echoes(
     joint_t = np.zeros(max_joint)
     joint_a = np.zeros(max_joint, dtype=np.complex128)
     joint_new = np.zeros(max(max_joint, 2), dtype=np.complex128)
-    split_grid = int((4 * span + 2 * fit_half) / _SPLIT_STEP) + 4
+    split_grid = 4 * span + 2 * fit_half + 4
     split_data = np.zeros((split_w, 2))
     split_valid = np.ones(split_w, dtype=np.bool_)
     split_shapes = np.zeros((split_grid, split_w), dtype=np.complex128)
