@@ -72,6 +72,61 @@ def _solve_in_place(m: Any, v: Any, x: Any) -> bool:  # pragma: no cover - compi
     return True
 
 
+@njit(cache=True, inline="always")
+def _solve3(
+    a00: float,
+    a01: float,
+    a02: float,
+    a10: float,
+    a11: float,
+    a12: float,
+    a20: float,
+    a21: float,
+    a22: float,
+    r0: float,
+    r1: float,
+    r2: float,
+) -> Any:  # pragma: no cover - compiled
+    """:func:`_solve_in_place` for a 3x3 system in scalars (registers, not array rows): the same
+    pivots and operations in the same order, so the same bits; (solved, x0, x1, x2)."""
+    if abs(a10) > abs(a00):
+        if abs(a20) > abs(a10):
+            a00, a01, a02, a20, a21, a22 = a20, a21, a22, a00, a01, a02
+            r0, r2 = r2, r0
+        else:
+            a00, a01, a02, a10, a11, a12 = a10, a11, a12, a00, a01, a02
+            r0, r1 = r1, r0
+    elif abs(a20) > abs(a00):
+        a00, a01, a02, a20, a21, a22 = a20, a21, a22, a00, a01, a02
+        r0, r2 = r2, r0
+    if a00 == 0.0 or not np.isfinite(a00):
+        return False, 0.0, 0.0, 0.0
+    f = a10 / a00
+    a11 -= f * a01
+    a12 -= f * a02
+    r1 -= f * r0
+    f = a20 / a00
+    a21 -= f * a01
+    a22 -= f * a02
+    r2 -= f * r0
+    if abs(a21) > abs(a11):
+        a11, a12, a21, a22 = a21, a22, a11, a12
+        r1, r2 = r2, r1
+    if a11 == 0.0 or not np.isfinite(a11):
+        return False, 0.0, 0.0, 0.0
+    f = a21 / a11
+    a22 -= f * a12
+    r2 -= f * r1
+    if a22 == 0.0 or not np.isfinite(a22):
+        return False, 0.0, 0.0, 0.0
+    x2 = r2 / a22
+    x1 = (r1 - a12 * x2) / a11
+    s = r0
+    s -= a01 * x1
+    s -= a02 * x2
+    return True, s / a00, x1, x2
+
+
 @_without_runtime
 def _solve(m: Any, v: Any, x: Any) -> bool:  # pragma: no cover - compiled
     """:func:`_solve_in_place`, called: inlined in the seed loop it counted references to its
@@ -101,6 +156,14 @@ def _det(a: Any) -> float:  # pragma: no cover - compiled
         - a[0, 1] * (a[1, 0] * a[2, 2] - a[1, 2] * a[2, 0])
         + a[0, 2] * (a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0])
     )
+
+
+@njit(cache=True, inline="always")
+def _det3(
+    a00: float, a01: float, a02: float, a10: float, a11: float, a12: float, a20: float, a21: float, a22: float
+) -> float:  # pragma: no cover - compiled
+    """:func:`_det` of the 3x3 matrix of these entries (row by row), the same expansion."""
+    return a00 * (a11 * a22 - a12 * a21) - a01 * (a10 * a22 - a12 * a20) + a02 * (a10 * a21 - a11 * a20)
 
 
 @njit(cache=True, inline="always")
@@ -158,6 +221,89 @@ def _exact_prepare(t: Any, receivers: Any, work: Any) -> None:  # pragma: no cov
 def _exact_work(t: Any, paths: Any, points: Any, work: Any) -> int:  # pragma: no cover - compiled
     """:func:`_exact` in the scratch rows ``work`` (5 D + 5, D + 1) that :func:`_exact_prepare`
     filled for ``t`` and the receivers: no allocation per combination of paths."""
+    if paths.shape[0] == 3:
+        return _exact_work_3d(t, paths, points, work)
+    return _exact_work_any(t, paths, points, work)
+
+
+@_without_runtime
+def _exact_work_3d(t: Any, paths: Any, points: Any, work: Any) -> int:  # pragma: no cover - compiled
+    """:func:`_exact_work_any` for D = 3 in scalars (registers, not the scratch rows): the same
+    operations in the same order, so the same bits."""
+    d = paths.shape[0]
+    # The prepared rows (see _exact_prepare): M's receiver columns, |R_i - T|^2, v_D, M M^T.
+    m00, m01, m02 = work[0, 0], work[0, 1], work[0, 2]
+    m10, m11, m12 = work[1, 0], work[1, 1], work[1, 2]
+    m20, m21, m22 = work[2, 0], work[2, 1], work[2, 2]
+    v3 = work[d + 1, d]
+    n0, n1, n2 = work[4 * d + 4, 0], work[4 * d + 4, 1], work[4 * d + 4, 2]
+    l0, l1, l2 = paths[0], paths[1], paths[2]
+    m03 = -2.0 * l0
+    m13 = -2.0 * l1
+    m23 = -2.0 * l2
+    b0 = n0 - l0 * l0
+    b1 = n1 - l1 * l1
+    b2 = n2 - l2 * l2
+    # Null vector: v_j = (-1)^j det(M without column j), each det as _det expands it.
+    v0 = 1.0 * _det3(m01, m02, m03, m11, m12, m13, m21, m22, m23)
+    v1 = -1.0 * _det3(m00, m02, m03, m10, m12, m13, m20, m22, m23)
+    v2 = 1.0 * _det3(m00, m01, m03, m10, m11, m13, m20, m21, m23)
+    pg = 4 * d + 5
+    g00 = work[pg, 0] + m03 * m03
+    g01 = work[pg, 1] + m03 * m13
+    g02 = work[pg, 2] + m03 * m23
+    g10 = work[pg + 1, 0] + m13 * m03
+    g11 = work[pg + 1, 1] + m13 * m13
+    g12 = work[pg + 1, 2] + m13 * m23
+    g20 = work[pg + 2, 0] + m23 * m03
+    g21 = work[pg + 2, 1] + m23 * m13
+    g22 = work[pg + 2, 2] + m23 * m23
+    trace = 0.0
+    trace += g00
+    trace += g11
+    trace += g22
+    if not abs(_det3(g00, g01, g02, g10, g11, g12, g20, g21, g22)) > 1e-18 * max(trace, 1e-30) ** d:
+        return 0
+    # y = (M M^T)^-1 b, as _solve_in_place solves it.
+    solved, y0, y1, y2 = _solve3(g00, g01, g02, g10, g11, g12, g20, g21, g22, b0, b1, b2)
+    if not solved:
+        return 0
+    u0 = 0.0 + m00 * y0 + m10 * y1 + m20 * y2
+    u1 = 0.0 + m01 * y0 + m11 * y1 + m21 * y2
+    u2 = 0.0 + m02 * y0 + m12 * y1 + m22 * y2
+    u3 = 0.0 + m03 * y0 + m13 * y1 + m23 * y2
+    qa = -v3 * v3 + v0 * v0 + v1 * v1 + v2 * v2
+    qb = 2.0 * (-u3 * v3 + u0 * v0 + u1 * v1 + u2 * v2)
+    qc = -u3 * u3 + u0 * u0 + u1 * u1 + u2 * u2
+    disc = qb * qb - 4.0 * qa * qc
+    if disc < 0.0:
+        if abs(disc) > 1e-6 * qb * qb:
+            return 0
+        disc = 0.0
+    root = np.sqrt(disc)
+    safe_a = qa if abs(qa) > 1e-300 else 1e-300
+    longest = max(max(max(0.0, l0), l1), l2)
+    slack = 1e-9 + 1e-6 * longest
+    found = 0
+    for sign in (1.0, -1.0):
+        s = (-qb + sign * root) / (2.0 * safe_a)
+        rho = u3 + s * v3
+        if not (rho >= -slack and l0 - rho >= -slack and l1 - rho >= -slack and l2 - rho >= -slack):
+            continue
+        x = u0 + s * v0 + t[0]
+        y = u1 + s * v1 + t[1]
+        z = u2 + s * v2 + t[2]
+        if np.isfinite(x) and np.isfinite(y) and np.isfinite(z):
+            points[found, 0] = x
+            points[found, 1] = y
+            points[found, 2] = z
+            found += 1
+    return found
+
+
+@_without_runtime
+def _exact_work_any(t: Any, paths: Any, points: Any, work: Any) -> int:  # pragma: no cover - compiled
+    """:func:`_exact_work` in any dimension, through the scratch rows."""
     d = paths.shape[0]
     m = work[:d, :]
     b = work[d, :d]
@@ -522,6 +668,122 @@ def _gauss_newton_row(
     """One row of :func:`gauss_newton` into ``position`` (D,) and ``covariance`` (D, D), which
     stay as given (NaN) when the system is singular; returns (chi2, converged).
     ``work`` is scratch of (2 D + 6, D)."""
+    if receivers.shape[1] == 3:
+        return _gauss_newton_row_3d(
+            transmitters, receivers, paths, weights, start, iterations, position, covariance
+        )
+    return _gauss_newton_row_any(
+        transmitters, receivers, paths, weights, start, iterations, position, covariance, work
+    )
+
+
+@_without_runtime
+def _gauss_newton_row_3d(
+    transmitters: Any,
+    receivers: Any,
+    paths: Any,
+    weights: Any,
+    start: Any,
+    iterations: Any,
+    position: Any,
+    covariance: Any,
+) -> Any:  # pragma: no cover - compiled
+    """:func:`_gauss_newton_row_any` for D = 3 in scalars (registers, not scratch rows): the same
+    operations in the same order, so the same bits. A covariance column whose solve fails
+    (which the conditioning test before it rules out) stays NaN."""
+    n_ch = paths.shape[0]
+    p0, p1, p2 = start[0], start[1], start[2]
+    chi2 = np.nan
+    step = np.inf
+    for it in range(iterations + 1):
+        n00 = n01 = n02 = n10 = n11 = n12 = n20 = n21 = n22 = 0.0
+        h0 = h1 = h2 = 0.0
+        total = 0.0
+        for c in range(n_ch):
+            w = weights[c]
+            if w == 0.0:
+                continue
+            t0, t1, t2 = p0 - transmitters[c, 0], p1 - transmitters[c, 1], p2 - transmitters[c, 2]
+            q0, q1, q2 = p0 - receivers[c, 0], p1 - receivers[c, 1], p2 - receivers[c, 2]
+            r_t = 0.0
+            r_t += t0**2
+            r_t += t1**2
+            r_t += t2**2
+            r_r = 0.0
+            r_r += q0**2
+            r_r += q1**2
+            r_r += q2**2
+            r_t = np.sqrt(r_t)
+            r_r = np.sqrt(r_r)
+            j0 = t0 / r_t + q0 / r_r
+            j1 = t1 / r_t + q1 / r_r
+            j2 = t2 / r_t + q2 / r_r
+            residual = paths[c] - r_t - r_r
+            total += w * residual * residual
+            h0 += w * j0 * residual
+            h1 += w * j1 * residual
+            h2 += w * j2 * residual
+            n00 += w * j0 * j0
+            n01 += w * j0 * j1
+            n02 += w * j0 * j2
+            n10 += w * j1 * j0
+            n11 += w * j1 * j1
+            n12 += w * j1 * j2
+            n20 += w * j2 * j0
+            n21 += w * j2 * j1
+            n22 += w * j2 * j2
+        # _well_conditioned, as it tests the normal matrix.
+        if not (n00 > 0.0 and n11 > 0.0 and n22 > 0.0):
+            return np.nan, False
+        bound = 1.0
+        bound *= n00
+        bound *= n11
+        bound *= n22
+        if not (np.isfinite(bound) and _det3(n00, n01, n02, n10, n11, n12, n20, n21, n22) > 1e-12 * bound):
+            return np.nan, False
+        if it == iterations or step < 1e-9:
+            # Converged (or out of iterations): covariance and chi-square at p.
+            for j in range(3):
+                e0 = 1.0 if j == 0 else 0.0
+                e1 = 1.0 if j == 1 else 0.0
+                e2 = 1.0 if j == 2 else 0.0
+                solved, x0, x1, x2 = _solve3(n00, n01, n02, n10, n11, n12, n20, n21, n22, e0, e1, e2)
+                if solved:
+                    covariance[0, j] = x0
+                    covariance[1, j] = x1
+                    covariance[2, j] = x2
+            chi2 = total
+            break
+        solved, d0, d1, d2 = _solve3(n00, n01, n02, n10, n11, n12, n20, n21, n22, h0, h1, h2)
+        if not solved:
+            return np.nan, False
+        p0 += d0
+        p1 += d1
+        p2 += d2
+        step = 0.0
+        step += d0**2
+        step += d1**2
+        step += d2**2
+        step = np.sqrt(step)
+    position[0] = p0
+    position[1] = p1
+    position[2] = p2
+    return chi2, bool(step < 1e-6 and np.isfinite(chi2))
+
+
+@_without_runtime
+def _gauss_newton_row_any(
+    transmitters: Any,
+    receivers: Any,
+    paths: Any,
+    weights: Any,
+    start: Any,
+    iterations: Any,
+    position: Any,
+    covariance: Any,
+    work: Any,
+) -> Any:  # pragma: no cover - compiled
+    """:func:`_gauss_newton_row` in any dimension, through the scratch rows ``work``."""
     n_ch = paths.shape[0]
     d = receivers.shape[1]
     normal = work[:d]
