@@ -1705,6 +1705,39 @@ def candidates(
 
 
 @njit(cache=True)
+def _nearest_first(position: Any, rows: Any, origin: Any) -> bool:  # pragma: no cover - compiled
+    """Sort ``rows`` by the distance of their ``position`` from ``origin``, nearest first, when
+    that order is beyond doubt: every distance squared finite and each more than 1e-9 of
+    itself above the one before, far beyond the rounding of any sum of D squares (a few
+    1e-16 relative), so that locate's order (numpy's dot, stable sort) is the same;
+    False (``rows`` as given) otherwise."""
+    n = rows.shape[0]
+    d = position.shape[1]
+    distance2 = np.empty(n)
+    for i in range(n):
+        s = 0.0
+        for j in range(d):
+            s += (position[rows[i], j] - origin[j]) ** 2
+        if not np.isfinite(s):
+            return False
+        distance2[i] = s
+    order = np.arange(n)
+    for a in range(1, n):
+        item = order[a]
+        b = a - 1
+        while b >= 0 and distance2[order[b]] > distance2[item]:
+            order[b + 1] = order[b]
+            b -= 1
+        order[b + 1] = item
+    for a in range(1, n):
+        if not distance2[order[a]] - distance2[order[a - 1]] > 1e-9 * distance2[order[a]]:
+            return False
+    sorted_rows = rows[order]
+    rows[:] = sorted_rows
+    return True
+
+
+@njit(cache=True)
 def associate(
     transmitters: Any,
     receivers: Any,
@@ -1730,14 +1763,17 @@ def associate(
     amplitude_log_sigma: float,
     node_limit: int,
     max_rows: int,
+    origin: Any,
 ) -> Any:  # pragma: no cover - compiled
     """Steps 1-4 of locate.associate in one call: :func:`candidates`, then :func:`choose`.
 
     Returns (status, echo_use, positions, covariances, chi2) of the surviving objects
     only (few arrays: each returned array costs the caller), ``echo_use`` (n, 2 C) the
-    rows' echo indices then their use. Status 0 done, 1 more than ``max_rows`` seed
-    rows, 2 tied weights (the caller chooses from :func:`candidates` with the
-    reference); no objects then.
+    rows' echo indices then their use. Status 0 done, the objects nearest ``origin``
+    first (:func:`_nearest_first`); 3 done, in the choice's order, as distances too
+    close to order here (the caller orders them); 1 more than ``max_rows`` seed rows,
+    2 tied weights (the caller chooses from :func:`candidates` with the reference):
+    no objects then.
     """
     overflow, refined = candidates(
         transmitters,
@@ -1793,6 +1829,8 @@ def associate(
     )
     status = 1 if overflow else 0 if done else 2
     rows = np.flatnonzero(good) if status == 0 else np.empty(0, dtype=np.int64)
+    if status == 0 and not _nearest_first(position, rows, origin):
+        status = 3
     n_ch = offset.shape[0] - 1
     echo_use = np.empty((rows.shape[0], 2 * n_ch), dtype=np.int64)
     for i in range(rows.shape[0]):
