@@ -411,6 +411,54 @@ def _insertion(values: Any, lo: int, hi: int, value: float) -> int:  # pragma: n
     return lo
 
 
+@njit(cache=True, inline="always")
+def _seed_conditioned_3d(jac: Any, seed: Any) -> bool:  # pragma: no cover - compiled
+    """For D = 3, whether the seed channels' Jacobian rows ``jac[seed]`` (J_s) give a
+    well-conditioned J_s^T J_s: the seed loop's normal matrix and :func:`_well_conditioned`
+    in scalars, the same sums in the same order."""
+    a, b, c = seed[0], seed[1], seed[2]
+    a0, a1, a2 = jac[a, 0], jac[a, 1], jac[a, 2]
+    b0, b1, b2 = jac[b, 0], jac[b, 1], jac[b, 2]
+    c0, c1, c2 = jac[c, 0], jac[c, 1], jac[c, 2]
+    n00 = 0.0 + a0 * a0 + b0 * b0 + c0 * c0
+    n01 = 0.0 + a0 * a1 + b0 * b1 + c0 * c1
+    n02 = 0.0 + a0 * a2 + b0 * b2 + c0 * c2
+    n10 = 0.0 + a1 * a0 + b1 * b0 + c1 * c0
+    n11 = 0.0 + a1 * a1 + b1 * b1 + c1 * c1
+    n12 = 0.0 + a1 * a2 + b1 * b2 + c1 * c2
+    n20 = 0.0 + a2 * a0 + b2 * b0 + c2 * c0
+    n21 = 0.0 + a2 * a1 + b2 * b1 + c2 * c1
+    n22 = 0.0 + a2 * a2 + b2 * b2 + c2 * c2
+    if not (n00 > 0.0 and n11 > 0.0 and n22 > 0.0):
+        return False
+    bound = 1.0
+    bound *= n00
+    bound *= n11
+    bound *= n22
+    return bool(np.isfinite(bound) and _det3(n00, n01, n02, n10, n11, n12, n20, n21, n22) > 1e-12 * bound)
+
+
+@njit(cache=True, inline="always")
+def _seed_gain_3d(jac: Any, seed: Any, channel: int) -> Any:  # pragma: no cover - compiled
+    """For D = 3, (solved, g) with J_s^T g = the Jacobian row of ``channel``: the seed loop's
+    solve in scalars (:func:`_solve3`)."""
+    a, b, c = seed[0], seed[1], seed[2]
+    return _solve3(
+        jac[a, 0],
+        jac[b, 0],
+        jac[c, 0],
+        jac[a, 1],
+        jac[b, 1],
+        jac[c, 1],
+        jac[a, 2],
+        jac[b, 2],
+        jac[c, 2],
+        jac[channel, 0],
+        jac[channel, 1],
+        jac[channel, 2],
+    )
+
+
 @njit(cache=True)
 def seed_candidates(
     transmitters: Any,
@@ -546,17 +594,21 @@ def seed_candidates(
                     predicted[c] = r_t + r_r
                     for j in range(d):
                         jac[c, j] = (p[j] - transmitters[c, j]) / r_t + (p[j] - receivers[c, j]) / r_r
-                for k in range(d):
-                    for j in range(d):
-                        seed_jac[k, j] = jac[seed[k], j]
-                for i in range(d):
-                    for j in range(d):
-                        acc = 0.0
-                        for k in range(d):
-                            acc += seed_jac[k, i] * seed_jac[k, j]
-                        normal[i, j] = acc
-                if not _well_conditioned(normal):
-                    continue
+                if d == 3:
+                    if not _seed_conditioned_3d(jac, seed):
+                        continue
+                else:
+                    for k in range(d):
+                        for j in range(d):
+                            seed_jac[k, j] = jac[seed[k], j]
+                    for i in range(d):
+                        for j in range(d):
+                            acc = 0.0
+                            for k in range(d):
+                                acc += seed_jac[k, i] * seed_jac[k, j]
+                            normal[i, j] = acc
+                    if not _well_conditioned(normal):
+                        continue
                 n_own = 0
                 keep = True
                 for c in range(n_ch):
@@ -577,11 +629,15 @@ def seed_candidates(
                     if not visible or outside:
                         continue  # this channel cannot see the point: no echo, none needed
                     # Prediction variance from the seed: g_c J_s^-1, squared, times sigma^2.
-                    for i in range(d):
-                        column[i] = jac[c, i]
-                        for j in range(d):
-                            lhs[i, j] = seed_jac[j, i]
-                    if not _solve(lhs, column, gain):
+                    if d == 3:
+                        solved, gain[0], gain[1], gain[2] = _seed_gain_3d(jac, seed, c)
+                    else:
+                        for i in range(d):
+                            column[i] = jac[c, i]
+                            for j in range(d):
+                                lhs[i, j] = seed_jac[j, i]
+                        solved = _solve(lhs, column, gain)
+                    if not solved:
                         keep = False
                         break
                     var = 0.0
