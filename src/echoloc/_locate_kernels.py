@@ -1894,3 +1894,68 @@ def associate(
             echo_use[i, c] = echo[rows[i], c]
             echo_use[i, n_ch + c] = use[rows[i], c]
     return status, echo_use, position[rows], covariance[rows], chi2[rows]
+
+
+@njit(cache=True)
+def associate_frame(
+    transmitters: Any,
+    receivers: Any,
+    transmitter_axes: Any,
+    receiver_axes: Any,
+    boresight: Any,
+    required: Any,
+    tof: Any,
+    speed: float,
+    linear_snr: Any,
+    prior_variance: float,
+    omega: float,
+    amplitudes: Any,
+    offset: Any,
+    seeds: Any,
+    window_low: float,
+    window_high: float,
+    cos_fov: float,
+    k_gate: float,
+    merge_reach: float,
+    merge_sigma: float,
+    gates: Any,
+    check_beams: bool,
+    min_own: int,
+    sharing_rounds: int,
+    amplitude_log_sigma: float,
+    node_limit: int,
+    max_rows: int,
+    origin: Any,
+) -> Any:  # pragma: no cover - compiled
+    """:func:`associate` on one frame's flat echoes as locate.locate_frame has them: times of
+    flight ``tof`` (s) times ``speed`` (m/s) for the paths and :func:`path_sigmas` of the
+    linear SNR for their sigmas, the same operations as locate's numpy, in this call."""
+    paths = tof * speed
+    sigmas = path_sigmas(linear_snr, speed, prior_variance, omega)
+    return associate(
+        transmitters,
+        receivers,
+        transmitter_axes,
+        receiver_axes,
+        boresight,
+        required,
+        paths,
+        sigmas,
+        amplitudes,
+        offset,
+        seeds,
+        window_low,
+        window_high,
+        cos_fov,
+        k_gate,
+        merge_reach,
+        merge_sigma,
+        gates,
+        check_beams,
+        min_own,
+        sharing_rounds,
+        amplitude_log_sigma,
+        node_limit,
+        max_rows,
+        origin,
+    )

@@ -1448,6 +1448,71 @@ def _pack_group(group: list[int], candidates: list[_Candidate], node_limit: int)
 # --- frames --------------------------------------------------------------------------
 
 
+_OFFSETS: dict[tuple[int, ...], NDArray[np.int64]] = {}
+
+
+def _offset(counts: tuple[int, ...]) -> NDArray[np.int64]:
+    """Where each channel's echoes start in the flat arrays, and the end: (C + 1,), by the
+    echo counts (memo: frames repeat a few counts; no caller writes to it)."""
+    offset = _OFFSETS.get(counts)
+    if offset is None:
+        if len(_OFFSETS) >= 4096:
+            _OFFSETS.clear()
+        offset = _OFFSETS[counts] = np.array([0, *accumulate(counts)], dtype=np.int64)
+    return offset
+
+
+def _frame_objects(
+    setup: _Setup,
+    offset: NDArray[np.int64],
+    tof_s: NDArray[np.float64],
+    speed_of_sound_m_s: float,
+    snr_db: NDArray[np.float64],
+    carrier_hz: float,
+    amplitudes: NDArray[np.float64],
+    options: LocateOptions,
+    n_ch: int,
+) -> list[LocatedObject] | None:
+    """:func:`_objects` of one frame's flat echoes in one compiled call that also makes the
+    paths and sigmas from the times of flight (s) and SNRs (dB, float64; ``carrier_hz`` the
+    options') as :func:`_flat_path_sigmas` does; None when the kernel leaves the choice to
+    the reference (tied weights: the caller runs :func:`_objects`)."""
+    from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
+
+    geometry = setup.geometry
+    kernel: Any = kernels.associate_frame
+    status, echo_use, position, covariance, chi2 = kernel(
+        geometry.transmitters_m,
+        geometry.receivers_m,
+        geometry.transmitter_axes,
+        geometry.receiver_axes,
+        geometry.boresight,
+        geometry.required,
+        tof_s,
+        float(speed_of_sound_m_s),
+        10 ** (snr_db / 10),
+        options.path_sigma_m**2,
+        2 * np.pi * carrier_hz,
+        amplitudes,
+        offset,
+        *_kernel_tail(setup, options),
+        _NODE_LIMIT,
+        _MAX_SEED_ROWS,
+        setup.origin,
+    )
+    if status == 1:
+        warnings.warn(
+            f"frame skipped: more than {_MAX_SEED_ROWS} echo combinations to associate; "
+            "raise the detection threshold",
+            LocateWarning,
+            stacklevel=3,
+        )
+        return []
+    if status == 2:
+        return None
+    return _located(setup, echo_use, position, covariance, chi2, status == 0, n_ch)
+
+
 def locate_frame(
     frame_echoes: FrameEchoes,
     transmitter_m: NDArray[np.float64],
@@ -1465,14 +1530,23 @@ def locate_frame(
         n_ch, dim = receivers.shape
         setup = _setup(transmitter_m, receivers, usable, None, None, None, options)
         if len(setup.active) == n_ch == len(channels) and n_ch >= max(options.min_receivers, dim):
-            offset = np.array([0, *accumulate([len(ch.tof_s) for ch in channels])], dtype=np.int64)
-            echoes = _Echoes(
-                offset,
-                (np.concatenate([ch.tof_s for ch in channels]) * c).astype(float, copy=False),
-                _flat_path_sigmas(np.concatenate([ch.snr_db for ch in channels]), c, options),
-                np.concatenate([ch.amplitude for ch in channels]).astype(float, copy=False),
-            )
-            objects = _objects(setup, echoes, options, n_ch)
+            offset = _offset(tuple([len(ch.tof_s) for ch in channels]))
+            tof = np.concatenate([ch.tof_s for ch in channels])
+            snr_db = np.concatenate([ch.snr_db for ch in channels])
+            flat_amplitudes = np.concatenate([ch.amplitude for ch in channels]).astype(float, copy=False)
+            objects = None
+            if options.carrier_hz and tof.dtype == snr_db.dtype == np.float64:
+                objects = _frame_objects(
+                    setup, offset, tof, c, snr_db, options.carrier_hz, flat_amplitudes, options, n_ch
+                )
+            if objects is None:
+                echoes = _Echoes(
+                    offset,
+                    (tof * c).astype(float, copy=False),
+                    _flat_path_sigmas(snr_db, c, options),
+                    flat_amplitudes,
+                )
+                objects = _objects(setup, echoes, options, n_ch)
             return FrameObjects(frame_echoes.frame, frame_echoes.time_s, tuple(objects))
     paths = [ch.tof_s * c for ch in channels]
     sigmas = [path_sigmas_m(ch.snr_db, c, options) for ch in channels]
