@@ -387,6 +387,18 @@ def _exact_work_any(t: Any, paths: Any, points: Any, work: Any) -> int:  # pragm
 
 
 @njit(cache=True, inline="always")
+def _one_transmitter(transmitters: Any) -> bool:  # pragma: no cover - compiled
+    """Whether every channel's transmitter is the first's, bit for bit (zeros' signs too):
+    then each distance to it, and its direction, is the same number for every channel."""
+    for c in range(1, transmitters.shape[0]):
+        for j in range(transmitters.shape[1]):
+            a, b = transmitters[c, j], transmitters[0, j]
+            if not (a == b and np.signbit(a) == np.signbit(b)):
+                return False
+    return True
+
+
+@njit(cache=True, inline="always")
 def _in_beam(point: Any, origins: Any, axes: Any, c: int, cos_fov: float) -> bool:  # pragma: no cover
     """Whether ``point`` is inside the beam of channel c's ``origins``/``axes`` (rows, not row
     views: a view in the seed loop costs two atomic reference counts)."""
@@ -517,6 +529,8 @@ def seed_candidates(
     work = np.empty((5 * d + 5, d + 1))
     sizes = np.empty(d, dtype=np.int64)
     pair_reach = np.zeros((d, d))
+    toward_t = np.empty(d)
+    one_transmitter = _one_transmitter(transmitters)
     for s_index in range(seeds.shape[0]):
         seed = seeds[s_index]
         empty = False
@@ -583,17 +597,24 @@ def seed_candidates(
                     ok = ok and _in_beam(p, receivers, receiver_axes, c, cos_fov)
                 if not ok:
                     continue
+                r_t = 0.0
                 for c in range(n_ch):
-                    r_t = 0.0
+                    if c == 0 or not one_transmitter:
+                        # The distance to the transmitter and its direction: once for all
+                        # channels when they share one (the same inputs, the same bits).
+                        r_t = 0.0
+                        for j in range(d):
+                            r_t += (p[j] - transmitters[c, j]) ** 2
+                        r_t = np.sqrt(r_t)
+                        for j in range(d):
+                            toward_t[j] = (p[j] - transmitters[c, j]) / r_t
                     r_r = 0.0
                     for j in range(d):
-                        r_t += (p[j] - transmitters[c, j]) ** 2
                         r_r += (p[j] - receivers[c, j]) ** 2
-                    r_t = np.sqrt(r_t)
                     r_r = np.sqrt(r_r)
                     predicted[c] = r_t + r_r
                     for j in range(d):
-                        jac[c, j] = (p[j] - transmitters[c, j]) / r_t + (p[j] - receivers[c, j]) / r_r
+                        jac[c, j] = toward_t[j] + (p[j] - receivers[c, j]) / r_r
                 if d == 3:
                     if not _seed_conditioned_3d(jac, seed):
                         continue
@@ -748,6 +769,7 @@ def _gauss_newton_row_3d(
     operations in the same order, so the same bits. A covariance column whose solve fails
     (which the conditioning test before it rules out) stays NaN."""
     n_ch = paths.shape[0]
+    one_transmitter = _one_transmitter(transmitters)
     p0, p1, p2 = start[0], start[1], start[2]
     chi2 = np.nan
     step = np.inf
@@ -755,25 +777,32 @@ def _gauss_newton_row_3d(
         n00 = n01 = n02 = n10 = n11 = n12 = n20 = n21 = n22 = 0.0
         h0 = h1 = h2 = 0.0
         total = 0.0
+        r_t = u0 = u1 = u2 = 0.0
+        toward_t_known = False
         for c in range(n_ch):
             w = weights[c]
             if w == 0.0:
                 continue
-            t0, t1, t2 = p0 - transmitters[c, 0], p1 - transmitters[c, 1], p2 - transmitters[c, 2]
+            if not (toward_t_known and one_transmitter):
+                toward_t_known = True
+                # The distance to the transmitter and its direction: once an iteration when
+                # every channel shares one (the same inputs, the same bits).
+                t0, t1, t2 = p0 - transmitters[c, 0], p1 - transmitters[c, 1], p2 - transmitters[c, 2]
+                r_t = 0.0
+                r_t += t0**2
+                r_t += t1**2
+                r_t += t2**2
+                r_t = np.sqrt(r_t)
+                u0, u1, u2 = t0 / r_t, t1 / r_t, t2 / r_t
             q0, q1, q2 = p0 - receivers[c, 0], p1 - receivers[c, 1], p2 - receivers[c, 2]
-            r_t = 0.0
-            r_t += t0**2
-            r_t += t1**2
-            r_t += t2**2
             r_r = 0.0
             r_r += q0**2
             r_r += q1**2
             r_r += q2**2
-            r_t = np.sqrt(r_t)
             r_r = np.sqrt(r_r)
-            j0 = t0 / r_t + q0 / r_r
-            j1 = t1 / r_t + q1 / r_r
-            j2 = t2 / r_t + q2 / r_r
+            j0 = u0 + q0 / r_r
+            j1 = u1 + q1 / r_r
+            j2 = u2 + q2 / r_r
             residual = paths[c] - r_t - r_r
             total += w * residual * residual
             h0 += w * j0 * residual
