@@ -18,6 +18,11 @@ operations, again a quarter of the seed loop): the larger helpers that allocate
 nothing (:func:`_exact_work`, the Gauss-Newton row and fit, the prediction
 variance's solve) are compiled without the runtime (:func:`_without_runtime`) and
 called, at no count at all; hot loops read rows by index rather than through views.
+In 3-D the hottest of them (the exact seed solve, the seed's conditioning and
+prediction gain, the Gauss-Newton row) run on local scalars instead of scratch rows
+(:func:`_solve3`, :func:`_det3`: the same operations in the same order, so the same
+bits), and the distance to a transmitter every channel shares is computed once a
+point: 0.045 ms a frame for the call on the five-reflector bench scene, 0.065 ms with rows.
 
 ``cache=True`` keeps the machine code in ``__pycache__``: the first call in a fresh
 environment compiles (about half a minute), later processes load it (about 1 s).
