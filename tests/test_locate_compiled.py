@@ -304,3 +304,49 @@ def test_frames_with_more_seed_rows_than_the_first_capacity_are_associated() -> 
         reference = locate_frame(frame, TRANSMITTERS[0], CROSS, OPTIONS[0])
     assert compiled.objects
     _assert_same(reference.objects, compiled.objects)
+
+
+def test_the_fast_located_object_is_the_dataclass_value() -> None:
+    """locate._located_object builds what LocatedObject(...) builds, field for field."""
+    values = (np.ones(3), np.eye(3), (0, 2, 3), (1, 0, 4), 0.5, 0.9, (0, 0, 0), 1)
+    fast, plain = locate._located_object(*values), LocatedObject(*values)
+    assert type(fast) is LocatedObject
+    assert vars(fast) == vars(plain)
+    assert np.array_equal(fast.std_m, plain.std_m)
+
+
+def test_the_kernel_orders_objects_only_beyond_doubt() -> None:
+    """_nearest_first sorts the surviving rows nearest first, and leaves distances within
+    1e-9 of each other (or not finite) to locate's own order."""
+    from echoloc import _locate_kernels
+
+    origin = np.zeros(3)
+    position = np.array([[0.0, 0.0, 2.0], [9.0, 9.0, 9.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.5]])
+    rows = np.array([0, 2, 3])
+    assert _locate_kernels._nearest_first(position, rows, origin)
+    assert rows.tolist() == [2, 3, 0]
+    for close in (1.0 + 1e-12, 1.0, np.nan, np.inf):
+        position[3] = [0.0, 0.0, close]
+        rows = np.array([0, 2, 3])
+        assert not _locate_kernels._nearest_first(position, rows, origin)
+        assert rows.tolist() == [0, 2, 3]
+
+
+def test_objects_at_equal_distances_keep_locate_s_order() -> None:
+    """Two reflectors mirrored about the array's axis (equal distances): the compiled path
+    leaves their order to locate, which gives the reference's."""
+    points = np.array([[0.2, 0.1, 0.6], [-0.1, 0.2, 0.6]])
+    paths = model_paths_m(TRANSMITTERS[0], CROSS, points)
+    # Amplitudes off the spreading law by different amounts: no tie between the weights.
+    amplitudes = np.random.default_rng(0).lognormal(0.0, 0.1, paths.shape)
+    channels = []
+    for i in range(len(CROSS)):
+        order = np.argsort(paths[:, i])
+        channels.append(ChannelEchoes(paths[order, i], amplitudes[order, i], np.full(len(points), 20.0)))
+    frame = FrameEchoes(0, 0.0, 1.0, tuple(channels))
+    compiled = locate_frame(frame, TRANSMITTERS[0], CROSS, OPTIONS[1])
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(locate, "_COMPILED", False)
+        reference = locate_frame(frame, TRANSMITTERS[0], CROSS, OPTIONS[1])
+    assert len(compiled.objects) == 2
+    _assert_same(reference.objects, compiled.objects)
