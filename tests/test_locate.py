@@ -13,6 +13,7 @@ from echoloc.echoes import ChannelEchoes, FrameEchoes
 from echoloc.locate import (
     LocateOptions,
     associate,
+    chi2_tail,
     combine_frames,
     exact_solutions,
     linear_start,
@@ -30,6 +31,25 @@ UP = np.array([0.0, 0.0, 1.0])
 points_in_front = st.tuples(st.floats(-0.5, 0.5), st.floats(-0.5, 0.5), st.floats(0.2, 1.2)).map(
     lambda p: np.array(p, dtype=float)
 )
+
+
+@settings(max_examples=200, deadline=None)
+@given(dof=st.integers(1, 6), chi2=st.floats(0.0, 800.0))
+def test_chi2_tail_is_the_chi_square_survival_function(dof: int, chi2: float) -> None:
+    """The closed forms for one and two degrees of freedom give scipy's chdtrc (and the
+    Monte-Carlo-free check: P(X > x) of chi-square 1 is erfc(sqrt(x/2)), of 2 exp(-x/2))."""
+    from scipy import special
+
+    expected = float(special.chdtrc(dof, chi2))
+    assert chi2_tail(dof, chi2) == pytest.approx(expected, rel=1e-12, abs=1e-300)
+
+
+def test_chi2_tail_at_its_landmarks() -> None:
+    """The 5 % points of chi-square 1 and 2 (3.841, 5.991: the published table) leave 5 %."""
+    assert chi2_tail(1, 3.841458820694124) == pytest.approx(0.05, rel=1e-12)
+    assert chi2_tail(2, 5.991464547107979) == pytest.approx(0.05, rel=1e-12)
+    assert chi2_tail(1, 0.0) == 1.0 and chi2_tail(2, 0.0) == 1.0
+    assert np.isnan(chi2_tail(1, float("nan")))
 
 
 @settings(max_examples=50, deadline=None)
