@@ -519,3 +519,57 @@ def test_sampled_median_is_numpy_s_median(n: int) -> None:
             zero,
         ):
             assert _median_sampled(np.ascontiguousarray(values)) == np.median(values)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    delay=st.floats(40.0, 60.0),
+    start_error=st.floats(-0.4, 0.4),
+    amplitude=st.floats(0.2, 3.0) | st.floats(-3.0, -0.2),
+    noise=st.floats(0.0, 0.05),
+    iterations=st.integers(1, 4),
+    seed=st.integers(0, 2**16),
+)
+def test_lone_echo_step_is_the_general_fit_s(
+    delay: float, start_error: float, amplitude: float, noise: float, iterations: int, seed: int
+) -> None:
+    """The batch path's scalar step for a lone echo (_lone_fit) takes the general joint fit's
+    Levenberg-Marquardt steps (_joint_fit_into, one echo, real amplitude) to rounding."""
+    from echoloc import _echoes_kernels as kernels
+
+    mf = MatchedFilter(PULSE, N_SAMPLES, FS, decimation=2)
+    rng = np.random.default_rng(seed)
+    lo, w = int(delay) - 6, 13
+    lags = np.arange(lo, lo + w)
+    values = np.array(
+        [
+            kernels._model(
+                mf.acf_table, mf.half_width, *_grid_of(mf, delay), np.array([amplitude + 0j]), 1, s, 0, 0
+            )
+            for s in lags
+        ]
+    )
+    values += noise * (rng.normal(size=w) + 1j * rng.normal(size=w))
+    data = np.stack([values.real, values.imag], axis=1)
+    valid = np.ones(w, dtype=bool)
+    valid[rng.integers(0, w)] = False  # a sample outside the frame
+    start_tof, start_amp = delay + start_error, complex(amplitude * 0.9)
+    tofs, amps = np.array([start_tof]), np.array([start_amp])
+    kernels.joint_fit(
+        mf.acf_table, mf.oversample, mf.half_width, data, lo, valid, tofs, amps, True, iterations
+    )
+    tof, amp = kernels._lone_fit(
+        mf.acf_table, mf.oversample, mf.half_width, data, lo, valid, start_tof, start_amp, iterations
+    )
+    assert tof == pytest.approx(tofs[0], abs=1e-9)
+    assert amp.real == pytest.approx(amps[0].real, rel=1e-9, abs=1e-12)
+    assert amp.imag == 0.0
+
+
+def _grid_of(mf: MatchedFilter, delay: float) -> tuple[np.ndarray, np.ndarray]:
+    """The kernels' grid position (base and rows, weight) of one delay."""
+    from echoloc import _echoes_kernels as kernels
+
+    grid_b, grid_w = np.zeros((1, 4), dtype=np.int64), np.zeros(1)
+    kernels._prepare(mf.oversample, np.array([delay]), grid_b, grid_w)
+    return grid_b, grid_w
