@@ -1360,7 +1360,7 @@ def _compiled_batch(
     run(
         np.ascontiguousarray(correlation, dtype=np.complex64).view(np.float32),
         n,
-        *constants,
+        constants,
         out_tof,
         out_amplitude,
         out_count,

@@ -428,6 +428,19 @@ class _Geometry:
     def dim(self) -> int:
         return int(self.receivers_m.shape[1])
 
+    @property
+    def kernel_arguments(self) -> tuple[Any, Any, Any, Any, Any, Any]:
+        """The first six arguments of every compiled association kernel
+        (:mod:`echoloc._locate_kernels`), in their order."""
+        return (
+            self.transmitters_m,
+            self.receivers_m,
+            self.transmitter_axes,
+            self.receiver_axes,
+            self.boresight,
+            self.required,
+        )
+
 
 @dataclass(frozen=True, eq=False)
 class _Candidates:
@@ -823,12 +836,7 @@ def _associate_compiled(
 
     geometry = setup.geometry
     args = (
-        geometry.transmitters_m,
-        geometry.receivers_m,
-        geometry.transmitter_axes,
-        geometry.receiver_axes,
-        geometry.boresight,
-        geometry.required,
+        *geometry.kernel_arguments,
         echoes.paths,
         echoes.sigmas,
         _NO_AMPLITUDES if echoes.amplitudes is None else echoes.amplitudes,
@@ -932,12 +940,7 @@ def _seed_candidates(geometry: _Geometry, echoes: _Echoes, options: LocateOption
 
     while True:
         echo, use, points, count, overflow = kernels.seed_candidates(
-            geometry.transmitters_m,
-            geometry.receivers_m,
-            geometry.transmitter_axes,
-            geometry.receiver_axes,
-            geometry.boresight,
-            geometry.required,
+            *geometry.kernel_arguments,
             echoes.paths,
             echoes.sigmas,
             echoes.offset,
@@ -1043,12 +1046,7 @@ def _refine(
     from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
 
     echo, use, position, covariance, chi2, converged, amplitude_chi2 = kernels.refine(
-        geometry.transmitters_m,
-        geometry.receivers_m,
-        geometry.transmitter_axes,
-        geometry.receiver_axes,
-        geometry.boresight,
-        geometry.required,
+        *geometry.kernel_arguments,
         echoes.paths,
         echoes.sigmas,
         _NO_AMPLITUDES if echoes.amplitudes is None else echoes.amplitudes,
@@ -1502,12 +1500,7 @@ def _frame_objects(
     geometry = setup.geometry
     kernel: Any = kernels.associate_frame
     status, echo_use, position, covariance, chi2 = kernel(
-        geometry.transmitters_m,
-        geometry.receivers_m,
-        geometry.transmitter_axes,
-        geometry.receiver_axes,
-        geometry.boresight,
-        geometry.required,
+        *geometry.kernel_arguments,
         tof_s,
         float(speed_of_sound_m_s),
         10 ** (snr_db / 10),
