@@ -48,7 +48,8 @@ def test_chi2_tail_at_its_landmarks() -> None:
     """The 5 % points of chi-square 1 and 2 (3.841, 5.991: the published table) leave 5 %."""
     assert chi2_tail(1, 3.841458820694124) == pytest.approx(0.05, rel=1e-12)
     assert chi2_tail(2, 5.991464547107979) == pytest.approx(0.05, rel=1e-12)
-    assert chi2_tail(1, 0.0) == 1.0 and chi2_tail(2, 0.0) == 1.0
+    assert chi2_tail(1, 0.0) == 1.0
+    assert chi2_tail(2, 0.0) == 1.0
     assert np.isnan(chi2_tail(1, float("nan")))
 
 
