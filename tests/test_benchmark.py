@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from echoloc.benchmark import baseline_echoes, baseline_locate, bench_chains, bench_scene, format_bench
+from echoloc.errors import EchoLocError
 from echoloc.locate import model_paths_m
 from echoloc.pipeline import prepare
 from echoloc.scene import default_scene
@@ -67,6 +68,17 @@ def test_bench_figures_are_consistent(recording):
     if report["cpus"] is not None:
         assert len(report["cpus"]) == 1
         assert f"one core (CPU {report['cpus'][0]})" in text
+
+
+@pytest.mark.parametrize(
+    ("rounds", "backlog_frames", "message"), [(0, 16, "rounds"), (1, 1, "backlog_frames")]
+)
+def test_bench_refuses_no_rounds_and_a_backlog_of_one(recording, rounds, backlog_frames, message):
+    """A backlog of one frame a call would be the other row measured twice."""
+    with pytest.raises(EchoLocError, match=f"{message} must be >= "):
+        bench_chains(
+            recording, baseline_frames=1, warmup_frames=1, rounds=rounds, backlog_frames=backlog_frames
+        )
 
 
 def test_bench_on_two_cores_pins_two_and_finds_the_same_objects(recording):

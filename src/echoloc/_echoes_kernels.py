@@ -947,13 +947,15 @@ def _split_echo(
     cost = _settle_real(table, u, half, d, lo, ok, t, a, work, new_amps)
     best_cost = cost if _pair_plausible(t, a, lo, hi, merge_samples, mainlobe, threshold) else np.inf
     best_t0, best_t1, best_a0, best_a1 = t[0], t[1], a[0], a[1]
-    settled_t = t.copy()
-    settled_a = a.copy()
-    period = math.pi / rate
     # The other basins are tried only when this fit leaves more in its window than the threshold
     # (an echo's peak power just detectable): on 200 noisy pairs 7 mm apart, each of the 10 whose
     # better fit lay in another basin left 1.3-9.8 times it, 186 of the other 190 under it.
-    for moved in range(3 if cost > threshold else 0):  # the first member, the second, both
+    tries = 3 if cost > threshold else 0
+    if tries:
+        settled_t = t.copy()
+        settled_a = a.copy()
+    period = math.pi / rate
+    for moved in range(tries):  # the first member, the second, both
         for step in (-period, period):
             t[:] = settled_t
             a[:] = settled_a
@@ -1651,11 +1653,12 @@ def finish_channels(
 
 @njit(cache=True)
 def batch_channels(
-    corr: Any, n: int, constants: Any, finishing: Any, out: Any, kept: Any, ok: Any
+    parts: int, corr: Any, n: int, constants: Any, finishing: Any, out: Any, kept: Any, ok: Any
 ) -> None:  # pragma: no cover - compiled
-    """:func:`batch_echoes`, then :func:`finish_channels`, in one call: a frame's channels as
-    ChannelEchoes' arrays, for the one-frame calls of a stream (each call from Python costs
-    its arguments' unboxing and its outputs' allocation).
+    """:func:`batch_echoes` (on ``parts`` threads: :func:`batch_echoes_parallel`), then
+    :func:`finish_channels`, in one call: the channels as ChannelEchoes' arrays. One call, not
+    two, for a stream's one-frame calls (each call from Python costs its arguments' unboxing
+    and its outputs' allocation).
 
     ``constants`` are batch_echoes' arguments from ``table`` to ``noise_step``, ``finishing``
     finish_channels' from ``lag_rate_hz`` to ``floor_ratio``; ``out`` (3, n_ch, slots) takes the
@@ -1670,16 +1673,10 @@ def batch_channels(
     out_count = np.zeros(n_ch, dtype=np.int64)
     out_power = np.zeros(n_ch)
     out_status = np.zeros(n_ch, dtype=np.int64)
-    batch_echoes(
-        corr,
-        n,
-        constants,
-        out_tof,
-        out_amp,
-        out_count,
-        out_power,
-        out_status,
-    )
+    if parts == 1:
+        batch_echoes(corr, n, constants, out_tof, out_amp, out_count, out_power, out_status)
+    else:
+        batch_echoes_parallel(parts, corr, n, constants, out_tof, out_amp, out_count, out_power, out_status)
     for ch in range(n_ch):
         ok[ch] = out_status[ch] == OK
     finish_channels(

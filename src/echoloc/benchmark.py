@@ -212,6 +212,8 @@ def bench_chains(
     """
     if rounds < 1:
         raise EchoLocError(f"rounds must be >= 1, got {rounds}")
+    if backlog_frames < 2:  # one frame a call is the other row
+        raise EchoLocError(f"backlog_frames must be >= 2, got {backlog_frames}")
     chain = prepare(recording, echo_options=EchoOptions(workers=workers))
     n = recording.n_frames
     few = min(baseline_frames, n)

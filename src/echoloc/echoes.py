@@ -970,8 +970,8 @@ def matched_filter_batch(
     """Matched-filter echoes of many frames (n_frames, n_rx, n_samples) at once.
 
     The correlation of every channel is computed at once in single precision; then
-    every channel goes through the batch path (:func:`_isolated_echoes`, run as
-    compiled loops by :func:`_compiled_batch` and :func:`_finish_batch`), which fits
+    every channel goes through the batch path (:func:`_isolated_echoes`, run as one
+    compiled call, :func:`_batch_channels`: :func:`_compiled_batch` then :func:`_finish_batch`), which fits
     isolated echoes as CLEAN does and clusters of echoes within two main lobes jointly. An
     echo whose model leaves its two main lobes unexplained is split there into the best
     pair (:func:`echoloc._echoes_kernels._split_echo`: two echoes whose main lobes merged,
@@ -987,12 +987,7 @@ def matched_filter_batch(
     correlation = mf.correlate_single_rows(frames, fft_workers(threads, n_frames * n_rx)).reshape(
         n_frames * n_rx, -1
     )
-    if _kernel_threads(threads, n_frames * n_rx) == 1:
-        channels = _batch_channels(correlation, mf, options)
-    else:
-        channels = _finish_batch(
-            _compiled_batch(correlation, mf, options, n_samples=mf.n_lags, threads=threads), mf, options
-        )
+    channels = _batch_channels(correlation, mf, options, threads)
     hard = [index for index, found in enumerate(channels) if found is None]
     if hard:
         clean = _Clean(mf, options)
@@ -1301,11 +1296,15 @@ def _kernel_constants(
 
 
 def _batch_channels(
-    correlation: NDArray[np.complexfloating[Any, Any]], mf: MatchedFilter, options: EchoOptions
+    correlation: NDArray[np.complexfloating[Any, Any]],
+    mf: MatchedFilter,
+    options: EchoOptions,
+    threads: int = 1,
 ) -> list[ChannelEchoes | None]:
-    """:func:`_finish_batch` of :func:`_compiled_batch` on one thread, in one compiled call
-    (:func:`echoloc._echoes_kernels.batch_channels`): the same echoes, without the Python
-    between the two, which a stream's one-frame calls would pay every frame."""
+    """:func:`_finish_batch` of :func:`_compiled_batch`, the channels shared out among up to
+    ``threads`` threads, in one compiled call (:func:`echoloc._echoes_kernels.batch_channels`):
+    the same echoes, without the Python between the two, which a stream's one-frame calls
+    would pay every frame; None for the channels left to CLEAN."""
     from echoloc import _echoes_kernels as kernels
 
     constants, finishing = _kernel_constants(mf, options, _NOISE_STEP, _MAX_SPLITS)
@@ -1314,7 +1313,8 @@ def _batch_channels(
     kept = np.zeros(n_ch, dtype=np.int64)
     ok = np.zeros(n_ch, dtype=np.bool_)
     rows = np.ascontiguousarray(correlation, dtype=np.complex64).view(np.float32)
-    kernels.batch_channels(rows, mf.n_lags, constants, finishing, out, kept, ok)
+    parts = _kernel_threads(threads, n_ch)
+    kernels.batch_channels(parts, rows, mf.n_lags, constants, finishing, out, kept, ok)
     tof_s, amplitude, snr_db = out
     return [
         ChannelEchoes(tof_s[c, : kept[c]], amplitude[c, : kept[c]], snr_db[c, : kept[c]]) if ok[c] else None
