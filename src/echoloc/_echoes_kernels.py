@@ -1004,29 +1004,23 @@ def _refine_echoes(
     mainlobe: float,
     grid_b: Any,
     grid_w: Any,
-    new_tofs: Any,
-    new_amps: Any,
-    window: Any,
     fitted_tofs: Any,
     fitted_amps: Any,
-    max_joint: int,
-    joint_w: int,
-    joint_data: Any,
-    joint_valid: Any,
-    joint_t: Any,
-    joint_a: Any,
-    joint_work: Any,
-    joint_new: Any,
-    complex_iterations: int,
-    real_iterations: int,
-    lone_iterations: int,
+    scratch: Any,
+    steps: Any,
 ) -> int:  # pragma: no cover - compiled
     """The batch path's fits from the echoes' first estimates ``tofs``/``amps[:n_echo]``: twice
     each echo refitted at its peak with the others' model taken out (all updated together;
     BORN ones keep theirs), sorted by delay (stable, with ``peaks`` and ``state``), then
     clusters within two main lobes fitted jointly and lone echoes stepped, into
     ``fitted_tofs``/``fitted_amps``. Returns OK, CLOSE (two within a quarter main lobe) or
-    TOO_BIG (a cluster beyond the joint fit's reach)."""
+    TOO_BIG (a cluster beyond the joint fit's reach).
+
+    ``scratch`` is batch_echoes' (new_tofs, new_amps, window, joint_data, joint_valid, joint_t,
+    joint_a, joint_work, joint_new), ``steps`` its (max_joint, joint_w, complex_iterations,
+    real_iterations, lone_iterations): the same for every call of a batch."""
+    new_tofs, new_amps, window, joint_data, joint_valid, joint_t, joint_a, joint_work, joint_new = scratch
+    max_joint, joint_w, complex_iterations, real_iterations, lone_iterations = steps
     for _ in range(2):
         _prepare(u, tofs[:n_echo], grid_b, grid_w)
         for e in range(n_echo):
@@ -1285,6 +1279,18 @@ def batch_echoes(
     kept_peaks = np.zeros(max_candidates, dtype=np.int64)
     kept_state = np.zeros(max_candidates, dtype=np.int8)
     kept_accepted = np.zeros(max_candidates, dtype=np.bool_)
+    refine_scratch = (
+        new_tofs,
+        new_amps,
+        window,
+        joint_data,
+        joint_valid,
+        joint_t,
+        joint_a,
+        joint_work,
+        joint_new,
+    )
+    refine_steps = (max_joint, joint_w, complex_iterations, real_iterations, lone_iterations)
     for ch in range(n_ch):
         out_count[ch] = 0
         out_status[ch] = OK
@@ -1363,22 +1369,10 @@ def batch_echoes(
             mainlobe,
             grid_b,
             grid_w,
-            new_tofs,
-            new_amps,
-            window,
             fitted_tofs,
             fitted_amps,
-            max_joint,
-            joint_w,
-            joint_data,
-            joint_valid,
-            joint_t,
-            joint_a,
-            joint_work,
-            joint_new,
-            complex_iterations,
-            real_iterations,
-            lone_iterations,
+            refine_scratch,
+            refine_steps,
         )
         if status != OK:
             out_status[ch] = status
@@ -1482,22 +1476,10 @@ def batch_echoes(
                         mainlobe,
                         grid_b,
                         grid_w,
-                        new_tofs,
-                        new_amps,
-                        window,
                         fitted_tofs,
                         fitted_amps,
-                        max_joint,
-                        joint_w,
-                        joint_data,
-                        joint_valid,
-                        joint_t,
-                        joint_a,
-                        joint_work,
-                        joint_new,
-                        complex_iterations,
-                        real_iterations,
-                        lone_iterations,
+                        refine_scratch,
+                        refine_steps,
                     )
                     if refit != OK:
                         continue
