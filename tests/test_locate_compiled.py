@@ -9,7 +9,14 @@ from hypothesis import strategies as st
 
 from echoloc import locate
 from echoloc.echoes import ChannelEchoes, FrameEchoes
-from echoloc.locate import LocatedObject, LocateOptions, combine_frames, locate_frame, model_paths_m
+from echoloc.locate import (
+    FrameLocator,
+    LocatedObject,
+    LocateOptions,
+    combine_frames,
+    locate_frame,
+    model_paths_m,
+)
 
 CROSS = np.array([[0.25, 0, 0], [-0.25, 0, 0], [0, 0.25, 0], [0, -0.25, 0]], dtype=float)
 TRANSMITTERS = np.array([[0.0, 0.0, 0.0], [0.1, 0.1, 0.0]])
@@ -287,6 +294,31 @@ def test_repeated_and_interleaved_geometries_give_the_same_objects() -> None:
         for f, frame in enumerate(frames):
             for g, call in enumerate(geometries):
                 _assert_identical(expected[g, f], locate_frame(frame, *call).objects)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), which=st.sampled_from(range(len(OPTIONS))), dead=st.integers(-1, 3))
+def test_a_frame_locator_reused_over_a_stream_gives_locate_frames_objects(
+    seed: int, which: int, dead: int
+) -> None:
+    """A FrameLocator set up once (as a stream's chain holds one a transmitter) gives, frame
+    after frame, bit for bit what locate_frame gives each frame on its own, whether its
+    channels all take the flat compiled path or a dead receiver sends them to associate; and
+    with the compiled path switched off after it was set up, the numpy reference's objects."""
+    rng, points = _scene(seed)
+    usable = None if dead < 0 else np.arange(len(CROSS)) != dead
+    frames = [_frame(rng, i, TRANSMITTERS[0], points) for i in range(4)]
+    locator = FrameLocator(TRANSMITTERS[0], CROSS, OPTIONS[which], usable)
+    for frame in frames:
+        _assert_identical(
+            locate_frame(frame, TRANSMITTERS[0], CROSS, OPTIONS[which], usable).objects,
+            locator(frame).objects,
+        )
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(locate, "_COMPILED", False)
+        for frame in frames:
+            reference = locate_frame(frame, TRANSMITTERS[0], CROSS, OPTIONS[which], usable).objects
+            _assert_identical(reference, locator(frame).objects)
 
 
 def test_frames_with_more_seed_rows_than_the_first_capacity_are_associated() -> None:

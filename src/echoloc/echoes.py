@@ -341,7 +341,11 @@ class MatchedFilter:
         """:meth:`correlate_single` as the FFT leaves it: rows of ``n_ifft`` lags, of
         which the first ``n_lags`` are the correlation (the rest wraps around), C-contiguous;
         the FFTs on ``workers`` threads."""
-        spectrum = scipy.fft.rfft(np.asarray(frames, np.float32), self.n_fft, axis=-1, workers=workers)
+        # Zero-padded here in single precision: the FFT's own padding would copy the rows again.
+        frames = np.asarray(frames)
+        padded = np.zeros((*frames.shape[:-1], self.n_fft), dtype=np.float32)
+        padded[..., : frames.shape[-1]] = frames
+        spectrum = scipy.fft.rfft(padded, axis=-1, workers=workers, overwrite_x=True)
         spectrum *= self._spectrum_single
         folded = self._fold(spectrum)
         return np.asarray(scipy.fft.ifft(folded, self.n_ifft, axis=-1, overwrite_x=True, workers=workers))

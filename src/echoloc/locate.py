@@ -1480,52 +1480,6 @@ def _offset(counts: tuple[int, ...]) -> NDArray[np.int64]:
     return offset
 
 
-def _frame_objects(
-    setup: _Setup,
-    offset: NDArray[np.int64],
-    tof_s: NDArray[np.float64],
-    speed_of_sound_m_s: float,
-    snr_db: NDArray[np.float64],
-    carrier_hz: float,
-    amplitudes: NDArray[np.float64],
-    options: LocateOptions,
-    n_ch: int,
-) -> list[LocatedObject] | None:
-    """:func:`_objects` of one frame's flat echoes in one compiled call that also makes the
-    paths and sigmas from the times of flight (s) and SNRs (dB, float64; ``carrier_hz`` the
-    options') as :func:`_flat_path_sigmas` does; None when the kernel leaves the choice to
-    the reference (tied weights: the caller runs :func:`_objects`)."""
-    from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
-
-    geometry = setup.geometry
-    kernel: Any = kernels.associate_frame
-    status, echo_use, position, covariance, chi2 = kernel(
-        *geometry.kernel_arguments,
-        tof_s,
-        float(speed_of_sound_m_s),
-        10 ** (snr_db / 10),
-        options.path_sigma_m**2,
-        2 * np.pi * carrier_hz,
-        amplitudes,
-        offset,
-        *_kernel_tail(setup, options),
-        _NODE_LIMIT,
-        _MAX_SEED_ROWS,
-        setup.origin,
-    )
-    if status == 1:
-        warnings.warn(
-            f"frame skipped: more than {_MAX_SEED_ROWS} echo combinations to associate; "
-            "raise the detection threshold",
-            LocateWarning,
-            stacklevel=3,
-        )
-        return []
-    if status == 2:
-        return None
-    return _located(setup, echo_use, position, covariance, chi2, status == 0, n_ch)
-
-
 def locate_frame(
     frame_echoes: FrameEchoes,
     transmitter_m: NDArray[np.float64],
@@ -1533,39 +1487,133 @@ def locate_frame(
     options: LocateOptions,
     usable: NDArray[np.bool_] | None = None,
 ) -> FrameObjects:
-    """Objects of one frame from its echoes (one transmitter, one channel per receiver)."""
-    c = frame_echoes.speed_of_sound_m_s
-    channels = frame_echoes.channels
-    if _COMPILED and channels:
-        # Every channel at once (the same element-wise arithmetic as associate's, fewer
-        # numpy calls), straight to its flat echoes when every channel is usable.
+    """Objects of one frame from its echoes (one transmitter, one channel per receiver).
+
+    For many frames of one geometry, :class:`FrameLocator` does the same with its set-up once."""
+    return FrameLocator(transmitter_m, receivers_m, options, usable)(frame_echoes)
+
+
+class FrameLocator:
+    """:func:`locate_frame` for one transmitter, receivers and options: what every frame of a
+    stream shares (the usable channels' geometry, the compiled association's seeds and
+    options) is looked up once, here, and each call locates one frame's echoes.
+
+    Parameters
+    ----------
+    transmitter_m
+        (D,), m.
+    receivers_m
+        (n_rx, D), m; a frame's channels are its receivers, in order.
+    options
+        The association's options.
+    usable
+        (n_rx,) receivers to use (None: all).
+    """
+
+    def __init__(
+        self,
+        transmitter_m: NDArray[np.float64],
+        receivers_m: NDArray[np.float64],
+        options: LocateOptions,
+        usable: NDArray[np.bool_] | None = None,
+    ) -> None:
+        self.transmitter_m = transmitter_m
+        self.receivers_m = receivers_m
+        self.options = options
+        self.usable = usable
+        self._setup: _Setup | None = None
+        self._flat_arguments: tuple[Any, ...] = ()
         receivers = np.asarray(receivers_m, dtype=float)
         n_ch, dim = receivers.shape
-        setup = _setup(transmitter_m, receivers, usable, None, None, None, options)
-        if len(setup.active) == n_ch == len(channels) and n_ch >= max(options.min_receivers, dim):
-            offset = _offset(tuple([len(ch.tof_s) for ch in channels]))
-            tof = np.concatenate([ch.tof_s for ch in channels])
-            snr_db = np.concatenate([ch.snr_db for ch in channels])
-            flat_amplitudes = np.concatenate([ch.amplitude for ch in channels]).astype(float, copy=False)
-            objects = None
-            if options.carrier_hz and tof.dtype == snr_db.dtype == np.float64:
-                objects = _frame_objects(
-                    setup, offset, tof, c, snr_db, options.carrier_hz, flat_amplitudes, options, n_ch
+        # Every channel usable and enough of them: each frame goes straight to its flat echoes.
+        if (usable is None or bool(np.all(usable))) and n_ch >= max(options.min_receivers, dim):
+            self._setup = setup = _setup(transmitter_m, receivers, usable, None, None, None, options)
+            if options.carrier_hz:
+                self._flat_arguments = (
+                    options.path_sigma_m**2,
+                    2 * np.pi * options.carrier_hz,
+                    _kernel_tail(setup, options),
                 )
-            if objects is None:
-                echoes = _Echoes(
-                    offset,
-                    (tof * c).astype(float, copy=False),
-                    _flat_path_sigmas(snr_db, c, options),
-                    flat_amplitudes,
-                )
-                objects = _objects(setup, echoes, options, n_ch)
-            return FrameObjects(frame_echoes.frame, frame_echoes.time_s, tuple(objects))
-    paths = [ch.tof_s * c for ch in channels]
-    sigmas = [path_sigmas_m(ch.snr_db, c, options) for ch in channels]
-    amplitudes = [ch.amplitude for ch in channels]
-    objects = associate(transmitter_m, receivers_m, paths, sigmas, options, usable, amplitudes)
-    return FrameObjects(frame_echoes.frame, frame_echoes.time_s, tuple(objects))
+
+    def __call__(self, frame_echoes: FrameEchoes) -> FrameObjects:
+        """The objects of ``frame_echoes`` (its channels: the receivers, in order)."""
+        channels = frame_echoes.channels
+        setup = self._setup
+        if setup is None or not _COMPILED or len(channels) != len(setup.active) or not channels:
+            return self._general(frame_echoes)
+        offset = _offset(tuple([len(ch.tof_s) for ch in channels]))
+        tof = np.concatenate([ch.tof_s for ch in channels])
+        snr_db = np.concatenate([ch.snr_db for ch in channels])
+        flat_amplitudes = np.concatenate([ch.amplitude for ch in channels]).astype(float, copy=False)
+        c = frame_echoes.speed_of_sound_m_s
+        objects = None
+        if self._flat_arguments and tof.dtype == snr_db.dtype == np.float64:
+            objects = self._compiled(offset, tof, c, snr_db, flat_amplitudes)
+        if objects is None:
+            echoes = _Echoes(
+                offset,
+                (tof * c).astype(float, copy=False),
+                _flat_path_sigmas(snr_db, c, self.options),
+                flat_amplitudes,
+            )
+            objects = _objects(setup, echoes, self.options, len(channels))
+        return FrameObjects(frame_echoes.frame, frame_echoes.time_s, tuple(objects))
+
+    def _compiled(
+        self,
+        offset: NDArray[np.int64],
+        tof_s: NDArray[np.float64],
+        speed_of_sound_m_s: float,
+        snr_db: NDArray[np.float64],
+        amplitudes: NDArray[np.float64],
+    ) -> list[LocatedObject] | None:
+        """:func:`_objects` of one frame's flat echoes in one compiled call that also makes the
+        paths and sigmas from the times of flight (s) and SNRs (dB, float64) as
+        :func:`_flat_path_sigmas` does; None when the kernel leaves the choice to the
+        reference (tied weights: the caller runs :func:`_objects`)."""
+        from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
+
+        setup = self._setup
+        assert setup is not None
+        prior_variance, omega, tail = self._flat_arguments
+        kernel: Any = kernels.associate_frame
+        status, echo_use, position, covariance, chi2 = kernel(
+            *setup.geometry.kernel_arguments,
+            tof_s,
+            float(speed_of_sound_m_s),
+            10 ** (snr_db / 10),
+            prior_variance,
+            omega,
+            amplitudes,
+            offset,
+            *tail,
+            _NODE_LIMIT,
+            _MAX_SEED_ROWS,
+            setup.origin,
+        )
+        if status == 1:
+            warnings.warn(
+                f"frame skipped: more than {_MAX_SEED_ROWS} echo combinations to associate; "
+                "raise the detection threshold",
+                LocateWarning,
+                stacklevel=3,
+            )
+            return []
+        if status == 2:
+            return None
+        return _located(setup, echo_use, position, covariance, chi2, status == 0, len(offset) - 1)
+
+    def _general(self, frame_echoes: FrameEchoes) -> FrameObjects:
+        """The reference path: :func:`associate` on the frame's channels."""
+        c = frame_echoes.speed_of_sound_m_s
+        channels = frame_echoes.channels
+        paths = [ch.tof_s * c for ch in channels]
+        sigmas = [path_sigmas_m(ch.snr_db, c, self.options) for ch in channels]
+        amplitudes = [ch.amplitude for ch in channels]
+        objects = associate(
+            self.transmitter_m, self.receivers_m, paths, sigmas, self.options, self.usable, amplitudes
+        )
+        return FrameObjects(frame_echoes.frame, frame_echoes.time_s, tuple(objects))
 
 
 def combine_frames(

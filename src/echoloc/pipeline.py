@@ -11,6 +11,7 @@ from __future__ import annotations
 import itertools
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,7 +27,7 @@ from echoloc.echoes import (
 )
 from echoloc.errors import EchoLocError
 from echoloc.estimators import Estimator, estimate_frames, prepare_estimator
-from echoloc.locate import FrameObjects, LocateOptions, combine_frames, locate_frame
+from echoloc.locate import FrameLocator, FrameObjects, LocateOptions, combine_frames
 from echoloc.recording import Recording, dead_receivers
 
 
@@ -51,6 +52,16 @@ class Chain:
     usable_receivers: NDArray[np.bool_]
     calibration: Calibration | None = None
     conditioning: Conditioning = field(default_factory=Conditioning)
+
+    @cached_property
+    def locators(self) -> tuple[FrameLocator, ...]:
+        """A :class:`echoloc.locate.FrameLocator` per transmitter: the set-up its frames share,
+        looked up once for the whole recording or stream."""
+        recording = self.recording
+        return tuple(
+            FrameLocator(transmitter_m, recording.receivers_m, self.locate_options, self.usable_receivers)
+            for transmitter_m in recording.transmitters_m
+        )
 
 
 def prepare(
@@ -256,15 +267,9 @@ def samples_echoes_batch(
 
 
 def transmitter_objects(chain: Chain, echoes: FrameEchoes, transmitter: int) -> FrameObjects:
-    """Objects of one frame fired by ``transmitter``, as :func:`frame_objects` finds them."""
-    recording = chain.recording
-    return locate_frame(
-        echoes,
-        recording.transmitters_m[transmitter],
-        recording.receivers_m,
-        chain.locate_options,
-        chain.usable_receivers,
-    )
+    """Objects of one frame fired by ``transmitter``, as :func:`frame_objects` finds them
+    (:func:`echoloc.locate.locate_frame`, its set-up done once: :attr:`Chain.locators`)."""
+    return chain.locators[transmitter](echoes)
 
 
 def combine_latest(

@@ -423,8 +423,12 @@ class StreamProcessor:
             )
 
     def process(self, frame: StreamFrame) -> StreamResult:
-        """Echoes and objects of one frame (frames of one stream must come in frame order)."""
-        return self.process_batch([frame])[0]
+        """Echoes and objects of one frame (frames of one stream must come in frame order):
+        :meth:`process_batch` of one frame, without its lists."""
+        started = time.monotonic()
+        self.check(frame)
+        echoes = samples_echoes(self.chain, frame.samples, frame.index, frame.time_s)
+        return self._result(frame, echoes, started)
 
     def process_batch(self, frames: Sequence[StreamFrame]) -> list[StreamResult]:
         """:meth:`process` of each frame of a batch, in order, the echoes of all of them found in
@@ -439,24 +443,23 @@ class StreamProcessor:
         found = samples_echoes_batch(
             self.chain, [f.samples for f in frames], [f.index for f in frames], [f.time_s for f in frames]
         )
-        results = []
-        for frame, echoes in zip(frames, found, strict=True):
-            late = (
-                self.deadline_s is not None
-                and math.isfinite(frame.arrival_s)
-                and started - frame.arrival_s > self.deadline_s
-            )
-            if self._combine:
-                self._latest, objects = combine_latest(self.chain, self._latest, echoes, frame.transmitter)
-            else:
-                objects = transmitter_objects(self.chain, echoes, frame.transmitter)
-            done = time.monotonic()
-            latency = done - (frame.arrival_s if math.isfinite(frame.arrival_s) else started)
-            self.latency.add(latency)
-            self.processed += 1
-            self.late += int(late)
-            results.append(StreamResult(echoes, objects, frame.transmitter, latency, late))
-        return results
+        return [self._result(frame, echoes, started) for frame, echoes in zip(frames, found, strict=True)]
+
+    def _result(self, frame: StreamFrame, echoes: FrameEchoes, started: float) -> StreamResult:
+        """The objects of one frame's ``echoes``, its latency and lateness counted; ``started``:
+        when its processing (or its batch's) began, ``time.monotonic()``."""
+        arrival_s = frame.arrival_s
+        arrived = math.isfinite(arrival_s)
+        late = self.deadline_s is not None and arrived and started - arrival_s > self.deadline_s
+        if self._combine:
+            self._latest, objects = combine_latest(self.chain, self._latest, echoes, frame.transmitter)
+        else:
+            objects = transmitter_objects(self.chain, echoes, frame.transmitter)
+        latency = time.monotonic() - (arrival_s if arrived else started)
+        self.latency.add(latency)
+        self.processed += 1
+        self.late += late
+        return StreamResult(echoes, objects, frame.transmitter, latency, late)
 
     def stats(self, **counters: int) -> StreamStats:
         """A snapshot; ``counters`` adds what the receiving side counted (lost, dropped, ...)."""
