@@ -302,23 +302,30 @@ def test_a_frame_locator_reused_over_a_stream_gives_locate_frames_objects(
     seed: int, which: int, dead: int
 ) -> None:
     """A FrameLocator set up once (as a stream's chain holds one a transmitter) gives, frame
-    after frame, bit for bit what locate_frame gives each frame on its own, whether its
-    channels all take the flat compiled path or a dead receiver sends them to associate; and
-    with the compiled path switched off after it was set up, the numpy reference's objects."""
+    after frame, bit for bit what a fresh set-up gives each frame on its own (no memo shared),
+    and the numpy reference's objects, whether its channels all take the flat compiled path
+    or a dead receiver sends them to associate; with the compiled path switched off after it
+    was set up, it runs the reference itself."""
     rng, points = _scene(seed)
     usable = None if dead < 0 else np.arange(len(CROSS)) != dead
+    call = (TRANSMITTERS[0], CROSS, OPTIONS[which], usable)
     frames = [_frame(rng, i, TRANSMITTERS[0], points) for i in range(4)]
-    locator = FrameLocator(TRANSMITTERS[0], CROSS, OPTIONS[which], usable)
+    fresh, reference = [], []
     for frame in frames:
-        _assert_identical(
-            locate_frame(frame, TRANSMITTERS[0], CROSS, OPTIONS[which], usable).objects,
-            locator(frame).objects,
-        )
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(locate, "_SETUPS", {})
+            fresh.append(locate_frame(frame, *call).objects)
+            patch.setattr(locate, "_COMPILED", False)
+            reference.append(locate_frame(frame, *call).objects)
+    locator = FrameLocator(*call)
+    for frame, expected, numpy_objects in zip(frames, fresh, reference, strict=True):
+        got = locator(frame).objects
+        _assert_identical(expected, got)
+        _assert_same(numpy_objects, got)
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(locate, "_COMPILED", False)
-        for frame in frames:
-            reference = locate_frame(frame, TRANSMITTERS[0], CROSS, OPTIONS[which], usable).objects
-            _assert_identical(reference, locator(frame).objects)
+        for frame, numpy_objects in zip(frames, reference, strict=True):
+            _assert_identical(numpy_objects, locator(frame).objects)
 
 
 def test_frames_with_more_seed_rows_than_the_first_capacity_are_associated() -> None:

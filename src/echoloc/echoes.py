@@ -342,7 +342,7 @@ class MatchedFilter:
         which the first ``n_lags`` are the correlation (the rest wraps around), C-contiguous;
         the FFTs on ``workers`` threads."""
         # Zero-padded here in single precision: the FFT's own padding would copy the rows again.
-        frames = np.asarray(frames)
+        frames = np.asarray(frames)[..., : self.n_fft]  # longer rows cropped, as rfft(x, n_fft) would
         padded = np.zeros((*frames.shape[:-1], self.n_fft), dtype=np.float32)
         padded[..., : frames.shape[-1]] = frames
         spectrum = scipy.fft.rfft(padded, axis=-1, workers=workers, overwrite_x=True)
