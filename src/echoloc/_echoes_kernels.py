@@ -28,6 +28,25 @@ from typing import Any
 import numpy as np
 from numba import njit, prange
 
+
+@njit(cache=True)
+def weigh_and_fold(spectrum: Any, weights: Any, out: Any) -> None:  # pragma: no cover - compiled
+    """``out[r, k]`` = the sum of ``spectrum[r, j] * weights[j]`` over the bins j = k (mod m), m =
+    ``out.shape[1]``: the matched filter's product spectrum folded for its shorter inverse FFT
+    (:meth:`echoloc.echoes.MatchedFilter._fold`), in one pass; bins past the spectrum's end are 0."""
+    rows, bins = spectrum.shape
+    m = out.shape[1]
+    first = min(m, bins)
+    for r in range(rows):
+        for k in range(first):
+            out[r, k] = spectrum[r, k] * weights[k]
+        for k in range(first, m):
+            out[r, k] = 0
+        for start in range(m, bins, m):
+            for k in range(start, min(start + m, bins)):
+                out[r, k - start] += spectrum[r, k] * weights[k]
+
+
 OK, TOO_MANY, CLOSE, TOO_BIG, LEFT_OVER, UNEXPLAINED = 0, 1, 2, 3, 4, 5
 """Status of a channel: fitted here, or why it goes to CLEAN."""
 
