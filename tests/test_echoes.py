@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy import signal
 
 from echoloc.echoes import ChannelEchoes, EchoOptions, MatchedFilter, noise_power
 from echoloc.estimators import ESTIMATORS
@@ -175,6 +176,26 @@ def test_a_decimated_correlation_is_every_dth_lag_of_the_full_one(decimation: in
     scale = np.abs(expected).max()
     assert mf.correlate(frames) == pytest.approx(expected, abs=1e-12 * scale)
     assert mf.correlate_single(frames) == pytest.approx(expected, abs=1e-5 * scale)
+
+
+def test_the_correlation_is_numpys_correlate_made_analytic_by_scipys_hilbert() -> None:
+    """Lag k is sum_n x[n + k] w[n] / sum w^2 plus j times its Hilbert transform: numpy's linear
+    correlation, laid out circularly on the FFT's length, through scipy.signal.hilbert (the
+    reference shares no code with the matched filter's spectrum product and fold)."""
+    rng = np.random.default_rng(9)
+    frames = rng.normal(size=(2, N_SAMPLES))
+    mf = MatchedFilter(PULSE, N_SAMPLES, FS)
+    assert mf.n_fft >= N_SAMPLES + len(PULSE) - 1  # no wrap-around onto the kept lags
+    expected = []
+    for frame in frames:
+        linear = np.correlate(frame, PULSE, mode="full")  # lags -(L - 1) .. N - 1
+        circular = np.zeros(mf.n_fft)
+        lags = np.arange(-(len(PULSE) - 1), N_SAMPLES)
+        circular[lags % mf.n_fft] = linear
+        expected.append(signal.hilbert(circular)[: mf.n_lags] / np.sum(PULSE**2))
+    scale = np.abs(expected).max()
+    assert mf.correlate(frames) == pytest.approx(np.array(expected), abs=1e-12 * scale)
+    assert mf.correlate_single(frames) == pytest.approx(np.array(expected), abs=1e-5 * scale)
 
 
 def test_the_decimated_tables_are_the_full_ones_every_second_lag() -> None:

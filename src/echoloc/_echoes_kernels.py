@@ -33,7 +33,8 @@ from numba import njit, prange
 def weigh_and_fold(spectrum: Any, weights: Any, out: Any) -> None:  # pragma: no cover - compiled
     """``out[r, k]`` = the sum of ``spectrum[r, j] * weights[j]`` over the bins j = k (mod m), m =
     ``out.shape[1]``: the matched filter's product spectrum folded for its shorter inverse FFT
-    (:meth:`echoloc.echoes.MatchedFilter._fold`), in one pass; bins past the spectrum's end are 0."""
+    (:meth:`echoloc.echoes.MatchedFilter._weigh_and_fold`), in one pass; bins past the
+    spectrum's end are 0."""
     rows, bins = spectrum.shape
     m = out.shape[1]
     first = min(m, bins)

@@ -231,16 +231,16 @@ class MatchedFilter:
         """:attr:`_spectrum` in single precision, for the correlation's FFTs."""
         return np.asarray(self._spectrum, dtype=np.complex64)
 
-    def _fold(self, spectrum: NDArray[Any]) -> NDArray[Any]:
-        """The product spectrum's bins summed modulo N/D: the inverse FFT of N/D points then
-        gives every D-th lag (the spectrum itself, uncopied, for D = 1: the inverse FFT pads it)."""
-        if self.decimation == 1:
-            return spectrum
-        m = self.n_ifft
-        folded = np.array(spectrum[..., :m])
-        for start in range(m, spectrum.shape[-1], m):
-            part = spectrum[..., start : start + m]
-            folded[..., : part.shape[-1]] += part
+    def _weigh_and_fold(self, spectrum: NDArray[Any], weights: NDArray[Any], dtype: type) -> NDArray[Any]:
+        """The product of the frames' spectrum (..., bins) and ``weights``, its bins summed
+        modulo N/D (zero-padded to N/D when shorter): the inverse FFT of N/D points then gives
+        every D-th lag. One compiled pass (:func:`echoloc._echoes_kernels.weigh_and_fold`):
+        numpy's product, fold and copy took 7.7 µs a four-channel frame against 2.7."""
+        from echoloc import _echoes_kernels as kernels  # numba: imported (and compiled) on first use
+
+        folded = np.empty((*spectrum.shape[:-1], self.n_ifft), dtype=dtype)
+        rows = spectrum.reshape(-1, spectrum.shape[-1])
+        kernels.weigh_and_fold(rows, weights, folded.reshape(-1, self.n_ifft))
         return folded
 
     @cached_property
@@ -324,8 +324,8 @@ class MatchedFilter:
         """
         workers = fft_workers(threads or os.cpu_count() or 1, math.prod(np.shape(frames)[:-1]))
         spectrum = scipy.fft.rfft(frames, self.n_fft, axis=-1, workers=workers)
-        folded = self._fold(spectrum * self._spectrum)
-        full = scipy.fft.ifft(folded, self.n_ifft, axis=-1, overwrite_x=True, workers=workers)
+        folded = self._weigh_and_fold(spectrum, self._spectrum, np.complex128)
+        full = scipy.fft.ifft(folded, axis=-1, overwrite_x=True, workers=workers)
         return np.asarray(full[..., : self.n_lags])
 
     def correlate_single(self, frames: NDArray[np.floating]) -> NDArray[np.complex64]:
@@ -346,14 +346,7 @@ class MatchedFilter:
         padded = np.zeros((*frames.shape[:-1], self.n_fft), dtype=np.float32)
         padded[..., : frames.shape[-1]] = frames
         spectrum = scipy.fft.rfft(padded, axis=-1, workers=workers, overwrite_x=True)
-        # The product with the template's spectrum and the fold in one compiled pass: numpy's
-        # two passes and the fold's copy took 7.7 µs a four-channel frame against 2.7.
-        from echoloc import _echoes_kernels as kernels  # numba: imported (and compiled) on first use
-
-        folded = np.empty((*frames.shape[:-1], self.n_ifft), dtype=np.complex64)
-        kernels.weigh_and_fold(
-            spectrum.reshape(-1, spectrum.shape[-1]), self._spectrum_single, folded.reshape(-1, self.n_ifft)
-        )
+        folded = self._weigh_and_fold(spectrum, self._spectrum_single, np.complex64)
         return np.asarray(scipy.fft.ifft(folded, axis=-1, overwrite_x=True, workers=workers))
 
 
