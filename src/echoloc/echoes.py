@@ -231,14 +231,15 @@ class MatchedFilter:
         """:attr:`_spectrum` in single precision, for the correlation's FFTs."""
         return np.asarray(self._spectrum, dtype=np.complex64)
 
-    def _weigh_and_fold(self, spectrum: NDArray[Any], weights: NDArray[Any], dtype: type) -> NDArray[Any]:
+    def _weigh_and_fold(self, spectrum: NDArray[Any], weights: NDArray[Any]) -> NDArray[Any]:
         """The product of the frames' spectrum (..., bins) and ``weights``, its bins summed
-        modulo N/D (zero-padded to N/D when shorter): the inverse FFT of N/D points then gives
-        every D-th lag. One compiled pass (:func:`echoloc._echoes_kernels.weigh_and_fold`):
-        numpy's product, fold and copy took 7.7 µs a four-channel frame against 2.7."""
+        modulo N/D (zero-padded to N/D when shorter), in the precision of the two: the inverse
+        FFT of N/D points then gives every D-th lag. One compiled pass
+        (:func:`echoloc._echoes_kernels.weigh_and_fold`): numpy's product, fold and copy took
+        7.7 µs a four-channel frame against 2.7."""
         from echoloc import _echoes_kernels as kernels  # numba: imported (and compiled) on first use
 
-        folded = np.empty((*spectrum.shape[:-1], self.n_ifft), dtype=dtype)
+        folded = np.empty((*spectrum.shape[:-1], self.n_ifft), dtype=np.result_type(spectrum, weights))
         rows = spectrum.reshape(-1, spectrum.shape[-1])
         kernels.weigh_and_fold(rows, weights, folded.reshape(-1, self.n_ifft))
         return folded
@@ -324,7 +325,7 @@ class MatchedFilter:
         """
         workers = fft_workers(threads or os.cpu_count() or 1, math.prod(np.shape(frames)[:-1]))
         spectrum = scipy.fft.rfft(frames, self.n_fft, axis=-1, workers=workers)
-        folded = self._weigh_and_fold(spectrum, self._spectrum, np.complex128)
+        folded = self._weigh_and_fold(spectrum, self._spectrum)
         full = scipy.fft.ifft(folded, axis=-1, overwrite_x=True, workers=workers)
         return np.asarray(full[..., : self.n_lags])
 
@@ -346,7 +347,7 @@ class MatchedFilter:
         padded = np.zeros((*frames.shape[:-1], self.n_fft), dtype=np.float32)
         padded[..., : frames.shape[-1]] = frames
         spectrum = scipy.fft.rfft(padded, axis=-1, workers=workers, overwrite_x=True)
-        folded = self._weigh_and_fold(spectrum, self._spectrum_single, np.complex64)
+        folded = self._weigh_and_fold(spectrum, self._spectrum_single)
         return np.asarray(scipy.fft.ifft(folded, axis=-1, overwrite_x=True, workers=workers))
 
 
