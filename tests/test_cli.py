@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import re
 import shutil
@@ -898,3 +899,175 @@ def test_image_writes_a_png_and_refuses_a_frame_outside(
     assert (in_tmp / "frame.png").read_bytes()[:4] == b"\x89PNG"
     assert "3 objects in frame 1" in result.out
     assert_bad_input(run(capsys, "image", good_h5, "--frame", "99", "-o", "x.png"), "--frame")
+
+
+# ----------------------------------------------------------------------------- the bad-input audit
+# Cases a black-box audit of every command found crashing (exit 1, "internal error"),
+# hanging, or naming the wrong thing; each must now be one line naming the problem and
+# exit 2, or carry on with a warning.
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ("echoes", "{good}", "--threshold-db", "4000"),  # 10^400: no float
+        ("locate", "{good}", "--threshold-db", "-1e308"),
+        ("template", "{good}", "-o", "t.npz", "--arrival", "nan"),
+        ("template", "{good}", "-o", "t.npz", "--arrival", "inf"),
+        ("export", "{good}", "-o", "e.mcap", "--start-time-s", "1e300"),
+        ("waveform", "barker13", "--sample-rate", "1e12"),  # a 10^9-sample pulse: hung
+        ("waveform", "barker13", "--sample-rate", "80e3"),  # the 50 kHz carrier above Nyquist
+        ("send", "{good}", "--to", "127.0.0.1:9", "--connect-timeout", "nan"),  # retried forever
+        ("send", "{good}", "--to", "127.0.0.1:9", "--connect-timeout", "-1"),
+    ],
+    ids=[
+        "threshold-huge",
+        "threshold-minus-huge",
+        "arrival-nan",
+        "arrival-inf",
+        "ros-stamp-huge",
+        "sample-rate-huge",
+        "carrier-above-nyquist",
+        "connect-timeout-nan",
+        "connect-timeout-negative",
+    ],
+)
+def test_out_of_range_numbers_are_one_line_naming_the_option(
+    capsys: pytest.CaptureFixture[str], in_tmp: Path, good_h5: Path, args: tuple[str, ...]
+) -> None:
+    result = run(capsys, *(a.format(good=good_h5) for a in args))
+    assert_bad_input(result, args[-2])  # the option whose value is refused
+    assert list(in_tmp.iterdir()) == [], "nothing written for a refused option"
+
+
+def test_a_huge_threshold_is_refused_by_the_library_too() -> None:
+    from echoloc.echoes import THRESHOLD_DB_LIMIT, EchoOptions
+    from echoloc.errors import EchoLocError
+
+    EchoOptions(threshold_db=THRESHOLD_DB_LIMIT)
+    with pytest.raises(EchoLocError, match="threshold_db"):
+        EchoOptions(threshold_db=4000.0)
+    with pytest.raises(EchoLocError, match="threshold_db"):
+        EchoOptions(threshold_db=math.nan)
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [("echoes_used", "x"), ("echoes_used", math.nan), ("echoes_used", -1), ("residual_rms_s", "x")],
+)
+def test_a_calibration_with_a_bad_optional_field_is_bad_input(
+    capsys: pytest.CaptureFixture[str], in_tmp: Path, good_h5: Path, field: str, value: object
+) -> None:
+    record = {
+        "format": "echoloc-calibration",
+        "version": 1,
+        "speed_of_sound_m_s": 343.2,
+        "receiver_delays_s": [0.0, 0.0, 0.0, 0.0],
+        "echoes_used": 12,
+        "residual_rms_s": 1e-8,
+        field: value,
+    }
+    (in_tmp / "cal.json").write_text(json.dumps(record))  # NaN as JSON's NaN, as Python writes it
+    assert_bad_input(run(capsys, "echoes", good_h5, "--calibration", "cal.json"), "cal.json", field)
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ("air", "--plot", "a.txt"),
+        ("beam", "--plot", "b.txt"),
+        ("waveform", "barker13", "--plot", "w.txt"),
+        ("demo", "--frames", "2", "-o", "d.h5", "--plot", "d.txt"),
+    ],
+    ids=["air", "beam", "waveform", "demo"],
+)
+def test_a_plot_in_a_format_matplotlib_cannot_draw_is_refused_before_the_work(
+    capsys: pytest.CaptureFixture[str], in_tmp: Path, args: tuple[str, ...]
+) -> None:
+    assert_bad_input(run(capsys, *args), args[-1], "--plot")
+    assert list(in_tmp.iterdir()) == [], "the demo's recording is not written for a plot it cannot draw"
+
+
+@pytest.mark.filterwarnings("always::echoloc.recording.RecordingWarning")
+@pytest.mark.filterwarnings("always::echoloc.locate.LocateWarning")
+def test_backprojection_degrades_to_three_receivers_and_refuses_none(
+    capsys: pytest.CaptureFixture[str], in_tmp: Path, good_h5: Path, dead_h5: Path
+) -> None:
+    """One dead receiver: back-projection takes 3 channels, not its default 4, and warns that
+    ghosts pass then; every receiver dead: one line naming the file, not a crash in np.stack."""
+    result = run(capsys, "locate", dead_h5, "--method", "backprojection", "--frames", "0", "--json")
+    assert result.code == 0, result
+    assert re.search(r"receiver\s+2\b", result.err), result.err
+    assert "ghosts" in result.err, result.err  # three paths cross at ghosts too: said, not hidden
+    found = np.array([o["position_m"] for o in json_lines(result.out)[0]["objects"]])
+    truth = default_scene().reflector_positions_m
+    # Some of the crossings are the balls (here one of three; the others are ghosts that the
+    # fourth receiver would have rejected).
+    assert np.any(np.linalg.norm(found[:, None] - truth[None], axis=2) < 1e-3)
+
+    def kill_all(attrs: dict[str, Any], data: dict[str, Any]) -> None:
+        data["frames"][:] = 0.0
+
+    broken_copy(good_h5, in_tmp / "silent.h5", kill_all)
+    result = run(capsys, "image", "silent.h5", "-o", "i.png")
+    assert result.code == 2, result
+    assert "Traceback" not in result.err
+    assert result.err_lines[-1].startswith("echoloc: error: silent.h5: only 0 working receiver"), result.err
+    assert not (in_tmp / "i.png").exists()
+
+
+def test_messages_name_the_real_problem(
+    capsys: pytest.CaptureFixture[str], in_tmp: Path, good_h5: Path
+) -> None:
+    """Where a message named the wrong thing: a directory given as a recording, a file where
+    an output's directory should be, a non-HDF5 stream recording, a zero carrier, a zero waveform."""
+    (in_tmp / "folder").mkdir()
+    assert_bad_input(run(capsys, "echoes", "folder"), "folder", "is a directory")
+    shutil.copy(good_h5, in_tmp / "good.h5")
+    assert_bad_input(
+        run(capsys, "simulate", EXAMPLES / "report-three-balls.toml", "-o", "good.h5/x.h5", "--frames", "1"),
+        "'good.h5' is not a directory",
+    )
+    result = run(capsys, "record", "r.txt", "--duration", "1")
+    assert_bad_input(result, "r.txt", "HDF5")
+    assert ".npz" not in result.err
+    scene = (EXAMPLES / "report-three-balls.toml").read_text()
+    (in_tmp / "zero.toml").write_text(re.sub(r"carrier_hz\s*=\s*[0-9.e]+", "carrier_hz = 0", scene))
+    assert_bad_input(run(capsys, "simulate", "zero.toml", "-o", "z.h5"), "zero.toml", "pulse.carrier_hz")
+
+    def zero_waveform(attrs: dict[str, Any], data: dict[str, Any]) -> None:
+        data["waveform"][:] = 0.0
+
+    broken_copy(good_h5, in_tmp / "flat.h5", zero_waveform)
+    assert_bad_input(run(capsys, "echoes", "flat.h5"), "flat.h5", "waveform is all zero")
+
+
+def test_sigterm_removes_a_half_written_recording_and_keeps_the_old_one(in_tmp: Path, good_h5: Path) -> None:
+    """`kill` (SIGTERM) mid-simulate: as Ctrl-C, the temporary file goes and the file that was
+    there stays, bit for bit (before, the temporary file stayed: 2.7 GB in one run)."""
+    import signal
+    import time
+
+    target = in_tmp / "keep.h5"
+    shutil.copy(good_h5, target)
+    before = target.read_bytes()
+    scene = EXAMPLES / "report-three-balls.toml"
+    process = subprocess.Popen(
+        [str(ECHOLOC), "simulate", str(scene), "--frames", "200000", "-o", str(target)],
+        cwd=in_tmp,
+        env=_clean_env(),
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    deadline = time.monotonic() + 60
+    while not list(in_tmp.glob(".keep.h5.*.tmp")):  # writing has started
+        assert process.poll() is None, process.communicate()
+        assert time.monotonic() < deadline, "no temporary file after 60 s"
+        time.sleep(0.05)
+    process.send_signal(signal.SIGTERM)
+    _, err = process.communicate(timeout=60)
+    assert process.returncode == 1, err
+    assert "Traceback" not in err
+    assert err.strip().endswith("echoloc: aborted"), err
+    assert list(in_tmp.glob(".keep.h5.*")) == []
+    assert target.read_bytes() == before

@@ -492,7 +492,7 @@ def test_missing_file_is_rejected(tmp_path: Path, ext: str) -> None:
 def test_directory_is_rejected(tmp_path: Path) -> None:
     path = tmp_path / "dir.h5"
     path.mkdir()
-    with pytest.raises(RecordingError, match="not a regular file"):
+    with pytest.raises(RecordingError, match="is a directory"):
         read_recording(path)
 
 

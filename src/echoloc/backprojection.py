@@ -42,6 +42,7 @@ envelope there ("points to peaks"):
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -55,7 +56,7 @@ from scipy import special, stats
 from echoloc.conditioning import Conditioning, condition_frame
 from echoloc.echoes import MatchedFilter, frame_time_s, noise_power
 from echoloc.errors import EchoLocError
-from echoloc.locate import FrameObjects, LocatedObject, solve_positions
+from echoloc.locate import FrameObjects, LocatedObject, LocateWarning, solve_positions
 from echoloc.pipeline import Chain, frame_echoes, prepare, recording_speed_of_sound_m_s
 from echoloc.recording import Recording, dead_receivers
 
@@ -619,10 +620,18 @@ class BackprojectionOptions:
 
 
 def _support(options: BackprojectionOptions, dim: int, n_channels: int) -> int:
-    k = dim + 1 if options.min_support is None else options.min_support
+    """The channels a voxel needs: ``min_support``, or by default D + 1 when there are that
+    many working channels and D (the bare intersection, without the ghost test) when one is dead."""
+    if options.min_support is None:
+        if n_channels < dim:
+            raise EchoLocError(
+                f"backprojection: {n_channels} working channel(s), a {dim}-D position needs at least {dim}"
+            )
+        return min(dim + 1, n_channels)
+    k = options.min_support
     if k < dim or k > n_channels:
         raise EchoLocError(
-            f"backprojection: min_support={k} needs {dim} <= min_support <= {n_channels} channels"
+            f"backprojection: min_support={k} needs {dim} <= min_support <= {n_channels} working channels"
         )
     return k
 
@@ -938,6 +947,19 @@ def prepare_backprojection(
                 models.append(EchoModel(shape=acf / acf.max(), offset=len(template) - 1))
     usable = np.ones(n_rx, dtype=bool)
     usable[dead_receivers(recording)] = False
+    if int(usable.sum()) < grid.dim:
+        raise EchoLocError(
+            f"{recording.source}: only {int(usable.sum())} working receiver(s), "
+            f"back-projection in {grid.dim}-D needs at least {grid.dim}"
+        )
+    per_frame = len(recording.transmitters_m) if recording.firing == "simultaneous" else 1
+    if options.min_support is None and int(usable.sum()) * per_frame == grid.dim:
+        warnings.warn(
+            f"{recording.source}: {grid.dim} working channels: back-projection keeps every crossing of "
+            f"their {grid.dim} paths, so ghosts of several reflectors cannot be told from them",
+            LocateWarning,
+            stacklevel=2,
+        )
     conditioning = conditioning or Conditioning()
     chain = None
     if options.restore and recording.signal_kind == "rf" and recording.firing != "simultaneous":

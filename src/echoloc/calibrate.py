@@ -176,9 +176,21 @@ def read_calibration(path: str | os.PathLike[str], n_receivers: int | None = Non
         raise EchoLocError(
             f"{source}: has delays for {len(delays)} receivers, the recording has {n_receivers}"
         )
+    echoes_used = record.get("echoes_used", 0)
+    whole = isinstance(echoes_used, int) or (isinstance(echoes_used, float) and echoes_used.is_integer())
+    if not (whole and not isinstance(echoes_used, bool) and echoes_used >= 0):
+        raise EchoLocError(f"{source}: echoes_used must be a whole number >= 0, got {echoes_used!r}")
+    residual = record.get("residual_rms_s", 0.0)
+    if not (
+        isinstance(residual, int | float)
+        and not isinstance(residual, bool)
+        and math.isfinite(residual)
+        and residual >= 0
+    ):
+        raise EchoLocError(f"{source}: residual_rms_s must be a finite number >= 0, got {residual!r}")
     return Calibration(
         speed_of_sound_m_s=float(speed),
         receiver_delays_s=tuple(float(d) for d in delays),
-        echoes_used=int(record.get("echoes_used", 0)),
-        residual_rms_s=float(record.get("residual_rms_s", 0.0)),
+        echoes_used=int(echoes_used),
+        residual_rms_s=float(residual),
     )

@@ -36,8 +36,8 @@ from echoloc.air import (
 )
 from echoloc.calibrate import fit_calibration, read_calibration, write_calibration
 from echoloc.conditioning import Conditioning, parse_blind_zone
-from echoloc.echoes import EchoOptions, FrameEchoes, frame_time_s
-from echoloc.errors import EchoLocError
+from echoloc.echoes import THRESHOLD_DB_LIMIT, EchoOptions, FrameEchoes, frame_time_s
+from echoloc.errors import EchoLocError, missing_directory
 from echoloc.estimators import ESTIMATORS
 from echoloc.evaluate import Evaluation, evaluate, match
 from echoloc.locate import FrameObjects, LocateOptions
@@ -126,7 +126,7 @@ class Processing:
         """Read the recording, check the options, prepare the chain and the frames to run."""
         _finite("--speed-of-sound", self.speed_of_sound_m_s, positive=True)
         _finite("--blanking-s", self.blanking_s, minimum=0.0)
-        _finite("--threshold-db", self.threshold_db)
+        _threshold_db(self.threshold_db)
         _finite("--path-sigma-m", self.path_sigma_m, positive=True)
         _finite("--field-of-view-deg", self.field_of_view_deg, positive=True)
         if self.field_of_view_deg is not None and self.field_of_view_deg > 180:
@@ -317,7 +317,14 @@ def _processing_options(
     return decorate
 
 
-def _finite(name: str, value: float | None, *, positive: bool = False, minimum: float | None = None) -> None:
+def _finite(
+    name: str,
+    value: float | None,
+    *,
+    positive: bool = False,
+    minimum: float | None = None,
+    maximum: float | None = None,
+) -> None:
     """Refuse NaN, infinities and out-of-range option values with one clear line."""
     if value is None:
         return
@@ -327,6 +334,13 @@ def _finite(name: str, value: float | None, *, positive: bool = False, minimum: 
         raise EchoLocError(f"{name} must be > 0, got {value}")
     if minimum is not None and value < minimum:
         raise EchoLocError(f"{name} must be >= {minimum:g}, got {value}")
+    if maximum is not None and value > maximum:
+        raise EchoLocError(f"{name} must be <= {maximum:g}, got {value}")
+
+
+def _threshold_db(value: float) -> None:
+    """--threshold-db: finite, within :data:`echoloc.echoes.THRESHOLD_DB_LIMIT` either way."""
+    _finite("--threshold-db", value, minimum=-THRESHOLD_DB_LIMIT, maximum=THRESHOLD_DB_LIMIT)
 
 
 @contextmanager
@@ -386,6 +400,7 @@ DEMO_MATCH_RADIUS_M = 0.001
 )
 def demo(output: Path, n_frames: int, plot: Path | None) -> None:
     """Simulate the report's set-up (three balls), locate them and compare with the truth."""
+    _check_plot(plot)
     scene = default_scene()
     recording = simulate(scene, n_frames)
     written = write_recording(recording, output)
@@ -529,6 +544,7 @@ def template_command(
             when = float(arrival)
         except ValueError:
             raise EchoLocError(f"--arrival must be 'direct', 'truth' or seconds, got {arrival!r}") from None
+        _finite("--arrival", when, minimum=0.0)
     _finite("--start-s", start_s, minimum=0.0)
     _finite("--stop-s", stop_s, minimum=0.0)
     frames = _frames_option(frames_text, recording.n_frames)
@@ -694,7 +710,7 @@ def export_command(
     """
     from echoloc.export import write_mcap, write_ply
 
-    _finite("--start-time-s", start_time_s, minimum=0.0)
+    _finite("--start-time-s", start_time_s, minimum=0.0, maximum=2**31 - 1)  # ROS time: int32 seconds
     suffix = output_path.suffix.lower()
     if suffix not in (".mcap", ".ply"):
         raise EchoLocError(f"{output_path}: choose the format by extension, .mcap or .ply")
@@ -722,11 +738,31 @@ def _check_writable(path: Path) -> None:
     """Refuse an output that cannot be written before the work that would fill it."""
     if path.is_dir():
         raise EchoLocError(f"{path}: is a directory")
+    if problem := missing_directory(path):
+        raise EchoLocError(f"{path}: {problem}")
     parent = path.parent if str(path.parent) else Path(".")
-    if not parent.is_dir():
-        raise EchoLocError(f"{path}: directory {parent} does not exist")
     if not os.access(path if path.exists() else parent, os.W_OK):
         raise EchoLocError(f"{path}: cannot write here (permission denied)")
+
+
+def _check_plot(path: Path | None) -> None:
+    """Refuse a ``--plot`` target matplotlib cannot draw to, or cannot write, before the work."""
+    if path is None:
+        return
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    formats = FigureCanvasBase.get_supported_filetypes()
+    if path.suffix.lower().lstrip(".") not in formats:
+        shown = path.suffix or "no extension"
+        raise EchoLocError(
+            f"{path}: --plot draws .png, .svg, .pdf or another matplotlib format, not {shown!r}"
+        )
+    _check_writable(path)
+
+
+_MAX_SAMPLE_RATE_HZ = 100e6
+"""The highest sample rate `waveform` takes: 100 MHz, far above any ultrasonic ADC's, where a
+millisecond's pulse is already 100 000 samples (at 1 THz it would be 10^9)."""
 
 
 def _extent_option(text: str | None, dims: int) -> list[tuple[float, float]] | None:
@@ -1052,7 +1088,14 @@ def waveform_command(
     """
     for option, value in (("--carrier", carrier_hz), ("--sample-rate", sample_rate_hz)):
         _finite(option, value, positive=True)
+    _finite("--sample-rate", sample_rate_hz, maximum=_MAX_SAMPLE_RATE_HZ)
+    if not carrier_hz < sample_rate_hz / 2:
+        nyquist_hz = sample_rate_hz / 2
+        raise EchoLocError(
+            f"--carrier {carrier_hz:g} Hz must be below half --sample-rate ({nyquist_hz:g} Hz)"
+        )
     _finite("--speed-of-sound", speed_of_sound_m_s, positive=True)
+    _check_plot(plot)
     pulse = waveform_by_name(
         name,
         carrier_hz=carrier_hz,
@@ -1158,6 +1201,7 @@ def air_command(
     plot: Path | None,
 ) -> None:
     """Speed of sound, impedance and absorption (ISO 9613-1) for the given air."""
+    _check_plot(plot)
     _finite("--temperature", temperature_c, minimum=-90.0)
     if temperature_c > 100:
         raise EchoLocError(f"--temperature must be at most 100 °C, got {temperature_c}")
@@ -1273,6 +1317,7 @@ def beam_command(
     plot: Path | None,
 ) -> None:
     """Beam widths of a transducer (exact and as the report approximates them), and of a line array."""
+    _check_plot(plot)
     preset = PRESETS[transducer_name]
     _finite("--radius-m", radius_m, positive=True)
     _finite("--frequency", frequency_hz, positive=True)
@@ -1684,7 +1729,7 @@ def _listen_options(func: Callable[..., None]) -> Callable[..., None]:
 
 @contextmanager
 def _terminate_as_interrupt() -> Iterator[None]:
-    """SIGTERM (a service manager stopping us) ends a stream as Ctrl-C does: cleanly."""
+    """SIGTERM (a service manager, or `kill`, stopping us) ends a command as Ctrl-C does: cleanly."""
     import signal
 
     def interrupt(signum: int, frame: object) -> None:
@@ -1884,7 +1929,10 @@ def stream_command(
     _finite("--deadline-ms", deadline_ms, positive=True)
     _finite("--speed-of-sound", speed_of_sound_m_s, positive=True)
     _finite("--blanking-s", blanking_s, minimum=0.0)
+    _threshold_db(threshold_db)
     options = EchoOptions(threshold_db=threshold_db, blanking_s=blanking_s, workers=workers)
+    if calibration_path is not None:
+        read_calibration(calibration_path)  # a missing or broken file now, not when frames come
 
     def make_chain(header: Recording) -> Chain:
         calibration = (
@@ -2252,7 +2300,10 @@ def main(argv: list[str] | None = None) -> None:
     """Run the CLI; bad input becomes one line on stderr and exit code 2."""
     warnings.showwarning = _show_warning
     try:
-        cli.main(args=argv, prog_name="echoloc", standalone_mode=False)
+        # SIGTERM ends every command as Ctrl-C does, so a half-written output's temporary
+        # file is removed and what was written before stays (not only in `stream`).
+        with _terminate_as_interrupt():
+            cli.main(args=argv, prog_name="echoloc", standalone_mode=False)
     except EchoLocError as error:
         stderr.print(f"echoloc: error: {error}", markup=False, highlight=False)
         sys.exit(2)
@@ -2276,7 +2327,8 @@ def main(argv: list[str] | None = None) -> None:
         os.dup2(devnull, sys.stdout.fileno())
         sys.exit(0)
     except OSError as error:
-        stderr.print(f"echoloc: error: {error}", markup=False, highlight=False)
+        where = f"{error.filename}: " if error.filename else ""
+        stderr.print(f"echoloc: error: {where}{error.strerror or error}", markup=False, highlight=False)
         sys.exit(2)
     except MemoryError:
         stderr.print(

@@ -63,6 +63,12 @@ from echoloc.templates import Template
 _LN2 = float(np.log(2.0))
 
 
+THRESHOLD_DB_LIMIT = 300.0
+"""The largest detection threshold, dB either way: 10^30 in power. No correlation sample of
+a float32 frame stands that far above (or below) its noise, and beyond it, about 3080 dB,
+the power ratio is no longer a float."""
+
+
 @dataclass(frozen=True)
 class EchoOptions:
     """Options of every estimator.
@@ -104,6 +110,11 @@ class EchoOptions:
     def __post_init__(self) -> None:
         if self.workers < 1 and self.workers != -1:
             raise EchoLocError(f"workers must be >= 1 (or -1: one a core), got {self.workers}")
+        if not abs(self.threshold_db) <= THRESHOLD_DB_LIMIT:
+            raise EchoLocError(
+                f"threshold_db must be between {-THRESHOLD_DB_LIMIT:g} and {THRESHOLD_DB_LIMIT:g} dB, "
+                f"got {self.threshold_db:g}"
+            )
 
     @property
     def threads(self) -> int:

@@ -8,6 +8,8 @@ exit code 2 (``../shared/FORMATS.md``, "Exit codes").
 
 from __future__ import annotations
 
+from pathlib import Path
+
 
 class EchoLocError(ValueError):
     """Bad input: the message is meant for the user, as one line."""
@@ -27,3 +29,14 @@ class WaveformError(EchoLocError):
 
 class GeometryError(EchoLocError):
     """Transducer positions or measured paths that no reflector can explain."""
+
+
+def missing_directory(path: Path) -> str | None:
+    """Why ``path``'s directory cannot take a new file ("directory 'd' does not exist", or
+    "'d' is not a directory" where a file stands), for an output's message; None when it can."""
+    parent = path.parent if str(path.parent) else Path(".")
+    if parent.is_dir():
+        return None
+    if parent.exists():
+        return f"{str(parent)!r} is not a directory"
+    return f"directory {str(parent)!r} does not exist"

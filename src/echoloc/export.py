@@ -33,7 +33,7 @@ from mcap_ros2.writer import Writer as Ros2Writer
 from numpy.typing import ArrayLike, NDArray
 
 from echoloc.echoes import frame_time_s
-from echoloc.errors import EchoLocError
+from echoloc.errors import EchoLocError, missing_directory
 from echoloc.locate import FrameObjects, LocatedObject
 from echoloc.pipeline import recording_speed_of_sound_m_s
 from echoloc.recording import Recording
@@ -219,8 +219,8 @@ def _check_path(path: str | Path, suffix: str) -> Path:
         raise EchoLocError(
             f"{target}: expected a {suffix} file name, got extension {target.suffix or '(none)'!r}"
         )
-    if not target.parent.is_dir():
-        raise EchoLocError(f"{target}: directory {target.parent} does not exist")
+    if problem := missing_directory(target):
+        raise EchoLocError(f"{target}: {problem}")
     if target.is_dir():
         raise EchoLocError(f"{target}: is a directory")
     return target
@@ -338,6 +338,9 @@ def _write_ply_file(
 
 def ros_time(time_s: float) -> dict[str, int]:
     """``builtin_interfaces/Time`` of ``time_s`` seconds: whole seconds and nanoseconds, nanosec < 1e9."""
+    if not (math.isfinite(time_s) and time_s < 2**31):
+        # Checked before the nanoseconds are rounded: 1e300 s has no integer count of them.
+        raise EchoLocError(f"stamp {time_s} s does not fit a ROS time (int32 seconds)")
     total_ns = round(time_s * 1e9)
     if total_ns < 0:
         raise EchoLocError(f"stamp {time_s} s is before 1970 (ROS time must not be negative)")

@@ -30,7 +30,7 @@ import h5py
 import numpy as np
 from numpy.typing import DTypeLike, NDArray
 
-from echoloc.errors import RecordingError
+from echoloc.errors import RecordingError, missing_directory
 
 FORMAT_NAME = "echoloc-recording"
 FORMAT_VERSION = 1
@@ -818,6 +818,8 @@ def read_recording(path: str | os.PathLike[str], *, repair_nonfinite: bool = Fal
     file = Path(path)
     source = str(path)
     suffix = file.suffix.lower()
+    if file.is_dir():
+        raise _error(source, "is a directory, not a recording file (.h5, .hdf5 or .npz)")
     if suffix not in _HDF5_SUFFIXES + _NPZ_SUFFIXES:
         raise _error(source, f"unknown extension {file.suffix!r}, expected .h5, .hdf5 or .npz")
     if not file.exists():
@@ -958,8 +960,8 @@ def _atomic_write(target: Path, source: str, write: Callable[[Path], None]) -> P
     errors (see :func:`_write_errors`) and lets everything else through.
     """
     parent = target.parent
-    if not parent.is_dir():
-        raise _error(source, f"directory {str(parent)!r} does not exist")
+    if problem := missing_directory(target):
+        raise _error(source, problem)
     if target.is_dir():
         raise _error(source, "is a directory")
     tmp = parent / f".{target.name}.{secrets.token_hex(6)}.tmp"
@@ -1368,8 +1370,8 @@ def append_recording_stream(
     target, source, hdf5 = _target(path)
     if not hdf5:
         raise _error(source, "a stream is recorded to HDF5 (.h5): a .npz is readable only once complete")
-    if not target.parent.is_dir():
-        raise _error(source, f"directory {str(target.parent)!r} does not exist")
+    if problem := missing_directory(target):
+        raise _error(source, problem)
     validate_header(header)
     storage = _storage_dtype(source, frames_dtype, header.frames.dtype.kind == "c")
     _stream_hdf5(target, source, header, batches, storage, durable=True)

@@ -410,6 +410,14 @@ class Scene:
                 f"receiver.output_rate_hz ({self.output_rate_hz:g}) must be <= acquisition.sample_rate_hz "
                 f"({self.sample_rate_hz:g})"
             )
+        carrier_hz = self.pulse.carrier_hz
+        if not (math.isfinite(carrier_hz) and carrier_hz > 0):
+            raise SceneError(f"pulse.carrier_hz must be > 0, got {carrier_hz:g}")
+        if not self.sample_rate_hz > 2 * carrier_hz:
+            raise SceneError(
+                f"pulse.carrier_hz ({carrier_hz:g}) must be below half acquisition.sample_rate_hz "
+                f"({self.sample_rate_hz:g})"
+            )
         try:
             # The receiver chain's own checks, run now so that the message names the key.
             output_samples(self.n_samples, self.sample_rate_hz, self.output_rate_hz)

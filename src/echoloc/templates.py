@@ -17,6 +17,7 @@ calibration (:mod:`echoloc.calibrate`) removes the constant part.
 
 from __future__ import annotations
 
+import math
 import os
 import zipfile
 from dataclasses import dataclass
@@ -65,6 +66,8 @@ def sent_template(recording: Recording) -> Template:
     """The recording's own ``waveform``: the emitted pulse as an ideal echo returns it."""
     if recording.waveform is None:
         raise EchoLocError(f"{recording.source}: the recording has no waveform (SENT template)")
+    if not np.any(recording.waveform):
+        raise EchoLocError(f"{recording.source}: waveform is all zero: no SENT template (try --template)")
     return Template(np.asarray(recording.waveform, float), recording.sample_rate_hz, 0.0, "sent")
 
 
@@ -82,6 +85,8 @@ def arrival_time_s(
     the transmitter, a little off the bistatic specular path); a number: that time.
     """
     if not isinstance(arrival, str):
+        if not (math.isfinite(arrival) and arrival >= 0):
+            raise EchoLocError(f"arrival must be a finite time >= 0 s, got {arrival!r}")
         return float(arrival)
     tx_index = 0 if recording.frame_transmitter is None else int(recording.frame_transmitter[frame])
     tx = recording.transmitters_m[tx_index]
@@ -147,7 +152,12 @@ def cut_template(
     if not cuts:
         raise EchoLocError(f"{recording.source}: the template window leaves every selected frame")
     label = name or (arrival if isinstance(arrival, str) else "echo")
-    return Template(np.mean(cuts, axis=0), fs, first - lo / fs, str(label))
+    average = np.mean(cuts, axis=0)
+    if not np.any(average):
+        raise EchoLocError(
+            f"{recording.source}: receiver {receiver} is all zero in the template window (a dead receiver?)"
+        )
+    return Template(average, fs, first - lo / fs, str(label))
 
 
 def write_template(template: Template, path: str | os.PathLike[str]) -> Path:

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from echoloc.echoes import frame_time_s
-from echoloc.errors import EchoLocError
+from echoloc.errors import EchoLocError, missing_directory
 from echoloc.protocol import (
     KIND_END,
     KIND_FRAME,
@@ -401,6 +401,10 @@ def send_recording(
         raise EchoLocError(f"--rate must be > 0 frames/s, got {rate_hz}")
     if not (math.isfinite(speed) and speed >= 0):
         raise EchoLocError(f"--speed must be >= 0 (0: as fast as possible), got {speed}")
+    if not (math.isfinite(connect_timeout_s) and connect_timeout_s >= 0):
+        raise EchoLocError(
+            f"--connect-timeout must be a finite number of seconds >= 0, got {connect_timeout_s}"
+        )
     udp = endpoint.transport == "udp"
     if recording.signal_kind == "iq":
         sample_format = "complex64"
@@ -538,12 +542,12 @@ class Recorder:
     @staticmethod
     def check_path(path: Path) -> None:
         """Refuse, before anything arrives, a target that cannot be recorded to (one line)."""
-        if path.suffix.lower() not in (".h5", ".hdf5"):
-            raise EchoLocError(
-                f"{path}: a stream is recorded to HDF5 (.h5 or .hdf5): a .npz is readable only once complete"
-            )
-        if not path.parent.is_dir():
-            raise EchoLocError(f"{path}: directory {str(path.parent)!r} does not exist")
+        suffix = path.suffix.lower()
+        if suffix not in (".h5", ".hdf5"):
+            why = ": a .npz is readable only once complete" if suffix == ".npz" else ""
+            raise EchoLocError(f"{path}: a stream is recorded to HDF5 (.h5 or .hdf5){why}")
+        if problem := missing_directory(path):
+            raise EchoLocError(f"{path}: {problem}")
 
     def __init__(
         self,
