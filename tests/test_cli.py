@@ -1071,3 +1071,25 @@ def test_sigterm_removes_a_half_written_recording_and_keeps_the_old_one(in_tmp: 
     assert err.strip().endswith("echoloc: aborted"), err
     assert list(in_tmp.glob(".keep.h5.*")) == []
     assert target.read_bytes() == before
+
+
+@pytest.mark.filterwarnings("always::echoloc.recording.RecordingWarning")
+def test_recordings_no_echo_can_be_located_in_are_said_so(
+    capsys: pytest.CaptureFixture[str], in_tmp: Path, good_h5: Path
+) -> None:
+    """Receivers all at one point (the same foci for every ellipsoid) is bad input for
+    locate; frames shorter than the pulse are read, with a warning that no echo fits."""
+
+    def same_point(attrs: dict[str, Any], data: dict[str, Any]) -> None:
+        data["receivers"][:] = data["receivers"][0]
+
+    broken_copy(good_h5, in_tmp / "one.h5", same_point)
+    assert_bad_input(run(capsys, "locate", "one.h5"), "one.h5", "every working receiver is at")
+
+    def short_frames(attrs: dict[str, Any], data: dict[str, Any]) -> None:
+        data["frames"] = data["frames"][:, :, :50]
+
+    broken_copy(good_h5, in_tmp / "short.h5", short_frames)
+    result = run(capsys, "echoes", "short.h5", "--json")
+    assert result.code == 0, result
+    assert "shorter than the" in result.err, result.err

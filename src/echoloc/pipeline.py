@@ -135,6 +135,13 @@ def check_locatable(chain: Chain) -> None:
             f"{chain.recording.source}: only {working} working receiver(s), "
             f"at least {chain.locate_options.min_receivers} are needed to locate"
         )
+    positions = np.asarray(chain.recording.receivers_m, dtype=float)[chain.usable_receivers]
+    transmitters = np.asarray(chain.recording.transmitters_m, dtype=float)
+    if np.all(positions == positions[0]) and np.all(transmitters == transmitters[0]):
+        raise EchoLocError(
+            f"{chain.recording.source}: every working receiver is at {positions[0].tolist()} m: "
+            "their ellipsoids share their foci, so no position can be located"
+        )
 
 
 def frame_echoes(chain: Chain, index: int) -> FrameEchoes:

@@ -868,6 +868,15 @@ def read_recording(path: str | os.PathLike[str], *, repair_nonfinite: bool = Fal
             indices = ", ".join(str(i) for i in dead)
             what = f"receivers {indices} look dead: each has all {per_channel} samples equal"
         warnings.warn(_one_line(f"{source}: {what}"), RecordingWarning, stacklevel=2)
+    if rec.waveform is not None and rec.n_samples < len(rec.waveform):
+        warnings.warn(
+            _one_line(
+                f"{source}: frames of {rec.n_samples} samples are shorter than the "
+                f"{len(rec.waveform)}-sample waveform: no whole echo fits in a frame"
+            ),
+            RecordingWarning,
+            stacklevel=2,
+        )
     return rec
 
 
