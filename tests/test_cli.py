@@ -1093,3 +1093,16 @@ def test_recordings_no_echo_can_be_located_in_are_said_so(
     result = run(capsys, "echoes", "short.h5", "--json")
     assert result.code == 0, result
     assert "shorter than the" in result.err, result.err
+
+
+@pytest.mark.filterwarnings("always::UserWarning")
+def test_a_speed_of_sound_in_other_units_is_warned_about(
+    capsys: pytest.CaptureFixture[str], good_h5: Path
+) -> None:
+    """0.343 (m/ms) is a valid number but no gas's speed in m/s: the run goes on, warned."""
+    result = run(capsys, "locate", good_h5, "--json", "--speed-of-sound", "0.343")
+    assert result.code == 0, result
+    assert "0.343 m/s is far from any gas's" in result.err, result.err
+    result = run(capsys, "locate", good_h5, "--json", "--speed-of-sound", "343.2")
+    assert result.code == 0, result
+    assert "warning" not in result.err, result.err

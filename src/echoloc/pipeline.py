@@ -9,6 +9,7 @@ observable window, receivers to use). :func:`run` then maps frames to results.
 from __future__ import annotations
 
 import itertools
+import warnings
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
@@ -29,6 +30,11 @@ from echoloc.errors import EchoLocError
 from echoloc.estimators import Estimator, estimate_frames, prepare_estimator
 from echoloc.locate import FrameLocator, FrameObjects, LocateOptions, combine_frames
 from echoloc.recording import Recording, dead_receivers
+
+PLAUSIBLE_SPEED_OF_SOUND_M_S = (100.0, 2000.0)
+"""Speeds of sound (m/s) :func:`prepare` takes without a warning: every gas a sensor could
+work in lies inside (air 331-386 m/s from 0 to 100 °C, CO2 267, helium 1007 at 20 °C); a
+value outside is most likely in other units (0.343 m/ms, 34 320 cm/s)."""
 
 
 def recording_speed_of_sound_m_s(recording: Recording) -> float:
@@ -92,6 +98,13 @@ def prepare(
     if calibration is not None and speed_of_sound_m_s is None:
         speed_of_sound_m_s = calibration.speed_of_sound_m_s
     c = speed_of_sound_m_s or recording_speed_of_sound_m_s(recording)
+    if not PLAUSIBLE_SPEED_OF_SOUND_M_S[0] <= c <= PLAUSIBLE_SPEED_OF_SOUND_M_S[1]:
+        warnings.warn(
+            f"{recording.source}: a speed of sound of {c:g} m/s is far from any gas's "
+            "(air: about 331 m/s at 0 °C, 386 at 100 °C): is it in m/s?",
+            UserWarning,
+            stacklevel=2,
+        )
     run_estimator = blinded(
         lambda options: prepare_estimator(recording, options, estimator),
         recording,
