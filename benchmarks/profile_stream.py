@@ -50,6 +50,11 @@ def numba_symbol(mangled: str) -> str:
     return f"{module}.{function}"
 
 
+def perf_map_path() -> Path:
+    """The file perf reads this process's JIT symbols from."""
+    return Path(f"/tmp/perf-{os.getpid()}.map")
+
+
 def write_perf_map() -> int:
     """Write /tmp/perf-PID.map for every compiled function of echoloc's kernel modules; how many."""
     import importlib
@@ -73,14 +78,14 @@ def write_perf_map() -> int:
     addresses = sorted(entries)
     if not addresses:
         return 0
-    with open(f"/tmp/perf-{os.getpid()}.map", "w") as perf_map:
+    with perf_map_path().open("w") as perf_map:
         for here, after in zip(addresses, [*addresses[1:], addresses[-1] + 4096], strict=True):
             perf_map.write(f"{here:x} {min(after - here, 1 << 20):x} {entries[here]}\n")
     return len(addresses)
 
 
 def _where(dso: str, symbol: str) -> str:
-    if symbol.startswith(("_echoes_kernels.", "_locate_kernels.", "_mapping_kernels.")):
+    if symbol.startswith(tuple(name.removeprefix("echoloc.") + "." for name in _KERNEL_MODULES)):
         return "echoloc kernels"
     if "pocketfft" in dso:
         return "pocketfft (FFT)"
@@ -152,45 +157,45 @@ def report(data: Path, frame_us: float, top: int) -> list[str]:
 
 def profile(seconds: float, reflectors: int, n_frames: int, top: int) -> list[str]:
     """Run the stream under perf; the report's lines."""
-    from echoloc.benchmark import bench_scene
+    from echoloc.benchmark import bench_scene, pinned_cores
     from echoloc.echoes import EchoOptions
     from echoloc.pipeline import prepare
     from echoloc.simulate import simulate
     from echoloc.stream import StreamProcessor, recording_frames
 
-    os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
-    recording = simulate(bench_scene(reflectors), n_frames)
-    chain = prepare(recording, echo_options=EchoOptions(workers=1))
-    frames = list(recording_frames(recording))
-    processor = StreamProcessor(chain)
-    processor.warm_up()
-    for frame in frames:
-        processor.process(frame)  # every kernel compiled before the perf map is written
-    mapped = write_perf_map()
-    if not mapped:
-        sys.exit("profile_stream: no compiled functions to map (were the kernels loaded from a cache?)")
-    print(f"profile_stream: {mapped} compiled functions mapped", file=sys.stderr)
-    with tempfile.TemporaryDirectory() as scratch:
-        data = Path(scratch) / "perf.data"
-        perf = subprocess.Popen(
-            ["perf", "record", "-F", "2000", "-p", str(os.getpid()), "-o", str(data)],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-        )
-        time.sleep(1.0)  # perf attached
-        done = 0
-        started = time.perf_counter()
-        while time.perf_counter() - started < seconds:
-            for frame in frames:
-                processor.process(frame)
-            done += len(frames)
-        frame_us = (time.perf_counter() - started) / done * 1e6
-        perf.send_signal(2)
-        perf.wait(30)
-        try:
-            return report(data, frame_us, top)
-        finally:
-            Path(f"/tmp/perf-{os.getpid()}.map").unlink(missing_ok=True)
+    with pinned_cores(1):  # one core, as `echoloc bench` times the chain
+        recording = simulate(bench_scene(reflectors), n_frames)
+        chain = prepare(recording, echo_options=EchoOptions(workers=1))
+        frames = list(recording_frames(recording))
+        processor = StreamProcessor(chain)
+        processor.warm_up()
+        for frame in frames:
+            processor.process(frame)  # every kernel compiled before the perf map is written
+        mapped = write_perf_map()
+        if not mapped:
+            sys.exit("profile_stream: no compiled functions to map (were the kernels loaded from a cache?)")
+        print(f"profile_stream: {mapped} compiled functions mapped", file=sys.stderr)
+        with tempfile.TemporaryDirectory() as scratch:
+            data = Path(scratch) / "perf.data"
+            perf = subprocess.Popen(
+                ["perf", "record", "-F", "2000", "-p", str(os.getpid()), "-o", str(data)],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
+            time.sleep(1.0)  # perf attached
+            done = 0
+            started = time.perf_counter()
+            while time.perf_counter() - started < seconds:
+                for frame in frames:
+                    processor.process(frame)
+                done += len(frames)
+            frame_us = (time.perf_counter() - started) / done * 1e6
+            perf.send_signal(2)
+            perf.wait(30)
+            try:
+                return report(data, frame_us, top)
+            finally:
+                perf_map_path().unlink(missing_ok=True)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -1040,6 +1040,47 @@ def test_messages_name_the_real_problem(
 
     broken_copy(good_h5, in_tmp / "flat.h5", zero_waveform)
     assert_bad_input(run(capsys, "echoes", "flat.h5"), "flat.h5", "waveform is all zero")
+    # An OS error names its file, not only its errno text.
+    assert_bad_input(run(capsys, "image", "good.h5", "-o", "nodir/i.png"), "nodir/i.png: No such file")
+
+
+@pytest.mark.filterwarnings("always::echoloc.recording.RecordingWarning")
+def test_a_template_cut_from_a_dead_receiver_names_it(
+    capsys: pytest.CaptureFixture[str], in_tmp: Path, dead_h5: Path
+) -> None:
+    result = run(capsys, "template", dead_h5, "--receiver", "2", "-o", "t.npz")
+    assert result.code == 2, result
+    assert result.err_lines[-1].endswith("receiver 2 is all zero in the template window (a dead receiver?)")
+    assert not (in_tmp / "t.npz").exists()
+
+
+def test_stream_reads_its_calibration_before_listening(
+    capsys: pytest.CaptureFixture[str], in_tmp: Path
+) -> None:
+    """A missing calibration file fails at once, not when the first frame arrives (before, with
+    no sender, `stream` even exited 0)."""
+    result = run(
+        capsys, "stream", "--listen", "127.0.0.1:0", "--calibration", "missing.json", "--duration", "1"
+    )
+    assert_bad_input(result, "missing.json", "no such calibration file")
+
+
+def test_library_refuses_times_no_float_or_ros_time_holds() -> None:
+    """The checks below the CLI's own: a stamp of 1e300 s (its nanoseconds overflow an int) or
+    NaN, and a NaN or negative template arrival."""
+    from echoloc.errors import EchoLocError
+    from echoloc.export import ros_time
+    from echoloc.templates import arrival_time_s
+
+    assert ros_time(1.5) == {"sec": 1, "nanosec": 500_000_000}
+    for stamp in (1e300, math.nan, math.inf, 2.0**31):
+        with pytest.raises(EchoLocError, match="does not fit a ROS time"):
+            ros_time(stamp)
+    recording = simulate(default_scene(), n_frames=1)
+    assert arrival_time_s(recording, 0, 0, 1e-3, 343.0) == 1e-3
+    for arrival in (math.nan, -1e-3):
+        with pytest.raises(EchoLocError, match="arrival must be a finite time"):
+            arrival_time_s(recording, 0, 0, arrival, 343.0)
 
 
 def test_sigterm_removes_a_half_written_recording_and_keeps_the_old_one(in_tmp: Path, good_h5: Path) -> None:

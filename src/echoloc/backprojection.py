@@ -947,13 +947,14 @@ def prepare_backprojection(
                 models.append(EchoModel(shape=acf / acf.max(), offset=len(template) - 1))
     usable = np.ones(n_rx, dtype=bool)
     usable[dead_receivers(recording)] = False
-    if int(usable.sum()) < grid.dim:
+    working = int(usable.sum())
+    if working < grid.dim:
         raise EchoLocError(
-            f"{recording.source}: only {int(usable.sum())} working receiver(s), "
+            f"{recording.source}: only {working} working receiver(s), "
             f"back-projection in {grid.dim}-D needs at least {grid.dim}"
         )
     per_frame = len(recording.transmitters_m) if recording.firing == "simultaneous" else 1
-    if options.min_support is None and int(usable.sum()) * per_frame == grid.dim:
+    if options.min_support is None and working * per_frame == grid.dim:
         warnings.warn(
             f"{recording.source}: {grid.dim} working channels: back-projection keeps every crossing of "
             f"their {grid.dim} paths, so ghosts of several reflectors cannot be told from them",

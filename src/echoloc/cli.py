@@ -740,8 +740,7 @@ def _check_writable(path: Path) -> None:
         raise EchoLocError(f"{path}: is a directory")
     if problem := missing_directory(path):
         raise EchoLocError(f"{path}: {problem}")
-    parent = path.parent if str(path.parent) else Path(".")
-    if not os.access(path if path.exists() else parent, os.W_OK):
+    if not os.access(path if path.exists() else path.parent, os.W_OK):
         raise EchoLocError(f"{path}: cannot write here (permission denied)")
 
 

@@ -34,7 +34,7 @@ class GeometryError(EchoLocError):
 def missing_directory(path: Path) -> str | None:
     """Why ``path``'s directory cannot take a new file ("directory 'd' does not exist", or
     "'d' is not a directory" where a file stands), for an output's message; None when it can."""
-    parent = path.parent if str(path.parent) else Path(".")
+    parent = path.parent  # Path("name").parent is Path(".")
     if parent.is_dir():
         return None
     if parent.exists():
