@@ -1136,7 +1136,7 @@ def test_recordings_no_echo_can_be_located_in_are_said_so(
     assert "shorter than the" in result.err, result.err
 
 
-@pytest.mark.filterwarnings("always::UserWarning")
+@pytest.mark.filterwarnings("always::echoloc.locate.LocateWarning")
 def test_a_speed_of_sound_in_other_units_is_warned_about(
     capsys: pytest.CaptureFixture[str], good_h5: Path
 ) -> None:

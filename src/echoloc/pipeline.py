@@ -28,7 +28,7 @@ from echoloc.echoes import (
 )
 from echoloc.errors import EchoLocError
 from echoloc.estimators import Estimator, estimate_frames, prepare_estimator
-from echoloc.locate import FrameLocator, FrameObjects, LocateOptions, combine_frames
+from echoloc.locate import FrameLocator, FrameObjects, LocateOptions, LocateWarning, combine_frames
 from echoloc.recording import Recording, dead_receivers
 
 PLAUSIBLE_SPEED_OF_SOUND_M_S = (100.0, 2000.0)
@@ -102,7 +102,7 @@ def prepare(
         warnings.warn(
             f"{recording.source}: a speed of sound of {c:g} m/s is far from any gas's "
             "(air: about 331 m/s at 0 °C, 386 at 100 °C): is it in m/s?",
-            UserWarning,
+            LocateWarning,
             stacklevel=2,
         )
     run_estimator = blinded(
