@@ -56,18 +56,16 @@ def fused_echoes(mf: MatchedFilter, options: EchoOptions) -> Callable[[NDArray[n
     weigh_and_fold, batch_channels = kernels.weigh_and_fold, kernels.batch_channels
 
     @njit
-    def kernel(frame, n_fft, weights, n_lags, constants, finishing, out, kept, ok):  # type: ignore[no-untyped-def]  # pragma: no cover
+    def kernel(frame, n_fft, n_ifft, weights, n_lags, constants, finishing, out, kept, ok):  # type: ignore[no-untyped-def]  # pragma: no cover
         rows, n = frame.shape
         padded = np.zeros((rows, n_fft), np.float32)
         padded[:, : min(n, n_fft)] = frame[:, : min(n, n_fft)]
         spectrum = scipy.fft.rfft(padded, axis=-1)
-        folded = np.empty((rows, n_fft // 2), np.complex64)  # n_ifft for the decimation of 2
+        folded = np.empty((rows, n_ifft), np.complex64)
         weigh_and_fold(spectrum, weights, folded)
         correlation = scipy.fft.ifft(folded, axis=-1)
         batch_channels(1, correlation.view(np.float32), n_lags, constants, finishing, out, kept, ok)
 
-    if mf.n_ifft * 2 != mf.n_fft:
-        sys.exit(f"the kernel is written for a decimation of 2, the chain's is {mf.decimation}")
     constants, finishing = _kernel_constants(mf, options, _NOISE_STEP, _MAX_SPLITS)
     weights = mf._spectrum_single
 
@@ -76,7 +74,7 @@ def fused_echoes(mf: MatchedFilter, options: EchoOptions) -> Callable[[NDArray[n
         out = np.zeros((3, n_ch, 4 * options.max_echoes))
         kept = np.zeros(n_ch, dtype=np.int64)
         ok = np.zeros(n_ch, dtype=np.bool_)
-        kernel(frame, mf.n_fft, weights, mf.n_lags, constants, finishing, out, kept, ok)
+        kernel(frame, mf.n_fft, mf.n_ifft, weights, mf.n_lags, constants, finishing, out, kept, ok)
         tof_s, amplitude, snr_db = out
         return [
             ChannelEchoes(tof_s[c, : kept[c]], amplitude[c, : kept[c]], snr_db[c, : kept[c]])
