@@ -1032,6 +1032,8 @@ def fft_workers(threads: int, rows: int) -> int:
 
 def _kernel_threads(threads: int, tasks: int) -> int:
     """Threads for a compiled parallel loop over ``tasks``, set as numba's count for the call."""
+    if threads <= 1 or tasks <= 1:
+        return 1
     import numba
 
     count = max(1, min(threads, tasks, int(numba.config.NUMBA_NUM_THREADS)))  # type: ignore[attr-defined]
@@ -1331,9 +1333,11 @@ def _batch_channels(
     parts = _kernel_threads(threads, n_ch)
     kernels.batch_channels(parts, rows, mf.n_lags, constants, finishing, out, kept, ok)
     tof_s, amplitude, snr_db = out
+    # The counts and flags as Python ints and bools: indexing the arrays element by element
+    # made numpy scalars, half of this list's 9 us a four-channel frame.
     return [
-        ChannelEchoes(tof_s[c, : kept[c]], amplitude[c, : kept[c]], snr_db[c, : kept[c]]) if ok[c] else None
-        for c in range(n_ch)
+        ChannelEchoes(tof_s[c, :k], amplitude[c, :k], snr_db[c, :k]) if good else None
+        for c, (k, good) in enumerate(zip(kept.tolist(), ok.tolist(), strict=True))
     ]
 
 
@@ -1407,10 +1411,8 @@ def _finish_batch(out: _BatchOutput, mf: MatchedFilter, options: EchoOptions) ->
         kept,
     )
     return [
-        ChannelEchoes(tof_s[c, : kept[c]], amplitude[c, : kept[c]], snr_db[c, : kept[c]])
-        if out.ok[c]
-        else None
-        for c in range(shape[0])
+        ChannelEchoes(tof_s[c, :k], amplitude[c, :k], snr_db[c, :k]) if good else None
+        for c, (k, good) in enumerate(zip(kept.tolist(), out.ok.tolist(), strict=True))
     ]
 
 
