@@ -115,3 +115,27 @@ def test_cli_calibrate_then_locate(
     with pytest.raises(SystemExit) as exit_info:
         main(["locate", str(recording_path), "--calibration", str(tmp_path / "missing.json")])
     assert exit_info.value.code == 2
+
+
+def test_delay_longer_than_a_frame_is_refused(
+    miscalibrated: Recording, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Delays written in µs where seconds belong (3.1 for 3.1e-6) would shift every echo out of
+    its frame: `locate` names the receiver and the frame's length, exit 2, no traceback; a
+    delay just inside the frame is still taken."""
+    recording_path = write_recording(miscalibrated, tmp_path / "warm.h5")
+    frame_s = miscalibrated.n_samples / miscalibrated.sample_rate_hz
+    in_microseconds = Calibration(ASSUMED_SPEED_M_S, tuple(DELAYS_S * 1e6), echoes_used=30)
+    expected = rf"receiver 2 by 7\.25 s, more than a whole frame \({frame_s:g} s\)"
+    with pytest.raises(EchoLocError, match=expected):
+        prepare(miscalibrated, calibration=in_microseconds)
+    prepare(miscalibrated, calibration=Calibration(ASSUMED_SPEED_M_S, (0.0, 0.0, 0.0, 0.99 * frame_s)))
+    path = write_calibration(in_microseconds, tmp_path / "us.json")
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_info:
+        main(["locate", str(recording_path), "--calibration", str(path)])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert "more than a whole frame" in err
+    assert "Traceback" not in err

@@ -95,6 +95,13 @@ def prepare(
             f"{recording.source}: the calibration has delays for {len(calibration.receiver_delays_s)} "
             f"receivers, the recording has {recording.n_receivers}"
         )
+    frame_s = recording.n_samples / recording.sample_rate_hz
+    if calibration is not None and any(abs(d) >= frame_s for d in calibration.receiver_delays_s):
+        receiver, delay = max(enumerate(calibration.receiver_delays_s), key=lambda rd: abs(rd[1]))
+        raise EchoLocError(
+            f"{recording.source}: the calibration delays receiver {receiver} by {delay:g} s, "
+            f"more than a whole frame ({frame_s:g} s): are its delays in seconds?"
+        )
     if calibration is not None and speed_of_sound_m_s is None:
         speed_of_sound_m_s = calibration.speed_of_sound_m_s
     c = speed_of_sound_m_s or recording_speed_of_sound_m_s(recording)
