@@ -1106,12 +1106,42 @@ def test_sigterm_removes_a_half_written_recording_and_keeps_the_old_one(in_tmp: 
         assert time.monotonic() < deadline, "no temporary file after 60 s"
         time.sleep(0.05)
     process.send_signal(signal.SIGTERM)
-    _, err = process.communicate(timeout=60)
+    try:
+        _, err = process.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        _, err = process.communicate()
+        pytest.fail(f"simulate ran on for 60 s after SIGTERM: {err[-2000:]}")
     assert process.returncode == 1, err
     assert "Traceback" not in err
     assert err.strip().endswith("echoloc: aborted"), err
     assert list(in_tmp.glob(".keep.h5.*")) == []
     assert target.read_bytes() == before
+
+
+def test_an_interrupt_a_finaliser_swallowed_is_raised_again() -> None:
+    """Python swallows a KeyboardInterrupt raised inside a ``__del__`` or weakref callback
+    (h5py runs them all the time): a killed simulate ran on for minutes. Under the CLI's
+    handler it is raised again in the main thread, at once, and nothing is printed."""
+    import gc
+    import time
+
+    from echoloc.cli import _interrupt_cleanly
+
+    class InterruptedFinaliser:
+        def __del__(self) -> None:
+            raise KeyboardInterrupt  # as the signal handler does when SIGTERM lands here
+
+    def work_that_meets_the_finaliser() -> None:
+        InterruptedFinaliser()  # finalised at once: the interrupt is swallowed
+        gc.collect()
+        while time.monotonic() - started < 10:  # the command's work, carrying on
+            time.sleep(0.001)
+
+    started = time.monotonic()
+    with _interrupt_cleanly(), pytest.raises(KeyboardInterrupt):
+        work_that_meets_the_finaliser()
+    assert time.monotonic() - started < 5
 
 
 @pytest.mark.filterwarnings("always::echoloc.recording.RecordingWarning")
