@@ -1144,6 +1144,25 @@ def test_an_interrupt_a_finaliser_swallowed_is_raised_again() -> None:
     assert time.monotonic() - started < 5
 
 
+def test_a_signal_the_parent_ignores_stays_ignored() -> None:
+    """A background job's SIGINT (or nohup's) is ignored by the parent's wish: the CLI's
+    handler takes SIGTERM and leaves that SIGINT alone, and restores both after."""
+    import signal
+
+    from echoloc.cli import _interrupt_cleanly
+
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        term_before = signal.getsignal(signal.SIGTERM)
+        with _interrupt_cleanly():
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+            assert signal.getsignal(signal.SIGTERM) not in (term_before, signal.SIG_IGN, signal.SIG_DFL)
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+        assert signal.getsignal(signal.SIGTERM) is term_before
+    finally:
+        signal.signal(signal.SIGINT, before)
+
+
 @pytest.mark.filterwarnings("always::echoloc.recording.RecordingWarning")
 def test_recordings_no_echo_can_be_located_in_are_said_so(
     capsys: pytest.CaptureFixture[str], in_tmp: Path, good_h5: Path

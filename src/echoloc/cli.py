@@ -1765,19 +1765,24 @@ def _interrupt_cleanly() -> Iterator[None]:
         else:
             previous_hook(unraisable)
 
-    try:
-        previous_term = signal.signal(signal.SIGTERM, interrupt)
-    except ValueError:  # not the main thread (tests calling main() from a thread)
+    if threading.current_thread() is not threading.main_thread():  # tests calling main() from one
         yield
         return
-    previous_int = signal.signal(signal.SIGINT, interrupt)
+    # A signal the parent asked to ignore (a background job's SIGINT, nohup) stays ignored.
+    previous = {
+        signum: signal.getsignal(signum)
+        for signum in (signal.SIGTERM, signal.SIGINT)
+        if signal.getsignal(signum) is not signal.SIG_IGN
+    }
+    for signum in previous:
+        signal.signal(signum, interrupt)
     sys.unraisablehook = swallowed
     try:
         yield
     finally:
         sys.unraisablehook = previous_hook
-        signal.signal(signal.SIGINT, previous_int)
-        signal.signal(signal.SIGTERM, previous_term)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
 
 
 def _events(listener: Any, once: bool, max_frames: int | None, duration_s: float | None) -> Iterator[Any]:
