@@ -1119,11 +1119,14 @@ def test_sigterm_removes_a_half_written_recording_and_keeps_the_old_one(in_tmp: 
     assert target.read_bytes() == before
 
 
-def test_an_interrupt_a_finaliser_swallowed_is_raised_again() -> None:
+@pytest.mark.parametrize("sigint", ["handled", "ignored"])
+def test_an_interrupt_a_finaliser_swallowed_is_raised_again(sigint: str) -> None:
     """Python swallows a KeyboardInterrupt raised inside a ``__del__`` or weakref callback
     (h5py runs them all the time): a killed simulate ran on for minutes. Under the CLI's
-    handler it is raised again in the main thread, at once, and nothing is printed."""
+    handler it is raised again in the main thread, at once, and nothing is printed; also
+    when the parent made SIGINT ignored (the SIGTERM handler raises it then)."""
     import gc
+    import signal
     import time
 
     from echoloc.cli import _interrupt_cleanly
@@ -1138,10 +1141,15 @@ def test_an_interrupt_a_finaliser_swallowed_is_raised_again() -> None:
         while time.monotonic() - started < 10:  # the command's work, carrying on
             time.sleep(0.001)
 
-    started = time.monotonic()
-    with _interrupt_cleanly(), pytest.raises(KeyboardInterrupt):
-        work_that_meets_the_finaliser()
-    assert time.monotonic() - started < 5
+    parent_wish = signal.SIG_IGN if sigint == "ignored" else signal.default_int_handler
+    before = signal.signal(signal.SIGINT, parent_wish)
+    try:
+        started = time.monotonic()
+        with _interrupt_cleanly(), pytest.raises(KeyboardInterrupt):
+            work_that_meets_the_finaliser()
+        assert time.monotonic() - started < 5
+    finally:
+        signal.signal(signal.SIGINT, before)
 
 
 def test_a_signal_the_parent_ignores_stays_ignored() -> None:

@@ -1748,12 +1748,27 @@ def _interrupt_cleanly() -> Iterator[None]:
     import signal
     import threading
 
+    if threading.current_thread() is not threading.main_thread():  # tests calling main() from one
+        yield
+        return
+    # A signal the parent asked to ignore (a background job's SIGINT, nohup) stays ignored.
+    previous = {
+        signum: signal.getsignal(signum)
+        for signum in (signal.SIGTERM, signal.SIGINT)
+        if signal.getsignal(signum) is not signal.SIG_IGN
+    }
+    if not previous:
+        yield
+        return
+    # Raised again through a signal handled here: interrupt_main does nothing for an ignored one.
+    handled = next(iter(previous))
+
     def interrupt(signum: int, frame: object) -> None:
         del signum, frame
         raise KeyboardInterrupt
 
     def raise_again() -> None:
-        retry = threading.Timer(INTERRUPT_RETRY_S, _thread.interrupt_main)
+        retry = threading.Timer(INTERRUPT_RETRY_S, _thread.interrupt_main, args=(handled,))
         retry.daemon = True
         retry.start()
 
@@ -1765,15 +1780,6 @@ def _interrupt_cleanly() -> Iterator[None]:
         else:
             previous_hook(unraisable)
 
-    if threading.current_thread() is not threading.main_thread():  # tests calling main() from one
-        yield
-        return
-    # A signal the parent asked to ignore (a background job's SIGINT, nohup) stays ignored.
-    previous = {
-        signum: signal.getsignal(signum)
-        for signum in (signal.SIGTERM, signal.SIGINT)
-        if signal.getsignal(signum) is not signal.SIG_IGN
-    }
     for signum in previous:
         signal.signal(signum, interrupt)
     sys.unraisablehook = swallowed
