@@ -1741,8 +1741,9 @@ def _interrupt_cleanly() -> Iterator[None]:
     with a traceback and swallows it: a killed ``simulate`` of 200 000 frames ran on
     (1 run in 8 here). ``sys.unraisablehook`` sees every swallowed exception; for an
     interrupt it prints nothing and has a helper thread raise it again in the main
-    thread (``_thread.interrupt_main``) once the finaliser has returned. Only a swallowed
-    interrupt is raised again, so the clean-up of one that got through is never cut short.
+    thread (``_thread.interrupt_main``) once the finaliser has returned, if this context
+    is still running. Only a swallowed interrupt is raised again, so the clean-up of one that
+    got through is not cut short by it (a second signal still interrupts, as a second Ctrl-C).
     """
     import _thread
     import signal
@@ -1767,8 +1768,14 @@ def _interrupt_cleanly() -> Iterator[None]:
         del signum, frame
         raise KeyboardInterrupt
 
+    active = threading.Event()  # a retry fires only while this context is still the one running
+
+    def fire() -> None:
+        if active.is_set():
+            _thread.interrupt_main(handled)
+
     def raise_again() -> None:
-        retry = threading.Timer(INTERRUPT_RETRY_S, _thread.interrupt_main, args=(handled,))
+        retry = threading.Timer(INTERRUPT_RETRY_S, fire)
         retry.daemon = True
         retry.start()
 
@@ -1783,12 +1790,14 @@ def _interrupt_cleanly() -> Iterator[None]:
     for signum in previous:
         signal.signal(signum, interrupt)
     sys.unraisablehook = swallowed
+    active.set()
     try:
         yield
     finally:
-        sys.unraisablehook = previous_hook
+        active.clear()
         for signum, handler in previous.items():
             signal.signal(signum, handler)
+        sys.unraisablehook = previous_hook
 
 
 def _events(listener: Any, once: bool, max_frames: int | None, duration_s: float | None) -> Iterator[Any]:
