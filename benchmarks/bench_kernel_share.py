@@ -1,0 +1,174 @@
+"""How much of a streamed frame is compiled work, and how much is the Python between the calls.
+
+Issue 7 asks for <= 0.25 ms a frame on one core (a frame a call). Profiles put about a quarter of
+a frame in the Python interpreter, which made the Python between the calls look like the way
+there. This benchmark measures that bound directly: `echoloc bench`'s frames (5 random
+reflectors) go through :class:`echoloc.stream.StreamProcessor` a frame a call, pinned to one
+core, in alternating passes:
+
+- plain: the chain as `echoloc stream` runs it;
+- timed: the same chain with a timer around every call it makes into compiled code: the FFTs
+  (scipy.fft's rfft and ifft, their own Python dispatch included), the fold, the echo fits
+  (the compiled batch path), CLEAN on the channels handed to it, and the association.
+
+Compiled callers bind their callees when they are compiled, so only the calls from Python are
+timed, which is the boundary in question. The sum of the timed calls is a floor that no change
+to the Python between them can go below; the plain pass minus that floor is the Python. A timer
+costs about 0.1 µs a call, a few calls a frame. Medians over the rounds are reported.
+
+    python benchmarks/bench_kernel_share.py [--frames 200] [--rounds 5] [--markdown FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import datetime
+import statistics
+import sys
+import time
+from collections import Counter
+from collections.abc import Callable, Iterator
+from importlib import import_module
+from typing import Any
+
+from echoloc.benchmark import bench_scene, pinned_cores
+from echoloc.echoes import EchoOptions
+from echoloc.pipeline import Chain, prepare
+from echoloc.simulate import simulate
+from echoloc.stream import StreamFrame, StreamProcessor, recording_frames
+
+#: (module, function, label): every call the streamed chain makes from Python into compiled code.
+COMPILED_CALLS = (
+    ("scipy.fft", "rfft", "FFT"),
+    ("scipy.fft", "ifft", "inverse FFT"),
+    ("echoloc._echoes_kernels", "weigh_and_fold", "fold"),
+    ("echoloc._echoes_kernels", "batch_channels", "echo fits"),
+    ("echoloc._echoes_kernels", "clean_run_rows", "CLEAN"),
+    ("echoloc._echoes_kernels", "clean_run", "CLEAN"),
+    ("echoloc._locate_kernels", "associate_frame", "association"),
+)
+
+ISSUE_TARGET_US = 250.0
+"""Issue 7's figure: the full chain in at most 0.25 ms a frame on one core."""
+
+
+@contextlib.contextmanager
+def timed_calls(spent_ns: Counter[str]) -> Iterator[None]:
+    """Every function of :data:`COMPILED_CALLS` wrapped to add its time (ns) to ``spent_ns[label]``."""
+    originals: list[tuple[Any, str, Callable[..., Any]]] = []
+
+    def timer(function: Callable[..., Any], label: str) -> Callable[..., Any]:
+        def call(*args: Any, **kwargs: Any) -> Any:
+            start = time.perf_counter_ns()
+            try:
+                return function(*args, **kwargs)
+            finally:
+                spent_ns[label] += time.perf_counter_ns() - start
+
+        return call
+
+    try:
+        for module_name, name, label in COMPILED_CALLS:
+            module = import_module(module_name)
+            originals.append((module, name, getattr(module, name)))
+            setattr(module, name, timer(getattr(module, name), label))
+        yield
+    finally:
+        for module, name, function in reversed(originals):
+            setattr(module, name, function)
+
+
+def stream_pass(chain: Chain, frames: list[StreamFrame]) -> float:
+    """Seconds for a fresh processor to take ``frames`` a frame a call."""
+    processor = StreamProcessor(chain)
+    start = time.perf_counter()
+    for frame in frames:
+        processor.process(frame)
+    return time.perf_counter() - start
+
+
+def measure(n_frames: int, rounds: int) -> dict[str, Any]:
+    """Plain and timed passes, alternating; the medians a frame, µs."""
+    recording = simulate(bench_scene(5), n_frames)
+    chain = prepare(recording, echo_options=EchoOptions(workers=1))
+    frames = list(recording_frames(recording))
+    warm = StreamProcessor(chain)
+    warm.warm_up()
+    for frame in frames[:10]:
+        warm.process(frame)
+    plain: list[float] = []
+    timed: list[float] = []
+    shares: list[dict[str, float]] = []
+    with pinned_cores(1):
+        for _ in range(rounds):
+            plain.append(stream_pass(chain, frames) / n_frames * 1e6)
+            spent: Counter[str] = Counter()
+            with timed_calls(spent):
+                timed.append(stream_pass(chain, frames) / n_frames * 1e6)
+            shares.append({label: ns / n_frames / 1e3 for label, ns in spent.items()})
+    labels = list(dict.fromkeys(label for _, _, label in COMPILED_CALLS))
+    per_call = {label: statistics.median(s.get(label, 0.0) for s in shares) for label in labels}
+    floor = statistics.median(sum(s.values()) for s in shares)
+    return {
+        "frames": n_frames,
+        "rounds": rounds,
+        "plain_us": statistics.median(plain),
+        "plain_range_us": (min(plain), max(plain)),
+        "timed_us": statistics.median(timed),
+        "compiled_us": per_call,
+        "floor_us": floor,
+    }
+
+
+def report(figures: dict[str, Any]) -> str:
+    """The figures as a Markdown table and a few sentences."""
+    plain, floor = figures["plain_us"], figures["floor_us"]
+    python = plain - floor
+    lines = [
+        f"`echoloc bench`'s frames ({figures['frames']}, 4 receivers x 2400 samples, 5 reflectors), "
+        f"a frame a call on one core, median of {figures['rounds']} rounds:",
+        "",
+        "| where | µs a frame | share |",
+        "|---|---|---|",
+    ]
+    for label, us in figures["compiled_us"].items():
+        lines.append(f"| {label} (compiled) | {us:.1f} | {us / plain:.0%} |")
+    lines += [
+        f"| **compiled calls, the floor** | **{floor:.1f}** | **{floor / plain:.0%}** |",
+        f"| Python between the calls | {python:.1f} | {python / plain:.0%} |",
+        f"| **the frame (plain passes)** | **{plain:.1f}** | 100 % |",
+        "",
+        f"Plain passes {figures['plain_range_us'][0]:.1f}-{figures['plain_range_us'][1]:.1f} µs; "
+        f"the timed passes took {figures['timed_us']:.1f} µs (the timers' own cost included).",
+        "",
+        (
+            f"Issue 7's {ISSUE_TARGET_US:.0f} µs lies below the compiled floor: no change to the "
+            "Python alone reaches it."
+            if floor >= ISSUE_TARGET_US
+            else f"Issue 7's {ISSUE_TARGET_US:.0f} µs leaves {ISSUE_TARGET_US - floor:.1f} µs for the "
+            f"Python between the calls, which takes {python:.1f} today."
+        ),
+    ]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=200)
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--markdown", default=None, help="Also write the report to this file.")
+    args = parser.parse_args()
+    text = report(measure(args.frames, args.rounds))
+    print(text)
+    if args.markdown:
+        stamp = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
+        with open(args.markdown, "w") as out:
+            out.write(
+                f"# bench_kernel_share.py — last run\n\n`python benchmarks/bench_kernel_share.py "
+                f"{' '.join(sys.argv[1:])}` on {stamp}.\n\n{text}\n"
+            )
+
+
+if __name__ == "__main__":
+    main()
