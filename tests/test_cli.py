@@ -1152,6 +1152,25 @@ def test_an_interrupt_a_finaliser_swallowed_is_raised_again(sigint: str) -> None
         signal.signal(signal.SIGINT, before)
 
 
+def test_echoloc_alone_shows_its_help(capsys: pytest.CaptureFixture[str]) -> None:
+    """``echoloc`` without a command is a request for help, as ``--help``, not an error
+    (click 8.2 raises it as a usage error, which read "echoloc: error: Usage: ...")."""
+    bare = run(capsys)
+    assert bare == run(capsys, "--help")
+    assert bare.code == 0
+    assert bare.err == ""
+    assert bare.out.startswith("Usage: echoloc [OPTIONS] COMMAND")
+    assert "locate" in bare.out
+
+
+def test_python_dash_m_echoloc_is_the_command() -> None:
+    """``python -m echoloc`` runs the command (robots often have several Pythons)."""
+    done = subprocess.run(
+        [sys.executable, "-m", "echoloc", "--version"], capture_output=True, text=True, env=_clean_env()
+    )
+    assert (done.returncode, done.stdout.strip(), done.stderr) == (0, "echoloc, version 0.1.0", "")
+
+
 def test_a_signal_the_parent_ignores_stays_ignored() -> None:
     """A background job's SIGINT (or nohup's) is ignored by the parent's wish: the CLI's
     handler takes SIGTERM and leaves that SIGINT alone, and restores both after."""

@@ -2349,6 +2349,11 @@ def _show_warning(
     stderr.print(f"echoloc: warning: {message}", markup=False, highlight=False)
 
 
+_BARE_GROUP: Any = getattr(click.exceptions, "NoArgsIsHelpError", ())
+"""What click (8.2 on) raises for ``echoloc`` without a command: its help, not an error
+(click 8.1 printed the help and exited 0 itself)."""
+
+
 def main(argv: list[str] | None = None) -> None:
     """Run the CLI; bad input becomes one line on stderr and exit code 2."""
     warnings.showwarning = _show_warning
@@ -2363,6 +2368,9 @@ def main(argv: list[str] | None = None) -> None:
     except click.exceptions.Abort:
         stderr.print("echoloc: aborted", markup=False)
         sys.exit(1)
+    except _BARE_GROUP as request:
+        click.echo(request.ctx.get_help())
+        sys.exit(0)
     except click.UsageError as error:
         command = error.ctx.command_path if error.ctx is not None else "echoloc"
         stderr.print(
