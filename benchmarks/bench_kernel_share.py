@@ -4,7 +4,7 @@ Issue 7 asks for <= 0.25 ms a frame on one core (a frame a call). Profiles put a
 a frame in the Python interpreter, which made the Python between the calls look like the way
 there. This benchmark measures that bound directly: `echoloc bench`'s frames (5 random
 reflectors) go through :class:`echoloc.stream.StreamProcessor` a frame a call, pinned to one
-core, in alternating passes:
+core, in the pass `echoloc bench` times (:func:`echoloc.benchmark._stream_pass`), alternating:
 
 - plain: the chain as `echoloc stream` runs it;
 - timed: the same chain with a timer around every call it makes into compiled code: the FFTs
@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import datetime
+import itertools
 import statistics
 import sys
 import time
@@ -32,11 +33,11 @@ from collections.abc import Callable, Iterator
 from importlib import import_module
 from typing import Any
 
-from echoloc.benchmark import bench_scene, pinned_cores
+from echoloc.benchmark import _stream_pass, bench_scene, pinned_cores
 from echoloc.echoes import EchoOptions
-from echoloc.pipeline import Chain, prepare
+from echoloc.pipeline import prepare
 from echoloc.simulate import simulate
-from echoloc.stream import StreamFrame, StreamProcessor, recording_frames
+from echoloc.stream import StreamProcessor, recording_frames
 
 #: (module, function, label): every call the streamed chain makes from Python into compiled code.
 COMPILED_CALLS = (
@@ -79,33 +80,24 @@ def timed_calls(spent_ns: Counter[str]) -> Iterator[None]:
             setattr(module, name, function)
 
 
-def stream_pass(chain: Chain, frames: list[StreamFrame]) -> float:
-    """Seconds for a fresh processor to take ``frames`` a frame a call."""
-    processor = StreamProcessor(chain)
-    start = time.perf_counter()
-    for frame in frames:
-        processor.process(frame)
-    return time.perf_counter() - start
-
-
 def measure(n_frames: int, rounds: int) -> dict[str, Any]:
     """Plain and timed passes, alternating; the medians a frame, µs."""
     recording = simulate(bench_scene(5), n_frames)
     chain = prepare(recording, echo_options=EchoOptions(workers=1))
-    frames = list(recording_frames(recording))
     warm = StreamProcessor(chain)
     warm.warm_up()
-    for frame in frames[:10]:
+    for frame in itertools.islice(recording_frames(recording), 10):
         warm.process(frame)
     plain: list[float] = []
     timed: list[float] = []
     shares: list[dict[str, float]] = []
     with pinned_cores(1):
         for _ in range(rounds):
-            plain.append(stream_pass(chain, frames) / n_frames * 1e6)
+            # The pass `echoloc bench` times for its first row: a frame a call.
+            plain.append(_stream_pass(chain, recording, 1)[0] / n_frames * 1e6)
             spent: Counter[str] = Counter()
             with timed_calls(spent):
-                timed.append(stream_pass(chain, frames) / n_frames * 1e6)
+                timed.append(_stream_pass(chain, recording, 1)[0] / n_frames * 1e6)
             shares.append({label: ns / n_frames / 1e3 for label, ns in spent.items()})
     labels = list(dict.fromkeys(label for _, _, label in COMPILED_CALLS))
     per_call = {label: statistics.median(s.get(label, 0.0) for s in shares) for label in labels}

@@ -1749,16 +1749,14 @@ def _interrupt_cleanly() -> Iterator[None]:
     import signal
     import threading
 
-    if threading.current_thread() is not threading.main_thread():  # tests calling main() from one
-        yield
-        return
     # A signal the parent asked to ignore (a background job's SIGINT, nohup) stays ignored.
     previous = {
         signum: signal.getsignal(signum)
         for signum in (signal.SIGTERM, signal.SIGINT)
         if signal.getsignal(signum) is not signal.SIG_IGN
     }
-    if not previous:
+    # Handlers can be set only in the main thread (tests call main() from others too).
+    if not previous or threading.current_thread() is not threading.main_thread():
         yield
         return
     # Raised again through a signal handled here: interrupt_main does nothing for an ignored one.
