@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import socket
+import sys
 import threading
 import time
 from dataclasses import replace
@@ -418,3 +419,58 @@ def test_warm_up_frame_takes_clean_and_locates_its_reflector(recording):
     before = processor.stats()
     processor.warm_up()
     assert processor.stats() == before  # counters untouched
+
+
+# The kernels a stream calls from Python once a frame, by module.
+_FRAME_KERNELS = {
+    "echoloc._echoes_kernels": ("weigh_and_fold", "batch_channels", "clean_run", "clean_run_rows"),
+    "echoloc._locate_kernels": ("associate", "associate_frame"),
+    "echoloc._mapping_kernels": ("channel_update", "add_supported_evidence", "apply_frame"),
+}
+
+
+@pytest.mark.parametrize(
+    ("module", "name"), [(module, name) for module, names in _FRAME_KERNELS.items() for name in names]
+)
+def test_frame_kernels_are_compiled_to_release_the_gil(module: str, name: str) -> None:
+    """Every kernel a frame calls runs without the GIL, so the receiving thread of
+    `echoloc stream` (and the live view's and recorder's) can work meanwhile."""
+    kernel = getattr(__import__(module, fromlist=[name]), name)
+    assert kernel.targetoptions.get("nogil") is True
+
+
+def test_a_frame_kernel_lets_another_thread_run_during_its_call() -> None:
+    """What ``nogil`` buys, checked on one kernel: while a thread is inside the fold (some
+    milliseconds here), the main thread keeps running Python throughout. A kernel that held
+    the GIL would let it run only until the call starts (a switch interval, 0.1 ms here): the
+    span of the main thread's steps inside the call would be near 0; it must exceed half."""
+    from echoloc import _echoes_kernels as kernels
+
+    rows, bins, folded = 200, 40_000, 20_000
+    spectrum = np.ones((rows, bins), np.complex64)
+    weights = np.ones(bins, np.complex64)
+    out = np.zeros((rows, folded), np.complex64)
+    kernels.weigh_and_fold(spectrum[:1], weights, out[:1])  # compiled (or loaded) first
+    call: list[float] = []
+
+    def fold() -> None:
+        started = time.perf_counter()
+        kernels.weigh_and_fold(spectrum, weights, out)
+        call.extend([started, time.perf_counter()])
+
+    steps: list[float] = []
+    previous = sys.getswitchinterval()
+    sys.setswitchinterval(1e-4)
+    try:
+        worker = threading.Thread(target=fold)
+        worker.start()
+        while worker.is_alive():
+            steps.append(time.perf_counter())
+        worker.join()
+    finally:
+        sys.setswitchinterval(previous)
+    started, ended = call
+    inside = [t for t in steps if started < t < ended]
+    assert np.array_equal(out, np.full((rows, folded), bins // folded, np.complex64))  # 2 bins a lag
+    assert len(inside) > 1
+    assert inside[-1] - inside[0] > 0.5 * (ended - started)

@@ -25,7 +25,8 @@ bits), and the distance to a transmitter every channel shares is computed once a
 point: 0.045 ms a frame for the call on the five-reflector bench scene, 0.065 ms with rows.
 
 ``cache=True`` keeps the machine code in ``__pycache__``: the first call in a fresh
-environment compiles (about half a minute), later processes load it (about 1 s).
+environment compiles (about half a minute), later processes load it (about 1 s). The
+entry points Python calls once a frame release the GIL (see :mod:`echoloc._echoes_kernels`).
 """
 
 from __future__ import annotations
@@ -1827,7 +1828,7 @@ def _nearest_first(position: Any, rows: Any, origin: Any) -> bool:  # pragma: no
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def associate(
     transmitters: Any,
     receivers: Any,
@@ -1930,7 +1931,7 @@ def associate(
     return status, echo_use, position[rows], covariance[rows], chi2[rows]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def associate_frame(
     transmitters: Any,
     receivers: Any,

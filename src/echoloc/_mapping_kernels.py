@@ -15,6 +15,8 @@ half-power angle of their normal; a reading whose axis is farther than
 ``silent_clear`` of the usual amount, since silence from there is expected (after
 Konolige's MURIEL, *Improved occupancy grids for map building*, Autonomous Robots
 4, 1997, which keeps the directions each cell was seen from).
+
+The entry points Python calls once a frame release the GIL (see :mod:`echoloc._echoes_kernels`).
 """
 
 from __future__ import annotations
@@ -106,7 +108,7 @@ def _column_range(
     return 1.0, -1.0
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def channel_update(
     origin: np.ndarray,
     cell_m: float,
@@ -248,7 +250,7 @@ def channel_update(
     return n_touched
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def add_supported_evidence(
     cells: np.ndarray,
     evidence: np.ndarray,
@@ -272,7 +274,7 @@ def add_supported_evidence(
     return n_touched
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def apply_frame(
     log_odds: np.ndarray,
     updates: np.ndarray,
