@@ -447,6 +447,21 @@ def split_messages(
     """
     messages: list[tuple[MessageHeader, bytes]] = []
     errors: list[ProtocolError] = []
+    with memoryview(buffer) as view:  # released before the consumed bytes are deleted
+        pos, skipped = _split_into(buffer, view, messages, errors)
+    del buffer[:pos]
+    return messages, skipped, errors
+
+
+def _split_into(
+    buffer: bytearray,
+    view: memoryview,
+    messages: list[tuple[MessageHeader, bytes]],
+    errors: list[ProtocolError],
+) -> tuple[int, int]:
+    """:func:`split_messages`' scan: messages and errors appended, (bytes consumed, bytes
+    skipped). Headers and payloads are copied once, out of ``view`` (slicing the bytearray
+    and then making bytes of it copied every frame's samples twice)."""
     skipped = 0
     pos = 0
     while True:
@@ -463,9 +478,8 @@ def split_messages(
         if len(buffer) - pos < HEADER_BYTES:
             break
         try:
-            header = decode_header(
-                bytes(buffer[pos : pos + max(HEADER_BYTES, _peek_header_bytes(buffer, pos))])
-            )
+            header_bytes = max(HEADER_BYTES, _peek_header_bytes(buffer, pos))
+            header = decode_header(bytes(view[pos : pos + header_bytes]))
         except ProtocolError as error:
             if "header_bytes" in str(error) and _peek_header_bytes(buffer, pos) > len(buffer) - pos:
                 break  # a longer header of a later version still arriving
@@ -476,10 +490,9 @@ def split_messages(
         end = pos + header.header_bytes + header.payload_bytes
         if end > len(buffer):
             break
-        messages.append((header, bytes(buffer[pos + header.header_bytes : end])))
+        messages.append((header, bytes(view[pos + header.header_bytes : end])))
         pos = end
-    del buffer[:pos]
-    return messages, skipped, errors
+    return pos, skipped
 
 
 def _peek_header_bytes(buffer: bytes | bytearray, pos: int) -> int:
