@@ -875,6 +875,41 @@ def test_export_to_an_unknown_format_is_bad_input(
     assert not (in_tmp / "out.bt").exists()
 
 
+@pytest.mark.parametrize(
+    ("output", "options", "ignored"),
+    [
+        ("out.ply", ["--start-time-s", "5"], "--start-time-s"),
+        ("out.mcap", ["--ascii"], "--ascii and --per-frame"),
+        ("out.mcap", ["--per-frame"], "--ascii and --per-frame"),
+    ],
+)
+def test_export_says_which_options_its_format_ignores(
+    capsys: pytest.CaptureFixture[str],
+    good_h5: Path,
+    in_tmp: Path,
+    output: str,
+    options: list[str],
+    ignored: str,
+) -> None:
+    """An option the chosen format has no use for is named in one warning line; the file is
+    written as without it."""
+    result = run(capsys, "export", good_h5, "-o", output, *options)
+    assert result.code == 0, result
+    assert len(result.err_lines) == 1
+    assert result.err_lines[0].startswith(f"echoloc: warning: {ignored} ")
+    assert result.err_lines[0].endswith("ignored")
+    written = (in_tmp / output).read_bytes()
+    assert run(capsys, "export", good_h5, "-o", "plain" + output[3:]).code == 0
+    assert written == (in_tmp / ("plain" + output[3:])).read_bytes()
+
+
+def test_export_with_the_options_of_its_format_warns_of_nothing(
+    capsys: pytest.CaptureFixture[str], good_h5: Path, in_tmp: Path
+) -> None:
+    assert run(capsys, "export", good_h5, "-o", "out.mcap", "--start-time-s", "5").err_lines == []
+    assert run(capsys, "export", good_h5, "-o", "out.ply", "--ascii").err_lines == []
+
+
 def test_backprojection_locates_two_transmitters_reflectors(
     capsys: pytest.CaptureFixture[str], in_tmp: Path
 ) -> None:

@@ -714,6 +714,11 @@ def export_command(
     suffix = output_path.suffix.lower()
     if suffix not in (".mcap", ".ply"):
         raise EchoLocError(f"{output_path}: choose the format by extension, .mcap or .ply")
+    given = click.get_current_context().get_parameter_source
+    if suffix == ".ply" and given("start_time_s") is not click.core.ParameterSource.DEFAULT:
+        _warn("--start-time-s sets MCAP's ROS times; PLY has no time stamps: ignored")
+    if suffix == ".mcap" and (ascii_ply or per_frame):
+        _warn("--ascii and --per-frame are for PLY; MCAP is binary, one file: ignored")
     recording, chain, frames = processing.open()
     check_locatable(chain)
     results = []
@@ -1810,7 +1815,7 @@ def _events(listener: Any, once: bool, max_frames: int | None, duration_s: float
     frames = 0
     while True:
         for message in listener.errors():
-            stderr.print(f"echoloc: warning: {message}", markup=False, highlight=False)
+            _warn(message)
         if deadline is not None and time.monotonic() >= deadline:
             return
         room = STREAM_BATCH_FRAMES if max_frames is None else min(STREAM_BATCH_FRAMES, max_frames - frames)
@@ -2344,6 +2349,11 @@ def _show_warning(
     file: Any = None,
     line: str | None = None,
 ) -> None:
+    _warn(str(message))
+
+
+def _warn(message: str) -> None:
+    """One warning line on stderr, as every command writes them."""
     stderr.print(f"echoloc: warning: {message}", markup=False, highlight=False)
 
 
