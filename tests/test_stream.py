@@ -9,6 +9,7 @@ import threading
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -421,7 +422,8 @@ def test_warm_up_frame_takes_clean_and_locates_its_reflector(recording):
     assert processor.stats() == before  # counters untouched
 
 
-# The kernels a stream calls from Python once a frame, by module.
+# The kernels a stream calls from Python once a frame, by module. Written out by hand: a new
+# per-frame kernel must be added here to be held to ``nogil``.
 _FRAME_KERNELS = {
     "echoloc._echoes_kernels": ("weigh_and_fold", "batch_channels", "clean_run", "clean_run_rows"),
     "echoloc._locate_kernels": ("associate", "associate_frame"),
@@ -439,30 +441,21 @@ def test_frame_kernels_are_compiled_to_release_the_gil(module: str, name: str) -
     assert kernel.targetoptions.get("nogil") is True
 
 
-def test_a_frame_kernel_lets_another_thread_run_during_its_call() -> None:
-    """What ``nogil`` buys, checked on one kernel: while a thread is inside the fold (some
-    milliseconds here), the main thread keeps running Python throughout. A kernel that held
-    the GIL would let it run only until the call starts (a switch interval, 0.1 ms here): the
-    span of the main thread's steps inside the call would be near 0; it must exceed half."""
-    from echoloc import _echoes_kernels as kernels
-
-    rows, bins, folded = 200, 40_000, 20_000
-    spectrum = np.ones((rows, bins), np.complex64)
-    weights = np.ones(bins, np.complex64)
-    out = np.zeros((rows, folded), np.complex64)
-    kernels.weigh_and_fold(spectrum[:1], weights, out[:1])  # compiled (or loaded) first
+def _share_of_call_with_python_running(kernel: Any, *args: Any) -> float:
+    """``kernel(*args)`` in a thread while this one runs Python in a loop: the span of this
+    thread's steps inside the call, as a share of the call's duration."""
     call: list[float] = []
 
-    def fold() -> None:
+    def run() -> None:
         started = time.perf_counter()
-        kernels.weigh_and_fold(spectrum, weights, out)
+        kernel(*args)
         call.extend([started, time.perf_counter()])
 
     steps: list[float] = []
     previous = sys.getswitchinterval()
     sys.setswitchinterval(1e-4)
     try:
-        worker = threading.Thread(target=fold)
+        worker = threading.Thread(target=run)
         worker.start()
         while worker.is_alive():
             steps.append(time.perf_counter())
@@ -471,6 +464,26 @@ def test_a_frame_kernel_lets_another_thread_run_during_its_call() -> None:
         sys.setswitchinterval(previous)
     started, ended = call
     inside = [t for t in steps if started < t < ended]
-    assert np.array_equal(out, np.full((rows, folded), bins // folded, np.complex64))  # 2 bins a lag
-    assert len(inside) > 1
-    assert inside[-1] - inside[0] > 0.5 * (ended - started)
+    return (inside[-1] - inside[0]) / (ended - started) if len(inside) > 1 else 0.0
+
+
+def test_a_frame_kernel_lets_another_thread_run_during_its_call() -> None:
+    """What ``nogil`` buys, checked on one kernel: while a thread is inside the fold (tens of
+    milliseconds here, many scheduler slices), the main thread keeps running Python. A kernel
+    that held the GIL would let it run only around the call's ends (the switch interval is 0.1
+    ms here): under a tenth of the call on a quiet machine, under half on a loaded one. Three
+    tries, as other jobs may hold the cores for a while."""
+    from echoloc import _echoes_kernels as kernels
+
+    rows, bins, folded = 1000, 40_000, 1000
+    spectrum = np.broadcast_to(np.ones(bins, np.complex64), (rows, bins))  # read-only, no memory
+    weights = np.ones(bins, np.complex64)
+    out = np.zeros((rows, folded), np.complex64)
+    kernels.weigh_and_fold(spectrum[:2], weights, out[:2])  # compiled (or loaded) for these types first
+    shares = []
+    for _ in range(3):
+        shares.append(_share_of_call_with_python_running(kernels.weigh_and_fold, spectrum, weights, out))
+        if shares[-1] > 0.5:
+            break
+    assert np.array_equal(out, np.full((rows, folded), bins // folded, np.complex64))  # 40 bins a lag
+    assert max(shares) > 0.5, shares
