@@ -879,8 +879,10 @@ def test_export_to_an_unknown_format_is_bad_input(
     ("output", "options", "ignored"),
     [
         ("out.ply", ["--start-time-s", "5"], "--start-time-s"),
-        ("out.mcap", ["--ascii"], "--ascii and --per-frame"),
-        ("out.mcap", ["--per-frame"], "--ascii and --per-frame"),
+        ("out.ply", ["--start-time-s", "-1"], "--start-time-s"),  # not checked: not used
+        ("out.mcap", ["--ascii"], "--ascii is"),
+        ("out.mcap", ["--per-frame"], "--per-frame is"),
+        ("out.mcap", ["--ascii", "--per-frame"], "--ascii and --per-frame are"),
     ],
 )
 def test_export_says_which_options_its_format_ignores(
@@ -906,8 +908,12 @@ def test_export_says_which_options_its_format_ignores(
 def test_export_with_the_options_of_its_format_warns_of_nothing(
     capsys: pytest.CaptureFixture[str], good_h5: Path, in_tmp: Path
 ) -> None:
+    """The options of the chosen format, used, raise no warning (and a bad MCAP time is refused)."""
     assert run(capsys, "export", good_h5, "-o", "out.mcap", "--start-time-s", "5").err_lines == []
     assert run(capsys, "export", good_h5, "-o", "out.ply", "--ascii").err_lines == []
+    assert_bad_input(
+        run(capsys, "export", good_h5, "-o", "out.mcap", "--start-time-s", "-1"), "--start-time-s"
+    )
 
 
 def test_backprojection_locates_two_transmitters_reflectors(

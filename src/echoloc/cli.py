@@ -710,15 +710,17 @@ def export_command(
     """
     from echoloc.export import write_mcap, write_ply
 
-    _finite("--start-time-s", start_time_s, minimum=0.0, maximum=2**31 - 1)  # ROS time: int32 seconds
     suffix = output_path.suffix.lower()
     if suffix not in (".mcap", ".ply"):
         raise EchoLocError(f"{output_path}: choose the format by extension, .mcap or .ply")
     given = click.get_current_context().get_parameter_source
-    if suffix == ".ply" and given("start_time_s") is not click.core.ParameterSource.DEFAULT:
+    if suffix == ".mcap":
+        _finite("--start-time-s", start_time_s, minimum=0.0, maximum=2**31 - 1)  # ROS time: int32 seconds
+        if ply_only := [name for name, on in (("--ascii", ascii_ply), ("--per-frame", per_frame)) if on]:
+            verb = "is" if len(ply_only) == 1 else "are"
+            _warn(f"{' and '.join(ply_only)} {verb} for PLY; MCAP is binary, one file: ignored")
+    elif given("start_time_s") is not click.core.ParameterSource.DEFAULT:
         _warn("--start-time-s sets MCAP's ROS times; PLY has no time stamps: ignored")
-    if suffix == ".mcap" and (ascii_ply or per_frame):
-        _warn("--ascii and --per-frame are for PLY; MCAP is binary, one file: ignored")
     recording, chain, frames = processing.open()
     check_locatable(chain)
     results = []
