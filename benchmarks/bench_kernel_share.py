@@ -17,12 +17,12 @@ to the Python between them can go below; the plain pass minus that floor is the 
 costs about 0.1 µs a call, a few calls a frame. Medians over the rounds are reported.
 
 Then every call of one pass is made again with its own arguments (copied when it was made),
-each kind of call one after another over all frames ("alone"), each timed on its own: the
-same work without the rest of the frame between two calls. A call that takes longer in the
-frame than alone pays for starting cold: the other stages' code and data have displaced its
-own from the core's caches and branch predictors. That difference is why working off a
-backlog, which runs each stage over many frames in turn, is faster a frame than the same
-work a frame a call.
+each kind of call one after another over all frames ("each kind in turn"), each timed on its
+own: the same work without the rest of the frame between two calls. A call that takes longer
+in the frame pays, most likely, for starting cold: the other stages' code and data have
+displaced its own from the core's caches and branch predictors (this machine exposes no
+hardware counters to confirm it). That difference is part of why working off a backlog,
+which runs each stage over many frames in turn, is faster a frame than a frame a call.
 
     python benchmarks/bench_kernel_share.py [--frames 200] [--rounds 5] [--markdown FILE]
 """
@@ -69,11 +69,14 @@ Call = tuple[Callable[..., Any], tuple[Any, ...], dict[str, Any]]
 
 
 def _copied(value: Any) -> Any:
-    """``value`` with every array in it copied (calls write into their outputs, CLEAN into its data)."""
+    """``value`` with every array in it (in tuples, lists and dicts too) copied: calls write into
+    their outputs, CLEAN into its data."""
     if isinstance(value, np.ndarray):
         return value.copy()
-    if isinstance(value, tuple):
-        return tuple(_copied(item) for item in value)
+    if isinstance(value, tuple | list):
+        return type(value)(_copied(item) for item in value)
+    if isinstance(value, dict):
+        return {key: _copied(item) for key, item in value.items()}
     return value
 
 
@@ -174,7 +177,7 @@ def report(figures: dict[str, Any]) -> str:
         f"`echoloc bench`'s frames ({figures['frames']}, 4 receivers x 2400 samples, 5 reflectors), "
         f"a frame a call on one core, median of {figures['rounds']} rounds:",
         "",
-        "| where | µs a frame, in the frame | share | the same calls alone |",
+        "| where | µs a frame, in the frame | share | the same calls, each kind in turn |",
         "|---|---|---|---|",
     ]
     for label, us in figures["compiled_us"].items():
@@ -188,9 +191,9 @@ def report(figures: dict[str, Any]) -> str:
         "",
         f"Plain passes {figures['plain_range_us'][0]:.1f}-{figures['plain_range_us'][1]:.1f} µs; "
         f"the timed passes took {figures['timed_us']:.1f} µs (the timers' own cost included). "
-        f"Alone, back to back over the frames, the same calls take {alone_floor:.1f} µs a frame: "
-        f"{floor - alone_floor:.1f} µs of the frame's compiled work is the cost of each stage "
-        "starting cold after the others.",
+        f"Each kind in turn over all frames, the same calls take {alone_floor:.1f} µs a frame: "
+        f"{floor - alone_floor:.1f} µs of the frame's compiled work is, most likely, the cost of "
+        "each stage starting cold after the others.",
         "",
         (
             f"Issue 7's {ISSUE_TARGET_US:.0f} µs lies below the compiled floor: no change to the "

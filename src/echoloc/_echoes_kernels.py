@@ -20,10 +20,9 @@ numba's dispatcher resolves a call that leaves defaults out on a slow path (~60 
 environment compiles (some seconds), later processes load it.
 
 The kernels Python calls once a frame run without the GIL (``nogil=True``; they touch no
-Python object): `echoloc stream`'s receiving thread then decodes the next frames on the
-other core meanwhile, where it used to wait for the GIL. At 40 times the frame rate sound
-allows (3432 frames/s, `echoloc send` on the same two-core machine), the stream kept up
-with 2732 frames/s against 2534 (`benchmarks/bench_stream.py --speed 34.32`).
+Python object): `echoloc stream`'s receiving thread then reads and decodes the next frames
+on the other core meanwhile, where it used to wait for the GIL and fall behind the wire
+(`benchmarks/bench_stream.py --soak-minutes 0.5 --speed 34.32`; figures in the CHANGELOG).
 """
 
 from __future__ import annotations
