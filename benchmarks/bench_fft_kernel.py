@@ -13,6 +13,8 @@ pocketfft round differently).
 Needs rocket-fft, which the dev extra installs (``python3 dev.py bench``); echoloc itself does not
 depend on it.
 
+It then times the whole frame (echoes + locate) as `echoloc stream` runs it, both ways.
+
     python benchmarks/bench_fft_kernel.py [--frames 100] [--rounds 7]
 """
 
@@ -33,12 +35,14 @@ from echoloc.echoes import (
     _NOISE_STEP,
     ChannelEchoes,
     EchoOptions,
+    FrameEchoes,
     MatchedFilter,
     _batch_channels,
     _kernel_constants,
 )
 from echoloc.pipeline import prepare
 from echoloc.simulate import simulate
+from echoloc.stream import StreamProcessor, recording_frames
 
 
 def fused_echoes(mf: MatchedFilter, options: EchoOptions) -> Callable[[NDArray[np.float64]], list[Any]]:
@@ -119,6 +123,34 @@ def main() -> None:
                 for frame in frames:
                     way(frame)
                 times[name].append((time.perf_counter() - started) / len(frames))
+        # The whole frame (echoes + locate, as `echoloc stream` runs it) both ways: the stages of a
+        # frame a call start cold after one another (bench_kernel_share.py), and fewer, larger
+        # calls may start less cold. Frames with a channel for CLEAN go through the processor.
+        locator, c = chain.locators[0], chain.speed_of_sound_m_s
+        stream_frames = list(recording_frames(recording))
+
+        def stream_today(processor: StreamProcessor) -> None:
+            for frame in stream_frames:
+                processor.process(frame)
+
+        def stream_fused(processor: StreamProcessor) -> None:
+            for frame in stream_frames:
+                channels = fused(np.asarray(frame.samples))
+                if any(channel is None for channel in channels):
+                    processor.process(frame)
+                else:
+                    locator(FrameEchoes(frame.index, frame.time_s, c, tuple(channels)))
+
+        frame_times: dict[str, list[float]] = {"today": [], "fused": []}
+        warm = StreamProcessor(chain)
+        warm.warm_up()
+        stream_today(warm)
+        stream_fused(warm)
+        for _ in range(args.rounds):
+            for name, stream_pass in (("today", stream_today), ("fused", stream_fused)):
+                started = time.perf_counter()
+                stream_pass(StreamProcessor(chain))
+                frame_times[name].append((time.perf_counter() - started) / len(stream_frames))
         worst_s, differ = 0.0, 0
         for frame in frames:
             for a, b in zip(today(frame), fused(frame), strict=True):
@@ -135,6 +167,12 @@ def main() -> None:
     print("| way | µs/frame | × today |\n|---|---|---|")
     for name, median in medians.items():
         print(f"| {name} | {median * 1e6:.1f} | {base / median:.2f} |")
+    frame_medians = {name: float(np.median(t)) * 1e6 for name, t in frame_times.items()}
+    print(
+        f"\nThe whole frame (echoes + locate, the stream's way), same rounds: today "
+        f"{frame_medians['today']:.1f} µs, with the fused echoes {frame_medians['fused']:.1f} µs "
+        f"({frame_medians['today'] / frame_medians['fused']:.2f}x)."
+    )
     print(
         f"\nrocket-fft kernel compiled in {compile_s:.1f} s. Channels whose echoes differ in number "
         f"or CLEAN hand-over: {differ} of {len(frames) * frames[0].shape[0]}; largest delay "
