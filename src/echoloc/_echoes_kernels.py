@@ -31,6 +31,7 @@ import math
 from typing import Any
 
 import numpy as np
+import scipy.fft
 from numba import njit, prange
 
 
@@ -55,6 +56,47 @@ def weigh_and_fold(spectrum: Any, weights: Any, out: Any) -> None:  # pragma: no
 
 OK, TOO_MANY, CLOSE, TOO_BIG, LEFT_OVER, UNEXPLAINED = 0, 1, 2, 3, 4, 5
 """Status of a channel: fitted here, or why it goes to CLEAN."""
+
+
+@njit(cache=True, nogil=True)
+def correlate_rows(
+    frames: Any, n_fft: int, n_ifft: int, weights: Any, workers: int
+) -> Any:  # pragma: no cover
+    """The matched filter's single-precision correlation of every row of ``frames`` (rows,
+    samples; float64), as :meth:`echoloc.echoes.MatchedFilter.correlate_single_rows` returns
+    it: rows zero-padded (or cropped) to ``n_fft`` in float32, their rfft weighed by
+    ``weights`` and folded to ``n_ifft`` bins (:func:`weigh_and_fold`), inverse FFT. The FFTs
+    are scipy.fft's in compiled code (rocket-fft), on ``workers`` threads."""
+    rows, n = frames.shape
+    m = min(n, n_fft)
+    padded = np.zeros((rows, n_fft), np.float32)
+    padded[:, :m] = frames[:, :m]
+    spectrum = scipy.fft.rfft(padded, axis=-1, workers=workers)
+    folded = np.empty((rows, n_ifft), np.complex64)
+    weigh_and_fold(spectrum, weights, folded)
+    return scipy.fft.ifft(folded, axis=-1, overwrite_x=True, workers=workers)
+
+
+@njit(cache=True, nogil=True)
+def correlate_and_fit(
+    frames: Any,
+    n_fft: int,
+    n_ifft: int,
+    weights: Any,
+    workers: int,
+    parts: int,
+    n_lags: int,
+    constants: Any,
+    finishing: Any,
+    out: Any,
+    kept: Any,
+    ok: Any,
+) -> None:  # pragma: no cover - compiled
+    """:func:`correlate_rows` then :func:`batch_channels` on it, in one call: a stream's frame
+    makes one call from Python for its echoes instead of four (two FFTs, the fold, the fits),
+    which saved 26-31 µs a frame (`benchmarks/bench_fft_kernel.py`)."""
+    correlation = correlate_rows(frames, n_fft, n_ifft, weights, workers)
+    batch_channels(parts, correlation.view(np.float32), n_lags, constants, finishing, out, kept, ok)
 
 
 @njit(cache=True, inline="always")

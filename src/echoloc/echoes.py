@@ -353,13 +353,12 @@ class MatchedFilter:
         """:meth:`correlate_single` as the FFT leaves it: rows of ``n_ifft`` lags, of
         which the first ``n_lags`` are the correlation (the rest wraps around), C-contiguous;
         the FFTs on ``workers`` threads."""
-        # Zero-padded here in single precision: the FFT's own padding would copy the rows again.
-        frames = np.asarray(frames)[..., : self.n_fft]  # longer rows cropped, as rfft(x, n_fft) would
-        padded = np.zeros((*frames.shape[:-1], self.n_fft), dtype=np.float32)
-        padded[..., : frames.shape[-1]] = frames
-        spectrum = scipy.fft.rfft(padded, axis=-1, workers=workers, overwrite_x=True)
-        folded = self._weigh_and_fold(spectrum, self._spectrum_single)
-        return np.asarray(scipy.fft.ifft(folded, axis=-1, overwrite_x=True, workers=workers))
+        from echoloc import _echoes_kernels as kernels  # numba: imported (and compiled) on first use
+
+        frames = np.asarray(frames)
+        rows = _float_rows(frames)
+        correlation = kernels.correlate_rows(rows, self.n_fft, self.n_ifft, self._spectrum_single, workers)
+        return np.asarray(correlation).reshape(*frames.shape[:-1], self.n_ifft)
 
 
 MATCHED_DECIMATION = 2
@@ -999,10 +998,7 @@ def matched_filter_batch(
     frames = np.asarray(frames)
     n_frames, n_rx, _ = frames.shape
     threads = options.threads
-    correlation = mf.correlate_single_rows(frames, fft_workers(threads, n_frames * n_rx)).reshape(
-        n_frames * n_rx, -1
-    )
-    channels = _batch_channels(correlation, mf, options, threads)
+    channels = _correlated_channels(frames, mf, options, threads)
     hard = [index for index, found in enumerate(channels) if found is None]
     if hard:
         clean = _Clean(mf, options)
@@ -1332,6 +1328,13 @@ def _batch_channels(
     rows = np.ascontiguousarray(correlation, dtype=np.complex64).view(np.float32)
     parts = _kernel_threads(threads, n_ch)
     kernels.batch_channels(parts, rows, mf.n_lags, constants, finishing, out, kept, ok)
+    return _channel_echoes(out, kept, ok)
+
+
+def _channel_echoes(
+    out: NDArray[np.float64], kept: NDArray[np.int64], ok: NDArray[np.bool_]
+) -> list[ChannelEchoes | None]:
+    """The channels of :func:`echoloc._echoes_kernels.batch_channels`' outputs (None: left to CLEAN)."""
     tof_s, amplitude, snr_db = out
     # The counts and flags as Python ints and bools: indexing the arrays element by element
     # made numpy scalars, half of this list's 9 us a four-channel frame.
@@ -1339,6 +1342,46 @@ def _batch_channels(
         ChannelEchoes(tof_s[c, :k], amplitude[c, :k], snr_db[c, :k]) if good else None
         for c, (k, good) in enumerate(zip(kept.tolist(), ok.tolist(), strict=True))
     ]
+
+
+def _float_rows(frames: NDArray[Any]) -> NDArray[np.float64]:
+    """``frames`` (..., samples) as C-contiguous float64 rows (samples): the one type the
+    compiled correlation is compiled for (no copy when they already are)."""
+    return np.ascontiguousarray(frames, dtype=np.float64).reshape(-1, frames.shape[-1])
+
+
+def _correlated_channels(
+    frames: NDArray[Any], mf: MatchedFilter, options: EchoOptions, threads: int = 1
+) -> list[ChannelEchoes | None]:
+    """:func:`_batch_channels` of the frames' single-precision correlation
+    (:meth:`MatchedFilter.correlate_single_rows`), both in one compiled call
+    (:func:`echoloc._echoes_kernels.correlate_and_fit`): the same channels, without the
+    three calls from Python between them."""
+    from echoloc import _echoes_kernels as kernels
+
+    rows = _float_rows(frames)
+    constants, finishing = _kernel_constants(mf, options, _NOISE_STEP, _MAX_SPLITS)
+    n_ch = rows.shape[0]
+    out = np.zeros((3, n_ch, 4 * options.max_echoes))
+    kept = np.zeros(n_ch, dtype=np.int64)
+    ok = np.zeros(n_ch, dtype=np.bool_)
+    workers = fft_workers(threads, n_ch)
+    parts = _kernel_threads(threads, n_ch)
+    kernels.correlate_and_fit(
+        rows,
+        mf.n_fft,
+        mf.n_ifft,
+        mf._spectrum_single,
+        workers,
+        parts,
+        mf.n_lags,
+        constants,
+        finishing,
+        out,
+        kept,
+        ok,
+    )
+    return _channel_echoes(out, kept, ok)
 
 
 def _compiled_batch(
