@@ -984,8 +984,9 @@ def matched_filter_batch(
     """Matched-filter echoes of many frames (n_frames, n_rx, n_samples) at once.
 
     The correlation of every channel is computed at once in single precision; then
-    every channel goes through the batch path (:func:`_isolated_echoes`, run as one
-    compiled call, :func:`_batch_channels`: :func:`_compiled_batch` then :func:`_finish_batch`), which fits
+    every channel goes through the batch path (:func:`_isolated_echoes`, run with the
+    correlation as one compiled call, :func:`_correlated_channels`: :func:`_compiled_batch`
+    then :func:`_finish_batch`), which fits
     isolated echoes as CLEAN does and clusters of echoes within two main lobes jointly. An
     echo whose model leaves its two main lobes unexplained is split there into the best
     pair (:func:`echoloc._echoes_kernels._split_echo`: two echoes whose main lobes merged,
@@ -1322,13 +1323,20 @@ def _batch_channels(
 
     constants, finishing = _kernel_constants(mf, options, _NOISE_STEP, _MAX_SPLITS)
     n_ch = correlation.shape[0]
-    out = np.zeros((3, n_ch, 4 * options.max_echoes))
-    kept = np.zeros(n_ch, dtype=np.int64)
-    ok = np.zeros(n_ch, dtype=np.bool_)
+    out, kept, ok = _batch_outputs(n_ch, options)
     rows = np.ascontiguousarray(correlation, dtype=np.complex64).view(np.float32)
     parts = _kernel_threads(threads, n_ch)
     kernels.batch_channels(parts, rows, mf.n_lags, constants, finishing, out, kept, ok)
     return _channel_echoes(out, kept, ok)
+
+
+def _batch_outputs(
+    n_ch: int, options: EchoOptions
+) -> tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.bool_]]:
+    """What :func:`echoloc._echoes_kernels.batch_channels` writes into for ``n_ch`` channels:
+    the delays, amplitudes and SNRs (3, n_ch, slots), their counts, and which channels it kept."""
+    out = np.zeros((3, n_ch, 4 * options.max_echoes))
+    return out, np.zeros(n_ch, dtype=np.int64), np.zeros(n_ch, dtype=np.bool_)
 
 
 def _channel_echoes(
@@ -1362,9 +1370,7 @@ def _correlated_channels(
     rows = _float_rows(frames)
     constants, finishing = _kernel_constants(mf, options, _NOISE_STEP, _MAX_SPLITS)
     n_ch = rows.shape[0]
-    out = np.zeros((3, n_ch, 4 * options.max_echoes))
-    kept = np.zeros(n_ch, dtype=np.int64)
-    ok = np.zeros(n_ch, dtype=np.bool_)
+    out, kept, ok = _batch_outputs(n_ch, options)
     workers = fft_workers(threads, n_ch)
     parts = _kernel_threads(threads, n_ch)
     kernels.correlate_and_fit(
