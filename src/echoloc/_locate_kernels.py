@@ -1639,14 +1639,16 @@ def _measure(
 
 
 @njit(cache=True, error_model="numpy")  # a zero SNR divides as numpy does (inf, no exception)
-def path_sigmas(snr: Any, speed: float, prior_variance: float, omega: float) -> Any:  # pragma: no cover
-    """locate.path_sigmas_m, m, from the linear SNR ``10 ** (snr_db / 10)`` (numpy's: its
-    power need not round as libm's), the carrier's angular frequency ``omega`` (rad/s)
-    and the a-priori variance (m^2): the same operations in the same order, one loop
-    instead of eight numpy calls."""
-    sigmas = np.empty(snr.shape[0])
-    for i in range(snr.shape[0]):
-        phase = speed / (omega * np.sqrt(2.0 * snr[i]))
+def path_sigmas(snr_db: Any, speed: float, prior_variance: float, omega: float) -> Any:  # pragma: no cover
+    """locate.path_sigmas_m, m, from the SNRs (dB), the carrier's angular frequency ``omega``
+    (rad/s) and the a-priori variance (m^2): the same operations in the same order, one loop
+    instead of eight numpy calls. The linear SNR is libm's power, which differs from numpy's
+    in the last bit for about one value in twenty: every compiled path takes it from here, so
+    they agree with each other to the bit, and with the numpy reference to an ulp or two."""
+    sigmas = np.empty(snr_db.shape[0])
+    for i in range(snr_db.shape[0]):
+        snr = 10.0 ** (snr_db[i] / 10.0)
+        phase = speed / (omega * np.sqrt(2.0 * snr))
         sigmas[i] = np.sqrt(prior_variance + phase * phase)
     return sigmas
 
@@ -1941,7 +1943,7 @@ def associate_frame(
     required: Any,
     tof: Any,
     speed: float,
-    linear_snr: Any,
+    snr_db: Any,
     prior_variance: float,
     omega: float,
     amplitudes: Any,
@@ -1963,10 +1965,10 @@ def associate_frame(
     origin: Any,
 ) -> Any:  # pragma: no cover - compiled
     """:func:`associate` on one frame's flat echoes as locate.locate_frame has them: times of
-    flight ``tof`` (s) times ``speed`` (m/s) for the paths and :func:`path_sigmas` of the
-    linear SNR for their sigmas, the same operations as locate's numpy, in this call."""
+    flight ``tof`` (s) times ``speed`` (m/s) for the paths and :func:`path_sigmas` of their
+    SNRs ``snr_db`` (dB) for their sigmas, in this call."""
     paths = tof * speed
-    sigmas = path_sigmas(linear_snr, speed, prior_variance, omega)
+    sigmas = path_sigmas(snr_db, speed, prior_variance, omega)
     return associate(
         transmitters,
         receivers,

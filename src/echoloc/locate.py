@@ -376,14 +376,15 @@ def path_sigmas_m(
 def _flat_path_sigmas(
     snr_db: NDArray[np.float64], speed_of_sound_m_s: float, options: LocateOptions
 ) -> NDArray[np.float64]:
-    """:func:`path_sigmas_m` as float64, m; of float64 SNRs with a carrier after numpy's
-    power in one compiled loop (:func:`echoloc._locate_kernels.path_sigmas`, the same bits)."""
+    """:func:`path_sigmas_m` as float64, m; of float64 SNRs with a carrier in one compiled loop
+    (:func:`echoloc._locate_kernels.path_sigmas`: the bits of every compiled path, within an ulp
+    or two of numpy's)."""
     if not (options.carrier_hz and snr_db.dtype == np.float64):
         return path_sigmas_m(snr_db, speed_of_sound_m_s, options).astype(float, copy=False)
     from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
 
     sigmas: NDArray[np.float64] = kernels.path_sigmas(
-        10 ** (snr_db / 10), speed_of_sound_m_s, options.path_sigma_m**2, 2 * np.pi * options.carrier_hz
+        snr_db, speed_of_sound_m_s, options.path_sigma_m**2, 2 * np.pi * options.carrier_hz
     )
     return sigmas
 
@@ -1573,35 +1574,77 @@ class FrameLocator:
         reference (tied weights: the caller runs :func:`_objects`)."""
         from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use
 
-        setup = self._setup
-        assert setup is not None
-        prior_variance, omega, tail = self._flat_arguments
+        arguments = self.kernel_arguments(speed_of_sound_m_s)
+        assert arguments is not None
+        geometry, speed, prior_variance, omega, tail, node_limit, max_rows, origin = arguments
         kernel: Any = kernels.associate_frame
         status, echo_use, position, covariance, chi2 = kernel(
-            *setup.geometry.kernel_arguments,
+            *geometry,
             tof_s,
-            float(speed_of_sound_m_s),
-            10 ** (snr_db / 10),
+            speed,
+            snr_db,
             prior_variance,
             omega,
             amplitudes,
             offset,
             *tail,
+            node_limit,
+            max_rows,
+            origin,
+        )
+        return self.kernel_objects(
+            status, echo_use, position, covariance, chi2, len(offset) - 1, stacklevel=4
+        )
+
+    def kernel_arguments(self, speed_of_sound_m_s: float) -> tuple[Any, ...] | None:
+        """What the compiled association (:func:`echoloc._locate_kernels.associate_frame`) takes
+        besides a frame's echoes, grouped: (the geometry's six arrays, the speed of sound
+        (m/s), the prior path variance (m^2), the carrier (rad/s), the seeds and options, the
+        node and row limits, the origin). None when this locator has no compiled path (some
+        receiver unusable, no carrier, or numba missing): :meth:`__call__` then takes the
+        reference."""
+        setup = self._setup
+        if setup is None or not _COMPILED or not self._flat_arguments:
+            return None
+        prior_variance, omega, tail = self._flat_arguments
+        return (
+            setup.geometry.kernel_arguments,
+            float(speed_of_sound_m_s),
+            prior_variance,
+            omega,
+            tail,
             _NODE_LIMIT,
             _MAX_SEED_ROWS,
             setup.origin,
         )
+
+    def kernel_objects(
+        self,
+        status: int,
+        echo_use: NDArray[np.int64],
+        position: NDArray[np.float64],
+        covariance: NDArray[np.float64],
+        chi2: NDArray[np.float64],
+        n_channels: int,
+        *,
+        stacklevel: int = 2,
+    ) -> list[LocatedObject] | None:
+        """The objects of the compiled association's output for a frame of ``n_channels``
+        channels; None on tied weights, which it leaves to the reference (:func:`_objects`).
+        More seed rows than it takes (status 1) skip the frame with a warning."""
         if status == 1:
             warnings.warn(
                 f"frame skipped: more than {_MAX_SEED_ROWS} echo combinations to associate; "
                 "raise the detection threshold",
                 LocateWarning,
-                stacklevel=3,
+                stacklevel=stacklevel,
             )
             return []
         if status == 2:
             return None
-        return _located(setup, echo_use, position, covariance, chi2, status == 0, len(offset) - 1)
+        setup = self._setup
+        assert setup is not None
+        return _located(setup, echo_use, position, covariance, chi2, status == 0, n_channels)
 
     def _general(self, frame_echoes: FrameEchoes) -> FrameObjects:
         """The reference path: :func:`associate` on the frame's channels."""
