@@ -55,6 +55,7 @@ COMPILED_CALLS = (
     ("scipy.fft", "ifft", "inverse FFT"),
     ("echoloc._echoes_kernels", "weigh_and_fold", "fold"),
     ("echoloc._echoes_kernels", "batch_channels", "echo fits"),
+    ("echoloc._echoes_kernels", "correlate_and_fit", "correlation and echo fits"),
     ("echoloc._echoes_kernels", "clean_run_rows", "CLEAN"),
     ("echoloc._echoes_kernels", "clean_run", "CLEAN"),
     ("echoloc._locate_kernels", "associate_frame", "association"),

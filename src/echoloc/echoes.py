@@ -997,9 +997,16 @@ def matched_filter_batch(
     With ``options.workers`` above 1, the channels of both stages are spread over threads.
     """
     frames = np.asarray(frames)
+    return with_clean(frames, _correlated_channels(frames, mf, options, options.threads), mf, options)
+
+
+def with_clean(
+    frames: NDArray[Any], channels: list[ChannelEchoes | None], mf: MatchedFilter, options: EchoOptions
+) -> list[list[ChannelEchoes]]:
+    """The echoes of ``frames`` (n_frames, n_rx, n_samples) by frame: ``channels`` (every
+    channel's, frame after frame), CLEAN's (:class:`_Clean`) where it holds None."""
     n_frames, n_rx, _ = frames.shape
     threads = options.threads
-    channels = _correlated_channels(frames, mf, options, threads)
     hard = [index for index, found in enumerate(channels) if found is None]
     if hard:
         clean = _Clean(mf, options)
@@ -1358,6 +1365,26 @@ def _float_rows(frames: NDArray[Any]) -> NDArray[np.float64]:
     return np.ascontiguousarray(frames, dtype=np.float64).reshape(-1, frames.shape[-1])
 
 
+def echo_kernel_arguments(
+    frames: NDArray[Any], mf: MatchedFilter, options: EchoOptions, threads: int = 1
+) -> tuple[Any, ...]:
+    """The arguments of :func:`echoloc._echoes_kernels.correlate_and_fit` for ``frames`` (...,
+    samples), its outputs last: fresh ``out``, ``kept`` and ``ok`` (:func:`_batch_outputs`)."""
+    rows = _float_rows(frames)
+    constants, finishing = _kernel_constants(mf, options, _NOISE_STEP, _MAX_SPLITS)
+    n_ch = rows.shape[0]
+    workers = fft_workers(threads, n_ch)
+    parts = _kernel_threads(threads, n_ch)
+    fixed = (mf.n_fft, mf.n_ifft, mf._spectrum_single, workers, parts, mf.n_lags, constants, finishing)
+    return (rows, *fixed, *_batch_outputs(n_ch, options))
+
+
+def kernel_channels(arguments: tuple[Any, ...]) -> list[ChannelEchoes | None]:
+    """The channels :func:`echoloc._echoes_kernels.correlate_and_fit` wrote into the outputs of
+    its ``arguments`` (:func:`echo_kernel_arguments`); None: left to CLEAN."""
+    return _channel_echoes(*arguments[-3:])
+
+
 def _correlated_channels(
     frames: NDArray[Any], mf: MatchedFilter, options: EchoOptions, threads: int = 1
 ) -> list[ChannelEchoes | None]:
@@ -1367,27 +1394,9 @@ def _correlated_channels(
     three calls from Python between them."""
     from echoloc import _echoes_kernels as kernels
 
-    rows = _float_rows(frames)
-    constants, finishing = _kernel_constants(mf, options, _NOISE_STEP, _MAX_SPLITS)
-    n_ch = rows.shape[0]
-    out, kept, ok = _batch_outputs(n_ch, options)
-    workers = fft_workers(threads, n_ch)
-    parts = _kernel_threads(threads, n_ch)
-    kernels.correlate_and_fit(
-        rows,
-        mf.n_fft,
-        mf.n_ifft,
-        mf._spectrum_single,
-        workers,
-        parts,
-        mf.n_lags,
-        constants,
-        finishing,
-        out,
-        kept,
-        ok,
-    )
-    return _channel_echoes(out, kept, ok)
+    arguments = echo_kernel_arguments(frames, mf, options, threads)
+    kernels.correlate_and_fit(*arguments)
+    return kernel_channels(arguments)
 
 
 def _compiled_batch(

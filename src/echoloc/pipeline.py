@@ -13,6 +13,7 @@ import warnings
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -24,10 +25,13 @@ from echoloc.echoes import (
     EchoOptions,
     FrameEchoes,
     MatchedFilter,
+    echo_kernel_arguments,
     frame_time_s,
+    kernel_channels,
+    with_clean,
 )
 from echoloc.errors import EchoLocError
-from echoloc.estimators import Estimator, estimate_frames, prepare_estimator
+from echoloc.estimators import Estimator, MatchedEstimator, estimate_frames, prepare_estimator
 from echoloc.locate import FrameLocator, FrameObjects, LocateOptions, LocateWarning, combine_frames
 from echoloc.recording import Recording, dead_receivers
 
@@ -68,6 +72,22 @@ class Chain:
             FrameLocator(transmitter_m, recording.receivers_m, self.locate_options, self.usable_receivers)
             for transmitter_m in recording.transmitters_m
         )
+
+    @cached_property
+    def one_call(self) -> tuple[MatchedEstimator, FrameLocator, tuple[Any, ...]] | None:
+        """What :func:`samples_results_batch` takes to find frames' echoes and objects in one
+        compiled call: the matched estimator, the locator and its kernel's arguments. None
+        where that path does not apply and the stages run one after the other: another
+        estimator, a calibration (it corrects the echoes between the stages), several
+        transmitters, or a locator without a compiled path."""
+        if self.calibration is not None or len(self.recording.transmitters_m) != 1:
+            return None
+        estimator = self.estimator
+        if not isinstance(estimator, MatchedEstimator):
+            return None
+        locator = self.locators[0]
+        arguments = locator.kernel_arguments(self.speed_of_sound_m_s)
+        return None if arguments is None else (estimator, locator, arguments)
 
 
 def prepare(
@@ -210,30 +230,29 @@ def run(
     recording = chain.recording
     combine = combines_transmitters(chain)
     latest: dict[int, FrameEchoes] = {}
+    fired = recording.frame_transmitter
     while block := list(itertools.islice(indices, batch_frames)):
         samples = [recording.frames[index] for index in block]
         times = [frame_time_s(recording, index) for index in block]
+        transmitters = [0 if fired is None else int(fired[index]) for index in block]
+        each = list(zip(samples, block, times, transmitters, strict=True))
+        if not combine:
+            try:
+                yield from samples_results_batch(chain, samples, block, times, transmitters)
+            except EchoLocError:
+                # One frame of the block is refused: the frames before it still come out, one
+                # at a time, and the error is raised at that frame.
+                for sample, index, time_s, transmitter in each:
+                    yield samples_results_batch(chain, [sample], [index], [time_s], [transmitter])[0]
+            continue
         found: Iterable[FrameEchoes]
         try:
             found = samples_echoes_batch(chain, samples, block, times)
         except EchoLocError:
-            # One frame of the block is refused: the frames before it still come out, one at
-            # a time, and the error is raised at that frame.
-            found = (samples_echoes(chain, *frame) for frame in zip(samples, block, times, strict=True))
-        for echoes in found:
-            latest, objects = _located_frame(chain, latest, echoes, combine)
+            found = (samples_echoes(chain, *frame[:3]) for frame in each)
+        for echoes, transmitter in zip(found, transmitters, strict=True):
+            latest, objects = combine_latest(chain, latest, echoes, transmitter)
             yield echoes, objects
-
-
-def _located_frame(
-    chain: Chain, latest: dict[int, FrameEchoes], echoes: FrameEchoes, combine: bool
-) -> tuple[dict[int, FrameEchoes], FrameObjects]:
-    """Objects of one frame for :func:`run`, and the latest frame of each transmitter."""
-    if not combine:
-        return latest, frame_objects(chain, echoes)
-    transmitter = chain.recording.frame_transmitter
-    assert transmitter is not None
-    return combine_latest(chain, latest, echoes, int(transmitter[echoes.frame]))
 
 
 def find_echoes(
@@ -275,28 +294,97 @@ def samples_echoes_batch(
 ) -> list[FrameEchoes]:
     """:func:`samples_echoes` of several frames, in one call of the estimator where it takes
     batches (:func:`echoloc.estimators.estimate_frames`): the same echoes, more frames a second."""
+    channels_of_frames = estimate_frames(chain.estimator, _conditioned(chain, samples, indices))
+    return [
+        _frame_echoes(chain, index, time_s, channels)
+        for channels, index, time_s in zip(channels_of_frames, indices, times_s, strict=True)
+    ]
+
+
+def _conditioned(
+    chain: Chain,
+    samples: Sequence[NDArray[np.floating] | NDArray[np.complexfloating]],
+    indices: Sequence[int],
+) -> NDArray[Any]:
+    """The frames' samples conditioned (:func:`echoloc.conditioning.condition_frame`), stacked
+    (n_frames, n_rx, n_samples)."""
     recording = chain.recording
     conditioned = [
         condition_frame(frame, recording, chain.conditioning, index)
         for frame, index in zip(samples, indices, strict=True)
     ]
-    frames = np.asarray(conditioned[0])[None] if len(conditioned) == 1 else np.stack(conditioned)
-    channels_of_frames = estimate_frames(chain.estimator, frames)
-    found = []
-    for channels, index, time_s in zip(channels_of_frames, indices, times_s, strict=True):
-        echoes = FrameEchoes(index, time_s, chain.speed_of_sound_m_s, tuple(channels))
-        if chain.calibration is not None:
-            echoes = replace(
-                apply_calibration(echoes, chain.calibration), speed_of_sound_m_s=chain.speed_of_sound_m_s
-            )
-        found.append(echoes)
-    return found
+    return np.asarray(conditioned[0])[None] if len(conditioned) == 1 else np.stack(conditioned)
+
+
+def _frame_echoes(chain: Chain, index: int, time_s: float, channels: Sequence[Any]) -> FrameEchoes:
+    """A frame's echoes from its channels, the chain's calibration taken off."""
+    echoes = FrameEchoes(index, time_s, chain.speed_of_sound_m_s, tuple(channels))
+    if chain.calibration is not None:
+        echoes = replace(
+            apply_calibration(echoes, chain.calibration), speed_of_sound_m_s=chain.speed_of_sound_m_s
+        )
+    return echoes
 
 
 def transmitter_objects(chain: Chain, echoes: FrameEchoes, transmitter: int) -> FrameObjects:
     """Objects of one frame fired by ``transmitter``, as :func:`frame_objects` finds them
     (:func:`echoloc.locate.locate_frame`, its set-up done once: :attr:`Chain.locators`)."""
     return chain.locators[transmitter](echoes)
+
+
+def samples_results_batch(
+    chain: Chain,
+    samples: Sequence[NDArray[np.floating] | NDArray[np.complexfloating]],
+    indices: Sequence[int],
+    times_s: Sequence[float],
+    transmitters: Sequence[int],
+) -> list[tuple[FrameEchoes, FrameObjects]]:
+    """Echoes and objects of frames each located alone (no transmitters combined): the
+    answers of :func:`samples_echoes_batch` then :func:`transmitter_objects`.
+
+    Where the chain allows (:attr:`Chain.one_call`), both stages run in one compiled call
+    (:func:`echoloc._chain_kernels.echoes_and_objects`): a stream's frame then costs a tenth
+    less (`benchmarks/bench_chain_kernel.py`). Frames with a channel left to CLEAN, or with
+    tied weights, finish as the stages do.
+    """
+    one_call = chain.one_call
+    if one_call is None:
+        found = samples_echoes_batch(chain, samples, indices, times_s)
+        return [
+            (echoes, transmitter_objects(chain, echoes, transmitter))
+            for echoes, transmitter in zip(found, transmitters, strict=True)
+        ]
+    from echoloc import _chain_kernels as kernels  # numba: imported (and compiled) on first use
+
+    estimator, locator, locate_arguments = one_call
+    frames = _conditioned(chain, samples, indices)
+    n_rx = frames.shape[1]
+    options = estimator.options
+    echo_arguments = echo_kernel_arguments(frames, estimator.mf, options, options.threads)
+    status, found_rows, echo_use, positions, covariances, chi2 = kernels.echoes_and_objects(
+        echo_arguments[0], n_rx, *echo_arguments[1:], *locate_arguments
+    )
+    channels = with_clean(frames, kernel_channels(echo_arguments), estimator.mf, options)
+    statuses: list[int] = status.tolist()
+    rows: list[int] = found_rows.tolist()
+    results = []
+    for f, (index, time_s) in enumerate(zip(indices, times_s, strict=True)):
+        echoes = FrameEchoes(index, time_s, chain.speed_of_sound_m_s, tuple(channels[f]))
+        objects = None
+        if statuses[f] != kernels.LEFT_TO_CLEAN:
+            own = slice(rows[f], rows[f + 1])
+            objects = locator.kernel_objects(
+                statuses[f],
+                echo_use[own],
+                positions[own],
+                covariances[own],
+                chi2[own],
+                n_rx,
+                stacklevel=3,
+            )
+        located = locator(echoes) if objects is None else FrameObjects(index, time_s, tuple(objects))
+        results.append((echoes, located))
+    return results
 
 
 def combine_latest(

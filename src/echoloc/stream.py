@@ -2,9 +2,10 @@
 
 A stream reuses one :class:`~echoloc.pipeline.Chain` (:func:`echoloc.pipeline.prepare`:
 template spectra, FFT plans, tables, localisation options) for every frame, and the
-same per-frame functions as the batch chain (:func:`echoloc.pipeline.samples_echoes`,
-:func:`~echoloc.pipeline.transmitter_objects`, :func:`~echoloc.pipeline.combine_latest`),
-so a recording streamed gives exactly what ``echoloc locate`` gives.
+same per-frame functions as the batch chain (:func:`echoloc.pipeline.samples_results_batch`,
+or with transmitters combined :func:`~echoloc.pipeline.samples_echoes_batch` and
+:func:`~echoloc.pipeline.combine_latest`), so a recording streamed gives exactly what
+``echoloc locate`` gives.
 
 What a live stream adds, and this module holds:
 
@@ -44,7 +45,7 @@ from echoloc.pipeline import (
     prepare,
     samples_echoes,
     samples_echoes_batch,
-    transmitter_objects,
+    samples_results_batch,
 )
 from echoloc.recording import Recording
 from echoloc.scene import default_scene
@@ -360,11 +361,10 @@ class StreamProcessor:
         """Run the chain once on a made-up frame (:meth:`warm_up_frame`), so the first real
         frame does not pay for compiling the kernels or filling caches. State and counters
         are left untouched."""
-        echoes = samples_echoes(self.chain, self.warm_up_frame(), 0, 0.0)
         if self._combine:
-            combine_latest(self.chain, {}, echoes, 0)
+            combine_latest(self.chain, {}, samples_echoes(self.chain, self.warm_up_frame(), 0, 0.0), 0)
         else:
-            transmitter_objects(self.chain, echoes, 0)
+            samples_results_batch(self.chain, [self.warm_up_frame()], [0], [0.0], [0])
 
     def warm_up_frame(self) -> Samples:
         """A frame that takes every path of the chain: noise, and for rf with a waveform the echoes
@@ -424,37 +424,44 @@ class StreamProcessor:
 
     def process(self, frame: StreamFrame) -> StreamResult:
         """Echoes and objects of one frame (frames of one stream must come in frame order):
-        :meth:`process_batch` of one frame, without its lists."""
-        started = time.monotonic()
-        self.check(frame)
-        echoes = samples_echoes(self.chain, frame.samples, frame.index, frame.time_s)
-        return self._result(frame, echoes, started)
+        :meth:`process_batch` of one frame."""
+        return self.process_batch((frame,))[0]
 
     def process_batch(self, frames: Sequence[StreamFrame]) -> list[StreamResult]:
-        """:meth:`process` of each frame of a batch, in order, the echoes of all of them found in
-        one call (:func:`echoloc.pipeline.samples_echoes_batch`: the same echoes, more frames a
-        second, as when frames have queued up). A frame's latency runs to when its own objects
-        are ready; frames without an arrival time count from the batch's start."""
+        """Echoes and objects of each frame of a batch, in order, the echoes (and, frames
+        located alone, the objects) of all of them in one call
+        (:func:`echoloc.pipeline.samples_results_batch`: the same answers as frame by frame,
+        more frames a second, as when frames have queued up). A frame's latency runs to when
+        the batch's results are ready (with transmitters combined, its own objects); frames
+        without an arrival time count from the batch's start."""
         if not frames:
             return []
         started = time.monotonic()
         for frame in frames:
             self.check(frame)
-        found = samples_echoes_batch(
-            self.chain, [f.samples for f in frames], [f.index for f in frames], [f.time_s for f in frames]
-        )
-        return [self._result(frame, echoes, started) for frame, echoes in zip(frames, found, strict=True)]
+        samples = [f.samples for f in frames]
+        indices = [f.index for f in frames]
+        times = [f.time_s for f in frames]
+        chain = self.chain
+        if not self._combine:
+            found = samples_results_batch(chain, samples, indices, times, [f.transmitter for f in frames])
+            return [
+                self._result(frame, *result, started) for frame, result in zip(frames, found, strict=True)
+            ]
+        results = []
+        for frame, echoes in zip(frames, samples_echoes_batch(chain, samples, indices, times), strict=True):
+            self._latest, objects = combine_latest(chain, self._latest, echoes, frame.transmitter)
+            results.append(self._result(frame, echoes, objects, started))
+        return results
 
-    def _result(self, frame: StreamFrame, echoes: FrameEchoes, started: float) -> StreamResult:
-        """The objects of one frame's ``echoes``, its latency and lateness counted; ``started``:
-        when its processing (or its batch's) began, ``time.monotonic()``."""
+    def _result(
+        self, frame: StreamFrame, echoes: FrameEchoes, objects: FrameObjects, started: float
+    ) -> StreamResult:
+        """One frame's result, its latency and lateness counted; ``started``: when its
+        processing (or its batch's) began, ``time.monotonic()``."""
         arrival_s = frame.arrival_s
         arrived = math.isfinite(arrival_s)
         late = self.deadline_s is not None and arrived and started - arrival_s > self.deadline_s
-        if self._combine:
-            self._latest, objects = combine_latest(self.chain, self._latest, echoes, frame.transmitter)
-        else:
-            objects = transmitter_objects(self.chain, echoes, frame.transmitter)
         latency = time.monotonic() - (arrival_s if arrived else started)
         self.latency.add(latency)
         self.processed += 1

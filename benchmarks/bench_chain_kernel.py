@@ -1,0 +1,74 @@
+"""A stream's frames with echoes and objects in one compiled call, against the two stages in turn.
+
+Since 2026-12-05 :func:`echoloc.pipeline.samples_results_batch` finds a frame's echoes and its
+objects in one call (:func:`echoloc._chain_kernels.echoes_and_objects`) wherever the chain
+allows (:attr:`echoloc.pipeline.Chain.one_call`). Before, the echoes came back to Python as
+ChannelEchoes, were flattened again, and the association was a second call. This benchmark
+streams `echoloc bench`'s frames through :class:`echoloc.stream.StreamProcessor` both ways, a
+frame a call and 16 a call (a backlog), pinned to one core, in alternating rounds (medians
+reported), and checks that both ways give the same records.
+
+    python benchmarks/bench_chain_kernel.py [--frames 200] [--rounds 7]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+
+from echoloc.benchmark import _stream_pass, bench_scene, pinned_cores
+from echoloc.echoes import EchoOptions
+from echoloc.output import echoes_record, objects_record
+from echoloc.pipeline import Chain, prepare
+from echoloc.simulate import simulate
+from echoloc.stream import STREAM_BATCH_FRAMES, StreamProcessor, recording_frames
+
+SOUND_LIMIT_FRAMES_S = 85.8
+"""What sound allows one transmitter for 2 m of range at 343.2 m/s (`echoloc bench`)."""
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=200)
+    parser.add_argument("--rounds", type=int, default=7)
+    args = parser.parse_args()
+    with pinned_cores(1) as cores:
+        recording = simulate(bench_scene(5), args.frames)
+        one_call = prepare(recording, echo_options=EchoOptions(workers=1))
+        stages = prepare(recording, echo_options=EchoOptions(workers=1))
+        stages.__dict__["one_call"] = None  # the cached property, set: the stages in turn
+        assert one_call.one_call is not None
+        ways: dict[str, Chain] = {"two stages": stages, "one call": one_call}
+        for chain in ways.values():
+            StreamProcessor(chain).warm_up()
+            _stream_pass(chain, recording, 1)
+        records = {}
+        for name, chain in ways.items():
+            processor = StreamProcessor(chain)
+            results = [processor.process(f) for f in recording_frames(recording)]
+            records[name] = [(echoes_record(r.echoes), objects_record(r.objects)) for r in results]
+        timings: dict[tuple[str, int], list[float]] = {}
+        for _ in range(args.rounds):
+            for batch in (1, STREAM_BATCH_FRAMES):
+                for name, chain in ways.items():
+                    wall_s = _stream_pass(chain, recording, batch)[0]
+                    timings.setdefault((name, batch), []).append(wall_s / recording.n_frames * 1e6)
+    print(
+        f"{recording.n_frames} `echoloc bench` frames streamed on CPU {cores}, "
+        f"median of {args.rounds} alternating rounds:\n"
+    )
+    print("| µs a frame | two stages | one call | × | one call, × 85.8 frames/s |\n|---|---|---|---|---|")
+    for batch in (1, STREAM_BATCH_FRAMES):
+        before = statistics.median(timings[("two stages", batch)])
+        now = statistics.median(timings[("one call", batch)])
+        label = "a frame a call" if batch == 1 else f"a backlog, {batch} frames a call"
+        times_sound = 1e6 / now / SOUND_LIMIT_FRAMES_S
+        print(f"| {label} | {before:.1f} | {now:.1f} | {before / now:.3f} | {times_sound:.1f} |")
+    same = records["one call"] == records["two stages"]
+    print(
+        f"\nThe same echoes and objects both ways: {'yes' if same else 'NO'} ({recording.n_frames} frames)."
+    )
+
+
+if __name__ == "__main__":
+    main()

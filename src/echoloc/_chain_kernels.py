@@ -1,0 +1,167 @@
+"""The per-frame chain in one compiled call: frames' echoes, then each frame's objects.
+
+:func:`echoes_and_objects` runs the matched filter's compiled batch path
+(:func:`echoloc._echoes_kernels.correlate_and_fit`) on every channel of a batch of frames, then
+the association (:func:`echoloc._locate_kernels.associate_frame`) on each frame whose channels
+it could all vouch for. Called from Python, the two stages cost a frame ~40 µs of Python and
+of code and data gone cold between them (`benchmarks/bench_chain_kernel.py`); here the one
+call hands the association the echoes' own arrays. Frames with a channel left to CLEAN come
+back unassociated: the caller runs CLEAN and the association as before.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numba
+import numpy as np
+from numba import njit
+
+from echoloc._echoes_kernels import correlate_and_fit
+from echoloc._locate_kernels import associate_frame
+
+# The kernel's cached machine code holds batch_echoes_parallel's, which calls numba's threading
+# layer. Loaded from the cache before that layer was launched it crashed the process (numba
+# 0.68: nothing launches it for a caller of a parallel kernel); this launches it.
+numba.get_num_threads()
+
+LEFT_TO_CLEAN = -1
+"""A frame's status when some channel of it is left to CLEAN (no association run)."""
+
+
+@njit(cache=True, inline="always")
+def _with_room(rows: Any, used: int, needed: int) -> Any:  # pragma: no cover - compiled
+    """``rows`` (n, ...), or a copy of its first ``used`` rows with room for ``needed`` more."""
+    if used + needed <= rows.shape[0]:
+        return rows
+    grown = np.empty((max(2 * rows.shape[0], used + needed), *rows.shape[1:]), rows.dtype)
+    grown[:used] = rows[:used]
+    return grown
+
+
+@njit(cache=True, nogil=True)
+def echoes_and_objects(
+    frames: Any,
+    n_rx: int,
+    n_fft: int,
+    n_ifft: int,
+    weights: Any,
+    workers: int,
+    parts: int,
+    n_lags: int,
+    constants: Any,
+    finishing: Any,
+    out: Any,
+    kept: Any,
+    ok: Any,
+    geometry: Any,
+    speed: float,
+    prior_variance: float,
+    omega: float,
+    tail: Any,
+    node_limit: int,
+    max_rows: int,
+    origin: Any,
+) -> Any:  # pragma: no cover - compiled
+    """Echoes of every channel of ``frames`` (n_frames * n_rx rows of samples, a frame's
+    receivers in order) and the objects of each frame, in one call.
+
+    The arguments up to ``ok`` are :func:`correlate_and_fit`'s, whose outputs ``out``,
+    ``kept`` and ``ok`` hold the echoes after the call; ``geometry`` (the six arrays from
+    the transmitters to ``required``), ``speed`` to ``tail`` (the seeds and options) and the
+    limits are :func:`associate_frame`'s besides the echoes.
+
+    Returns (status, found, echo_use, positions, covariances, chi2): ``status`` (n_frames,)
+    is associate_frame's for each frame, or :data:`LEFT_TO_CLEAN`; frame f's objects are the
+    rows ``found[f]:found[f + 1]`` of the other four.
+    """
+    correlate_and_fit(
+        frames, n_fft, n_ifft, weights, workers, parts, n_lags, constants, finishing, out, kept, ok
+    )
+    transmitters, receivers, transmitter_axes, receiver_axes, boresight, required = geometry
+    (
+        seeds,
+        window_low,
+        window_high,
+        cos_fov,
+        k_gate,
+        merge_reach,
+        merge_sigma,
+        gates,
+        check_beams,
+        min_own,
+        sharing_rounds,
+        amplitude_log_sigma,
+    ) = tail
+    n_frames = kept.shape[0] // n_rx
+    dim = receivers.shape[1]
+    status = np.full(n_frames, LEFT_TO_CLEAN, dtype=np.int64)
+    found = np.zeros(n_frames + 1, dtype=np.int64)
+    capacity = 8 * n_frames
+    echo_use = np.empty((capacity, 2 * n_rx), dtype=np.int64)
+    positions = np.empty((capacity, dim))
+    covariances = np.empty((capacity, dim, dim))
+    chi2 = np.empty(capacity)
+    offset = np.zeros(n_rx + 1, dtype=np.int64)
+    for f in range(n_frames):
+        found[f + 1] = found[f]
+        first = f * n_rx
+        vouched = True
+        for c in range(n_rx):
+            vouched = vouched and ok[first + c]
+            offset[c + 1] = offset[c] + kept[first + c]
+        if not vouched:
+            continue
+        # The frame's echoes flat, channel after channel, as locate.FrameLocator passes them.
+        tof = np.empty(offset[n_rx])
+        amplitude = np.empty(offset[n_rx])
+        snr_db = np.empty(offset[n_rx])
+        for c in range(n_rx):
+            for e in range(kept[first + c]):
+                tof[offset[c] + e] = out[0, first + c, e]
+                amplitude[offset[c] + e] = out[1, first + c, e]
+                snr_db[offset[c] + e] = out[2, first + c, e]
+        frame_status, frame_use, frame_positions, frame_covariances, frame_chi2 = associate_frame(
+            transmitters,
+            receivers,
+            transmitter_axes,
+            receiver_axes,
+            boresight,
+            required,
+            tof,
+            speed,
+            snr_db,
+            prior_variance,
+            omega,
+            amplitude,
+            offset,
+            seeds,
+            window_low,
+            window_high,
+            cos_fov,
+            k_gate,
+            merge_reach,
+            merge_sigma,
+            gates,
+            check_beams,
+            min_own,
+            sharing_rounds,
+            amplitude_log_sigma,
+            node_limit,
+            max_rows,
+            origin,
+        )
+        status[f] = frame_status
+        n = frame_chi2.shape[0]
+        used = found[f]
+        echo_use = _with_room(echo_use, used, n)
+        positions = _with_room(positions, used, n)
+        covariances = _with_room(covariances, used, n)
+        chi2 = _with_room(chi2, used, n)
+        echo_use[used : used + n] = frame_use
+        positions[used : used + n] = frame_positions
+        covariances[used : used + n] = frame_covariances
+        chi2[used : used + n] = frame_chi2
+        found[f + 1] = used + n
+    n = found[n_frames]
+    return status, found, echo_use[:n], positions[:n], covariances[:n], chi2[:n]

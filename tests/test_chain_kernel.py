@@ -1,0 +1,91 @@
+"""A frame's echoes and objects in one compiled call (echoloc._chain_kernels) give what the two
+stages give one after the other, to the bit."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from echoloc.benchmark import bench_scene
+from echoloc.echoes import _correlated_channels
+from echoloc.output import echoes_record, objects_record
+from echoloc.pipeline import Chain, prepare, run, samples_results_batch
+from echoloc.simulate import simulate
+
+
+def _staged(chain: Chain) -> Chain:
+    """``chain`` without the one-call path: its stages one after the other."""
+    staged = prepare(chain.recording)
+    staged.__dict__["one_call"] = None
+    return staged
+
+
+def _records(pairs):
+    return [(echoes_record(e), objects_record(o)) for e, o in pairs]
+
+
+@pytest.fixture(scope="module")
+def crowded():
+    """Frames of 5 random reflectors (some channels left to CLEAN) and of 10 (more objects in
+    a frame than the kernel's first room for them)."""
+    return [simulate(bench_scene(5), 64), simulate(bench_scene(10), 4)]
+
+
+@pytest.mark.parametrize("batch_frames", [1, 16])
+def test_one_call_gives_the_stages_answers_to_the_bit(crowded, batch_frames):
+    for recording in crowded:
+        chain = prepare(recording)
+        assert chain.one_call is not None
+        staged = _staged(chain)
+        got = _records(run(chain, batch_frames=batch_frames))
+        assert got == _records(run(staged, batch_frames=batch_frames))
+        for (_, one_call), (_, stages) in zip(
+            run(chain, batch_frames=batch_frames), run(staged, batch_frames=batch_frames), strict=True
+        ):
+            for a, b in zip(one_call.objects, stages.objects, strict=True):
+                np.testing.assert_array_equal(a.position_m, b.position_m)
+                np.testing.assert_array_equal(a.covariance_m2, b.covariance_m2)
+    # Not vacuous: CLEAN had channels of the five-reflector frames, and a ten-reflector frame
+    # had more objects than the kernel's first room (8 a frame).
+    five, ten = crowded
+    estimator = prepare(five).one_call
+    assert estimator is not None
+    mf, options = estimator[0].mf, estimator[0].options
+    assert any(c is None for c in _correlated_channels(np.asarray(five.frames), mf, options))
+    assert max(len(o.objects) for _, o in run(prepare(ten), batch_frames=1)) > 8
+
+
+def test_one_call_frames_left_to_clean_still_come_out_in_order(crowded):
+    """A batch whose frames the kernel could not all associate keeps the frame order."""
+    recording = crowded[0]
+    chain = prepare(recording)
+    indices = list(range(recording.n_frames))
+    found = samples_results_batch(
+        chain, list(recording.frames), indices, [0.0] * len(indices), [0] * len(indices)
+    )
+    assert [e.frame for e, _ in found] == [o.frame for _, o in found] == indices
+
+
+def test_the_one_call_kernel_loads_from_the_cache_in_a_fresh_process(crowded):
+    """Its cached code holds a parallel kernel's: loaded before numba's threading layer was
+    launched, it crashed the process (echoloc._chain_kernels launches the layer on import)."""
+    list(run(prepare(crowded[0]), frames=[0]))  # compiled here, so the child loads it cached
+    child = textwrap.dedent(
+        """
+        from echoloc import _chain_kernels
+        from echoloc.benchmark import bench_scene
+        from echoloc.pipeline import prepare, samples_results_batch
+        from echoloc.simulate import simulate
+
+        recording = simulate(bench_scene(5), 1)
+        found = samples_results_batch(prepare(recording), [recording.frames[0]], [0], [0.0], [0])
+        print(len(found[0][1].objects))
+        """
+    )
+    done = subprocess.run([sys.executable, "-c", child], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert int(done.stdout.split()[-1]) >= 3
