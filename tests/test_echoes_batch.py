@@ -8,8 +8,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from echoloc import echoes as echoes_module
 from echoloc.benchmark import bench_scene
 from echoloc.echoes import (
+    ChannelEchoes,
     EchoOptions,
     MatchedFilter,
     _batch_channels,
@@ -593,3 +595,28 @@ def _grid_of(mf: MatchedFilter, delay: float) -> tuple[np.ndarray, np.ndarray]:
     grid_b, grid_w = np.zeros((1, 4), dtype=np.int64), np.zeros(1)
     kernels._prepare(mf.oversample, np.array([delay]), grid_b, grid_w)
     return grid_b, grid_w
+
+
+def test_the_fast_channel_echoes_is_the_dataclass_value() -> None:
+    """echoes._channel builds what ChannelEchoes(...) builds, field for field."""
+    values = (np.array([1e-3, 2e-3]), np.array([0.5, 0.2]), np.array([30.0, 22.0]))
+    fast, plain = echoes_module._channel(*values), ChannelEchoes(*values)
+    assert type(fast) is ChannelEchoes
+    assert vars(fast) == vars(plain)
+
+
+def test_the_fixed_kernel_arguments_follow_the_options_threads_and_channels() -> None:
+    """The memo of the compiled call's fixed arguments never hands one set of options' (or
+    thread or channel count's) arguments to another."""
+    recording = simulate(default_scene(), 1)
+    mf = MatchedFilter(np.asarray(recording.waveform, float), recording.n_samples, recording.sample_rate_hz)
+    base = EchoOptions()
+    stricter = EchoOptions(threshold_db=base.threshold_db + 6)
+    first = echoes_module._fixed_kernel_arguments(mf, base, 1, 4)
+    assert echoes_module._fixed_kernel_arguments(mf, base, 1, 4) is first
+    other = echoes_module._fixed_kernel_arguments(mf, stricter, 1, 4)
+    assert other[-2][7] == pytest.approx(first[-2][7] * 10 ** (6 / 10))  # the threshold factor
+    assert echoes_module._fixed_kernel_arguments(mf, base, 2, 64)[3:5] == (
+        fft_workers(2, 64),
+        echoes_module._kernel_threads(2, 64),
+    )

@@ -582,7 +582,6 @@ def _located(
             found = supports[use] = _support(use, setup)
         support.append(found)
     chi2_rows: list[float] = chi2.tolist()
-    tail = [chi2_tail(s.tail_dof, value) for s, value in zip(support, chi2_rows, strict=True)]
     order: Any = range(len(rows))
     if len(rows) > 1 and not nearest_first:
         distance = [math.sqrt(offset.dot(offset)) for offset in position - setup.origin]
@@ -590,7 +589,7 @@ def _located(
     objects = []
     for k in order:
         s = support[k]
-        score = (tail[k] if s.dof > 0 else 1.0) * len(s.channels) / n_ch
+        score = (chi2_tail(s.tail_dof, chi2_rows[k]) if s.dof > 0 else 1.0) * len(s.channels) / n_ch
         objects.append(
             _located_object(
                 position[k],

@@ -180,7 +180,8 @@ class LatencyHistogram:
     def __init__(self) -> None:
         self._log_growth = math.log(self.GROWTH)
         self._n = math.ceil(math.log(self.HIGH_S / self.LOW_S) / self._log_growth) + 1
-        self._counts = np.zeros(self._n, dtype=np.int64)
+        # A list: incrementing a numpy array's element made add 0.85 µs a frame, 0.64 with a list.
+        self._counts = [0] * self._n
         self.count = 0
         self.max_s = math.nan
 
@@ -203,7 +204,7 @@ class LatencyHistogram:
 
     def reset(self) -> None:
         """Forget every value (for a window of the stream)."""
-        self._counts[:] = 0
+        self._counts = [0] * self._n
         self.count = 0
         self.max_s = math.nan
 
