@@ -7,9 +7,11 @@ reflectors) go through :class:`echoloc.stream.StreamProcessor` a frame a call, p
 core, in the pass `echoloc bench` times (:func:`echoloc.benchmark._stream_pass`), alternating:
 
 - plain: the chain as `echoloc stream` runs it;
-- timed: the same chain with a timer around every call it makes into compiled code: the FFTs
-  (scipy.fft's rfft and ifft, their own Python dispatch included), the fold, the echo fits
-  (the compiled batch path), CLEAN on the channels handed to it, and the association.
+- timed: the same chain with a timer around every call it makes into compiled code: since
+  2026-12-05 one call a frame for its echoes and objects (:func:`echoloc._chain_kernels.echoes_and_objects`),
+  and for a frame with a channel left to CLEAN scipy.fft's FFTs of its double-precision
+  correlation (their own Python dispatch included), CLEAN and the association; the calls of
+  the earlier chain (the fold, the echo fits) are listed too, for chains that still make them.
 
 Compiled callers bind their callees when they are compiled, so only the calls from Python are
 timed, which is the boundary in question. The sum of the timed calls is a floor that no change
@@ -56,6 +58,7 @@ COMPILED_CALLS = (
     ("echoloc._echoes_kernels", "weigh_and_fold", "fold"),
     ("echoloc._echoes_kernels", "batch_channels", "echo fits"),
     ("echoloc._echoes_kernels", "correlate_and_fit", "correlation and echo fits"),
+    ("echoloc._chain_kernels", "echoes_and_objects", "echoes and association, one call"),
     ("echoloc._echoes_kernels", "clean_run_rows", "CLEAN"),
     ("echoloc._echoes_kernels", "clean_run", "CLEAN"),
     ("echoloc._locate_kernels", "associate_frame", "association"),
@@ -183,6 +186,8 @@ def report(figures: dict[str, Any]) -> str:
     ]
     for label, us in figures["compiled_us"].items():
         alone = figures["alone_us"][label]
+        if not us:
+            continue  # a call this chain does not make
         lines.append(f"| {label} (compiled) | {us:.1f} | {us / plain:.0%} | {alone:.1f} |")
     lines += [
         f"| **compiled calls, the floor** | **{floor:.1f}** | **{floor / plain:.0%}** "
