@@ -543,6 +543,52 @@ def test_sampled_median_is_numpy_s_median(n: int) -> None:
             assert _median_sampled(np.ascontiguousarray(values)) == np.median(values)
 
 
+def _noise_median(values: np.ndarray) -> float:
+    """The batch path's noise median of ``values``, its counters checked left at zero."""
+    from echoloc import _echoes_kernels as kernels
+
+    counts = np.zeros(kernels._EXPONENT_BUCKETS + kernels._MANTISSA_BUCKETS, dtype=np.int32)
+    found = kernels._noise_median(
+        np.ascontiguousarray(values, dtype=float), counts, np.zeros((3, len(values)))
+    )
+    assert not counts.any()
+    return float(found)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    values=st.lists(
+        st.one_of(
+            st.floats(0.0, 1e300),
+            st.floats(0.0, 1e-300),  # subnormals among them
+            st.sampled_from([0.0, 1.0, 2.0, 1.0 + 2**-40, np.inf]),
+        ),
+        min_size=1,
+        max_size=80,
+    )
+)
+def test_the_radix_noise_median_is_numpy_s_median(values: list[float]) -> None:
+    """Exactly, on non-negative values: ties, zeros, subnormals, neighbours one bit apart, inf."""
+    assert _noise_median(np.array(values)) == np.median(values)
+
+
+@pytest.mark.parametrize("n", [599, 600, 601, 2400])
+def test_the_radix_noise_median_on_noise_and_its_hard_cases(n: int) -> None:
+    """On a channel's noise powers with echo peaks, sorted, constant (a dead channel: more
+    values share a band than it sorts), and with a negative or NaN value (the quickselect then,
+    which it equals): numpy's median, and with a NaN the quickselect's answer."""
+    from echoloc._echoes_kernels import _median
+
+    rng = np.random.default_rng(n)
+    powers = np.abs(rng.normal(size=n) + 1j * rng.normal(size=n)) ** 2
+    powers[rng.integers(0, n, 12)] *= 1e4
+    negative, nan = powers.copy(), powers.copy()
+    negative[3], nan[5] = -1.0, np.nan
+    for values in (powers, np.sort(powers), np.zeros(n), np.full(n, 3.5), powers * 1e-310, negative):
+        assert _noise_median(values) == np.median(values)
+    np.testing.assert_equal(_noise_median(nan), _median(np.ascontiguousarray(nan)))
+
+
 @settings(max_examples=60, deadline=None)
 @given(
     delay=st.floats(40.0, 60.0),
