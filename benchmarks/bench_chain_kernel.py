@@ -6,7 +6,9 @@ allows (:attr:`echoloc.pipeline.Chain.one_call`). Before, the echoes came back t
 ChannelEchoes, were flattened again, and the association was a second call. This benchmark
 streams `echoloc bench`'s frames through :class:`echoloc.stream.StreamProcessor` both ways, a
 frame a call and 16 a call (a backlog), pinned to one core, in alternating rounds (medians
-reported), and checks that both ways give the same records.
+reported), and checks that both ways give the same records. Then it times every frame alone,
+one call each (five times, averaged), to split the frames whose channels all stay on the
+batch path from those with a channel left to CLEAN.
 
     python benchmarks/bench_chain_kernel.py [--frames 200] [--rounds 7]
 """
@@ -15,9 +17,12 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import time
+
+import numpy as np
 
 from echoloc.benchmark import _stream_pass, bench_scene, pinned_cores
-from echoloc.echoes import EchoOptions
+from echoloc.echoes import EchoOptions, _correlated_channels
 from echoloc.output import echoes_record, objects_record
 from echoloc.pipeline import Chain, prepare
 from echoloc.simulate import simulate
@@ -47,6 +52,20 @@ def main() -> None:
             processor = StreamProcessor(chain)
             results = [processor.process(f) for f in recording_frames(recording)]
             records[name] = [(echoes_record(r.echoes), objects_record(r.objects)) for r in results]
+        each_us = np.zeros(recording.n_frames)
+        processor = StreamProcessor(one_call)
+        frames = list(recording_frames(recording))
+        for _ in range(5):
+            for i, frame in enumerate(frames):
+                started = time.perf_counter()
+                processor.process(frame)
+                each_us[i] += (time.perf_counter() - started) / 5 * 1e6
+        estimator = one_call.one_call[0]
+        channels = _correlated_channels(np.asarray(recording.frames), estimator.mf, estimator.options)
+        n_rx = recording.n_receivers
+        to_clean = np.array(
+            [any(c is None for c in channels[i * n_rx : (i + 1) * n_rx]) for i in range(len(frames))]
+        )
         timings: dict[tuple[str, int], list[float]] = {}
         for _ in range(args.rounds):
             for batch in (1, STREAM_BATCH_FRAMES):
@@ -64,6 +83,12 @@ def main() -> None:
         label = "a frame a call" if batch == 1 else f"a backlog, {batch} frames a call"
         times_sound = 1e6 / now / SOUND_LIMIT_FRAMES_S
         print(f"| {label} | {before:.1f} | {now:.1f} | {before / now:.3f} | {times_sound:.1f} |")
+    clean_share = (each_us[to_clean].sum() - to_clean.sum() * each_us[~to_clean].mean()) / len(each_us)
+    print(
+        f"\nEach frame alone, one call each: the {int((~to_clean).sum())} frames kept on the batch path "
+        f"{each_us[~to_clean].mean():.1f} µs on average, the {int(to_clean.sum())} with a channel for CLEAN "
+        f"{each_us[to_clean].mean():.1f} µs, which adds {clean_share:.1f} µs to the average frame."
+    )
     same = records["one call"] == records["two stages"]
     print(
         f"\nThe same echoes and objects both ways: {'yes' if same else 'NO'} ({recording.n_frames} frames)."

@@ -8,8 +8,9 @@ kernels are compiled afresh, into an empty cache of its own (machine code loaded
 cache does not list its functions; about two minutes) and their addresses written to
 ``/tmp/perf-PID.map``, the file perf reads JIT symbols from. Each function's share of
 the samples is printed as microseconds of the measured frame time, and the shares are
-summed by where they run: echoloc's kernels (each by name), pocketfft (the FFTs), the
-Python interpreter, numpy, libc (malloc, memset) and the rest.
+summed by where they run: echoloc's kernels (each by name), the FFTs (scipy.fft's pocketfft
+from Python, rocket-fft's from compiled code), the Python interpreter, numpy, libc (malloc,
+memset) and the rest.
 
 Needs ``perf`` (Debian: ``linux-perf``) and permission to profile this user's processes
 (``kernel.perf_event_paranoid`` <= 2). For speed figures use ``echoloc bench``: perf's
@@ -32,7 +33,12 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
-_KERNEL_MODULES = ("echoloc._echoes_kernels", "echoloc._locate_kernels", "echoloc._mapping_kernels")
+_KERNEL_MODULES = (
+    "echoloc._chain_kernels",
+    "echoloc._echoes_kernels",
+    "echoloc._locate_kernels",
+    "echoloc._mapping_kernels",
+)
 
 
 def numba_symbol(mangled: str) -> str:
@@ -87,8 +93,8 @@ def write_perf_map() -> int:
 def _where(dso: str, symbol: str) -> str:
     if symbol.startswith(tuple(name.removeprefix("echoloc.") + "." for name in _KERNEL_MODULES)):
         return "echoloc kernels"
-    if "pocketfft" in dso:
-        return "pocketfft (FFT)"
+    if "pocketfft" in dso or "rocket_fft" in dso:
+        return "pocketfft, rocket-fft (FFT)"
     if "libpython" in dso:
         return "Python interpreter"
     if "_multiarray" in dso or "numpy" in dso:
