@@ -59,21 +59,74 @@ def test_one_call_gives_the_stages_answers_to_the_bit(crowded, batch_frames):
     assert max(len(o.objects) for _, o in run(prepare(ten), batch_frames=1)) > 8
 
 
-def test_one_call_frames_left_to_clean_still_come_out_in_order(crowded):
-    """A batch whose frames the kernel could not all associate keeps the frame order."""
+def test_one_call_frames_left_to_clean_come_out_in_order_with_the_stages_answers(crowded):
+    """A batch with frames the kernel leaves to CLEAN (LEFT_TO_CLEAN: CLEAN and the association
+    run after it) keeps the frame order and gives the stages' answers, frame by frame."""
+    from echoloc import _chain_kernels
+    from echoloc.echoes import echo_kernel_arguments
+
     recording = crowded[0]
     chain = prepare(recording)
+    assert chain.one_call is not None
+    estimator, _, locate_arguments = chain.one_call
+    frames = np.asarray(recording.frames, dtype=float)
+    arguments = echo_kernel_arguments(frames, estimator.mf, estimator.options)
+    status = _chain_kernels.echoes_and_objects(
+        arguments[0], recording.n_receivers, *arguments[1:], *locate_arguments
+    )[0]
+    assert (status == _chain_kernels.LEFT_TO_CLEAN).sum() >= 2  # not vacuous
     indices = list(range(recording.n_frames))
     found = samples_results_batch(
         chain, list(recording.frames), indices, [0.0] * len(indices), [0] * len(indices)
     )
     assert [e.frame for e, _ in found] == [o.frame for _, o in found] == indices
+    staged = _staged(chain)
+    one_at_a_time = [
+        samples_results_batch(staged, [recording.frames[i]], [i], [0.0], [0])[0] for i in indices
+    ]
+    assert _records(found) == _records(one_at_a_time)
+
+
+@pytest.mark.parametrize("status", [1, 2])
+def test_the_kernel_s_overflow_and_tie_statuses_finish_as_the_stages_do(crowded, monkeypatch, status):
+    """Status 1 (more seed rows than the association takes): the frame is skipped with one
+    warning, no objects. Status 2 (tied weights): the frame goes to the locator, which chooses
+    as the stages do (with the reference on a real tie). Both are rare on real frames, so the
+    kernel's status is forced."""
+    from echoloc import _chain_kernels
+    from echoloc.locate import LocateWarning
+
+    recording = crowded[0]
+    chain = prepare(recording)
+    kernel = _chain_kernels.echoes_and_objects
+
+    def forced(*arguments):
+        found = kernel(*arguments)
+        found[0][:] = status
+        return found
+
+    monkeypatch.setattr(_chain_kernels, "echoes_and_objects", forced)
+    if status == 1:
+        with pytest.warns(LocateWarning, match="frame skipped"):
+            found = samples_results_batch(chain, [recording.frames[1]], [1], [0.0], [0])
+        assert found[0][1].objects == ()
+        return
+    found = samples_results_batch(chain, [recording.frames[1]], [1], [0.0], [0])
+    staged = samples_results_batch(_staged(chain), [recording.frames[1]], [1], [0.0], [0])
+    assert len(found[0][1].objects) >= 3
+    assert _records(found) == _records(staged)
 
 
 def test_the_one_call_kernel_loads_from_the_cache_in_a_fresh_process(crowded):
     """Its cached code holds a parallel kernel's: loaded before numba's threading layer was
     launched, it crashed the process (echoloc._chain_kernels launches the layer on import)."""
     list(run(prepare(crowded[0]), frames=[0]))  # compiled here, so the child loads it cached
+    from pathlib import Path
+
+    from echoloc import _chain_kernels
+
+    cache = Path(_chain_kernels.__file__).parent / "__pycache__"
+    assert list(cache.glob("_chain_kernels.echoes_and_objects-*.nbi")), "numba did not cache the kernel"
     child = textwrap.dedent(
         """
         from echoloc import _chain_kernels

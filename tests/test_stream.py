@@ -107,7 +107,8 @@ def test_a_batch_through_the_processor_times_each_frame_from_the_batch_s_start(r
     assert [r.echoes.frame for r in results] == list(range(6))
     assert processor.processed == 6
     latencies = [r.latency_s for r in results]
-    assert all(0 < a < b for a, b in itertools.pairwise(latencies))
+    assert latencies[0] > 0
+    assert all(a <= b for a, b in itertools.pairwise(latencies))  # made in order, one clock
     alone = StreamProcessor(chain)
     assert _records((r.echoes, r.objects) for r in results) == _records(
         (r.echoes, r.objects) for r in map(alone.process, frames)

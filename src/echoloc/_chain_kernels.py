@@ -3,10 +3,11 @@
 :func:`echoes_and_objects` runs the matched filter's compiled batch path
 (:func:`echoloc._echoes_kernels.correlate_and_fit`) on every channel of a batch of frames, then
 the association (:func:`echoloc._locate_kernels.associate_frame`) on each frame whose channels
-it could all vouch for. Called from Python, the two stages cost a frame ~40 µs of Python and
-of code and data gone cold between them (`benchmarks/bench_chain_kernel.py`); here the one
-call hands the association the echoes' own arrays. Frames with a channel left to CLEAN come
-back unassociated: the caller runs CLEAN and the association as before.
+it could all vouch for. Called from Python, the two stages made the echoes Python objects and
+flattened them again for a second call; here the one call hands the association the echoes'
+own arrays, 9-19 µs less a frame on one core (`benchmarks/bench_chain_kernel.py`). Frames
+with a channel left to CLEAN come back unassociated: the caller runs CLEAN and the
+association as before.
 """
 
 from __future__ import annotations

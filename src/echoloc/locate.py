@@ -377,8 +377,8 @@ def _flat_path_sigmas(
     snr_db: NDArray[np.float64], speed_of_sound_m_s: float, options: LocateOptions
 ) -> NDArray[np.float64]:
     """:func:`path_sigmas_m` as float64, m; of float64 SNRs with a carrier in one compiled loop
-    (:func:`echoloc._locate_kernels.path_sigmas`: the bits of every compiled path, within an ulp
-    or two of numpy's)."""
+    (:func:`echoloc._locate_kernels.path_sigmas`: the bits of every compiled path, within 4
+    ulps of numpy's)."""
     if not (options.carrier_hz and snr_db.dtype == np.float64):
         return path_sigmas_m(snr_db, speed_of_sound_m_s, options).astype(float, copy=False)
     from echoloc import _locate_kernels as kernels  # numba: imported (and compiled) on first use

@@ -218,8 +218,10 @@ def run(
 ) -> Iterator[tuple[FrameEchoes, FrameObjects]]:
     """Echoes and objects of every frame (or of ``frames``), in order.
 
-    Echoes are found ``batch_frames`` frames at a time (:func:`samples_echoes_batch`; the
-    same echoes as one at a time). With several transmitters fired in turn, each frame
+    Echoes and objects are found ``batch_frames`` frames at a time
+    (:func:`samples_results_batch`; with transmitters combined, the echoes by
+    :func:`samples_echoes_batch`): the same answers as one at a time. With several
+    transmitters fired in turn, each frame
     is located together with the latest frame of every other transmitter
     (:func:`echoloc.locate.combine_frames`): n_tx times the ellipsoids per object once
     every transmitter has fired.
@@ -238,12 +240,14 @@ def run(
         each = list(zip(samples, block, times, transmitters, strict=True))
         if not combine:
             try:
-                yield from samples_results_batch(chain, samples, block, times, transmitters)
+                results = samples_results_batch(chain, samples, block, times, transmitters)
             except EchoLocError:
                 # One frame of the block is refused: the frames before it still come out, one
                 # at a time, and the error is raised at that frame.
                 for sample, index, time_s, transmitter in each:
                     yield samples_results_batch(chain, [sample], [index], [time_s], [transmitter])[0]
+            else:
+                yield from results
             continue
         found: Iterable[FrameEchoes]
         try:
@@ -343,12 +347,15 @@ def samples_results_batch(
     answers of :func:`samples_echoes_batch` then :func:`transmitter_objects`.
 
     Where the chain allows (:attr:`Chain.one_call`), both stages run in one compiled call
-    (:func:`echoloc._chain_kernels.echoes_and_objects`): a stream's frame then costs a tenth
+    (:func:`echoloc._chain_kernels.echoes_and_objects`): a stream's frame then costs 3-8 %
     less (`benchmarks/bench_chain_kernel.py`). Frames with a channel left to CLEAN, or with
-    tied weights, finish as the stages do.
+    tied weights, finish as the stages do; frames of another channel count than the
+    locator's receivers take the stages (whose locator refuses them as it always has).
     """
     one_call = chain.one_call
-    if one_call is None:
+    frames = None if one_call is None else _conditioned(chain, samples, indices)
+    if frames is None or one_call is None or frames.shape[1] != len(one_call[1].receivers_m):
+        # Not for this chain, or frames of another channel count (the kernel trusts its shapes).
         found = samples_echoes_batch(chain, samples, indices, times_s)
         return [
             (echoes, transmitter_objects(chain, echoes, transmitter))
@@ -357,7 +364,6 @@ def samples_results_batch(
     from echoloc import _chain_kernels as kernels  # numba: imported (and compiled) on first use
 
     estimator, locator, locate_arguments = one_call
-    frames = _conditioned(chain, samples, indices)
     n_rx = frames.shape[1]
     options = estimator.options
     echo_arguments = echo_kernel_arguments(frames, estimator.mf, options, options.threads)
@@ -380,7 +386,6 @@ def samples_results_batch(
                 covariances[own],
                 chi2[own],
                 n_rx,
-                stacklevel=3,
             )
         located = locator(echoes) if objects is None else FrameObjects(index, time_s, tuple(objects))
         results.append((echoes, located))
