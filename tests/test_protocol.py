@@ -24,6 +24,8 @@ from echoloc.protocol import (
     encode_end,
     encode_frame,
     encode_session,
+    frame_message,
+    frame_payload,
     split_messages,
 )
 from echoloc.scene import default_scene
@@ -209,3 +211,56 @@ def test_the_protocol_page_example_is_what_the_encoder_writes():
     # The CRC the page gives as the check value.
     assert zlib.crc32(b"123456789") == 0xCBF43926
     assert "0xCBF43926" in page
+
+
+@pytest.mark.parametrize(
+    ("signal_kind", "sample_format"),
+    [("rf", "float32"), ("rf", "float64"), ("rf", "int16"), ("envelope", "float32"), ("iq", "complex64")],
+)
+def test_a_message_of_a_kept_payload_is_encode_frame_s(signal_kind: str, sample_format: str) -> None:
+    """frame_message of a frame_payload is the message encode_frame makes, byte for byte."""
+    rng = np.random.default_rng(1)
+    samples = 1000 * rng.normal(size=(3, 50))
+    if signal_kind == "iq":
+        samples = samples + 1j * rng.normal(size=(3, 50))
+    fields = {"sequence": 9, "sample_rate_hz": 2e5, "frame_time_s": 0.25, "transmitter": 1}
+    payload = frame_payload(samples, signal_kind=signal_kind, sample_format=sample_format)
+    expected = encode_frame(samples, signal_kind=signal_kind, sample_format=sample_format, **fields)
+    assert frame_message(payload, signal_kind=signal_kind, **fields) == expected
+
+
+@pytest.mark.parametrize("loops", [1, 3])
+def test_a_replay_s_loops_send_the_recording_s_frames_each_time(recording, loops: int) -> None:
+    """Loops after the first send the payloads they kept: the same samples each loop, with the
+    sequence running on and the frame times shifted by a pass."""
+    import socket
+    import threading
+
+    from echoloc.transport import Endpoint, recording_span_s, send_recording
+
+    server = socket.create_server(("127.0.0.1", 0))
+    received = bytearray()
+
+    def take() -> None:
+        connection, _ = server.accept()
+        with connection:
+            while chunk := connection.recv(1 << 16):
+                received.extend(chunk)
+
+    reader = threading.Thread(target=take)
+    reader.start()
+    send_recording(recording, Endpoint("127.0.0.1", server.getsockname()[1]), speed=0, loops=loops)
+    reader.join(timeout=30)
+    server.close()
+    messages, skipped, errors = split_messages(received)
+    assert skipped == 0
+    assert not errors
+    frames = [decode_frame(header, payload) for header, payload in messages if header.kind == KIND_FRAME]
+    n = recording.n_frames
+    assert [f.sequence for f in frames] == list(range(loops * n))
+    span = recording_span_s(recording)
+    for k, frame in enumerate(frames):
+        first = frames[k % n]
+        np.testing.assert_allclose(first.samples, recording.frames[k % n], rtol=1e-7)  # float32 at worst
+        np.testing.assert_array_equal(frame.samples, first.samples)
+        assert frame.frame_time_s == pytest.approx(first.frame_time_s + (k // n) * span)

@@ -23,7 +23,7 @@ import math
 import struct
 import zlib
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -227,18 +227,26 @@ def _check_payload(header: MessageHeader, payload: bytes | bytearray | memoryvie
 # ----------------------------------------------------------------------------- frames
 
 
-def encode_frame(
+class FramePayload(NamedTuple):
+    """A frame's samples as the wire carries them, with what its header says of them: the
+    part of a frame message that a sender replaying a recording can keep from one loop to
+    the next (:func:`frame_payload`, :func:`frame_message`)."""
+
+    data: bytes
+    crc32: int | None
+    n_channels: int
+    n_samples: int
+    sample_format: int  # the code, SAMPLE_FORMAT_CODES
+
+
+def frame_payload(
     samples: NDArray[Any],
     *,
-    sequence: int,
-    sample_rate_hz: float,
-    frame_time_s: float = math.nan,
-    transmitter: int = 0,
     signal_kind: str = "rf",
     sample_format: str = "float32",
     payload_crc: bool = True,
-) -> bytes:
-    """One frame message: header and ``samples`` (n_channels, n_samples), channel-major.
+) -> FramePayload:
+    """``samples`` (n_channels, n_samples) in ``sample_format``, channel-major, and their CRC-32.
 
     ``sample_format`` ``int16`` rounds and clips to -32768..32767 (for ADC counts);
     ``complex64`` is required for ``iq`` data and refused for real data.
@@ -260,22 +268,67 @@ def encode_frame(
         wire = np.clip(np.rint(arr), -32768, 32767).astype(dtype)
     else:
         wire = np.ascontiguousarray(arr, dtype=dtype)
-    payload: bytes = wire.tobytes()
+    data: bytes = wire.tobytes()
+    crc = zlib.crc32(data) if payload_crc else None
+    return FramePayload(data, crc, int(arr.shape[0]), int(arr.shape[1]), code)
+
+
+def frame_message(
+    payload: FramePayload,
+    *,
+    sequence: int,
+    sample_rate_hz: float,
+    frame_time_s: float = math.nan,
+    transmitter: int = 0,
+    signal_kind: str = "rf",
+) -> bytes:
+    """One frame message: the header, then ``payload`` (:func:`frame_payload`, made with the
+    same ``signal_kind``)."""
     header = MessageHeader(
         kind=KIND_FRAME,
         header_bytes=HEADER_BYTES,
-        payload_bytes=len(payload),
+        payload_bytes=len(payload.data),
         sequence=sequence,
         frame_time_s=float(frame_time_s),
         sample_rate_hz=float(sample_rate_hz),
-        n_channels=int(arr.shape[0]),
-        n_samples=int(arr.shape[1]),
-        sample_format=code,
+        n_channels=payload.n_channels,
+        n_samples=payload.n_samples,
+        sample_format=payload.sample_format,
         signal_kind=signal_kind,
         transmitter=int(transmitter),
-        payload_crc32=zlib.crc32(payload) if payload_crc else None,
+        payload_crc32=payload.crc32,
     )
-    return _pack(header) + payload
+    return _pack(header) + payload.data
+
+
+def encode_frame(
+    samples: NDArray[Any],
+    *,
+    sequence: int,
+    sample_rate_hz: float,
+    frame_time_s: float = math.nan,
+    transmitter: int = 0,
+    signal_kind: str = "rf",
+    sample_format: str = "float32",
+    payload_crc: bool = True,
+) -> bytes:
+    """One frame message: header and ``samples`` (n_channels, n_samples), channel-major
+    (:func:`frame_message` of :func:`frame_payload`).
+
+    ``sample_format`` ``int16`` rounds and clips to -32768..32767 (for ADC counts);
+    ``complex64`` is required for ``iq`` data and refused for real data.
+    """
+    payload = frame_payload(
+        samples, signal_kind=signal_kind, sample_format=sample_format, payload_crc=payload_crc
+    )
+    return frame_message(
+        payload,
+        sequence=sequence,
+        sample_rate_hz=sample_rate_hz,
+        frame_time_s=frame_time_s,
+        transmitter=transmitter,
+        signal_kind=signal_kind,
+    )
 
 
 def decode_frame(header: MessageHeader, payload: bytes | bytearray | memoryview) -> WireFrame:
