@@ -71,9 +71,7 @@ def test_one_call_frames_left_to_clean_come_out_in_order_with_the_stages_answers
     estimator, _, locate_arguments = chain.one_call
     frames = np.asarray(recording.frames, dtype=float)
     arguments = echo_kernel_arguments(frames, estimator.mf, estimator.options)
-    status = _chain_kernels.echoes_and_objects(
-        arguments[0], recording.n_receivers, *arguments[1:], *locate_arguments
-    )[0]
+    status = _chain_kernels.echoes_and_objects(arguments, recording.n_receivers, locate_arguments)[0]
     assert (status == _chain_kernels.LEFT_TO_CLEAN).sum() >= 2  # not vacuous
     indices = list(range(recording.n_frames))
     found = samples_results_batch(

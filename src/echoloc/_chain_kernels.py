@@ -41,59 +41,24 @@ def _with_room(rows: Any, used: int, needed: int) -> Any:  # pragma: no cover - 
 
 
 @njit(cache=True, nogil=True)
-def echoes_and_objects(
-    frames: Any,
-    n_rx: int,
-    n_fft: int,
-    n_ifft: int,
-    weights: Any,
-    workers: int,
-    parts: int,
-    n_lags: int,
-    constants: Any,
-    finishing: Any,
-    out: Any,
-    kept: Any,
-    ok: Any,
-    geometry: Any,
-    speed: float,
-    prior_variance: float,
-    omega: float,
-    tail: Any,
-    node_limit: int,
-    max_rows: int,
-    origin: Any,
-) -> Any:  # pragma: no cover - compiled
-    """Echoes of every channel of ``frames`` (n_frames * n_rx rows of samples, a frame's
-    receivers in order) and the objects of each frame, in one call.
+def echoes_and_objects(echo_arguments: Any, n_rx: int, locate_arguments: Any) -> Any:  # pragma: no cover
+    """Echoes of every channel of a batch of frames and the objects of each frame, in one call.
 
-    The arguments up to ``ok`` are :func:`correlate_and_fit`'s, whose outputs ``out``,
-    ``kept`` and ``ok`` hold the echoes after the call; ``geometry`` (the six arrays from
-    the transmitters to ``required``), ``speed`` to ``tail`` (the seeds and options) and the
-    limits are :func:`associate_frame`'s besides the echoes.
+    ``echo_arguments`` are :func:`correlate_and_fit`'s (echoes.echo_kernel_arguments): the
+    rows of samples first (n_frames * ``n_rx``, a frame's receivers in order), its outputs
+    ``out``, ``kept`` and ``ok`` last, which hold the echoes after the call.
+    ``locate_arguments`` are :func:`associate_frame`'s besides a frame's echoes, grouped
+    (locate.FrameLocator.kernel_arguments): the geometry's six arrays, the speed of sound,
+    the prior path variance, the carrier, the seeds and options, the limits, the origin.
 
     Returns (status, found, echo_use, positions, covariances, chi2): ``status`` (n_frames,)
     is associate_frame's for each frame, or :data:`LEFT_TO_CLEAN`; frame f's objects are the
     rows ``found[f]:found[f + 1]`` of the other four.
     """
-    correlate_and_fit(
-        frames, n_fft, n_ifft, weights, workers, parts, n_lags, constants, finishing, out, kept, ok
-    )
-    transmitters, receivers, transmitter_axes, receiver_axes, boresight, required = geometry
-    (
-        seeds,
-        window_low,
-        window_high,
-        cos_fov,
-        k_gate,
-        merge_reach,
-        merge_sigma,
-        gates,
-        check_beams,
-        min_own,
-        sharing_rounds,
-        amplitude_log_sigma,
-    ) = tail
+    correlate_and_fit(*echo_arguments)
+    out, kept, ok = echo_arguments[-3], echo_arguments[-2], echo_arguments[-1]
+    geometry, speed, prior_variance, omega, tail, node_limit, max_rows, origin = locate_arguments
+    receivers = geometry[1]
     n_frames = kept.shape[0] // n_rx
     dim = receivers.shape[1]
     status = np.full(n_frames, LEFT_TO_CLEAN, dtype=np.int64)
@@ -122,13 +87,9 @@ def echoes_and_objects(
                 tof[offset[c] + e] = out[0, first + c, e]
                 amplitude[offset[c] + e] = out[1, first + c, e]
                 snr_db[offset[c] + e] = out[2, first + c, e]
-        frame_status, frame_use, frame_positions, frame_covariances, frame_chi2 = associate_frame(
-            transmitters,
-            receivers,
-            transmitter_axes,
-            receiver_axes,
-            boresight,
-            required,
+        # (mypy reads the dispatcher's __call__ as taking no starred arguments; numba unpacks them.)
+        frame_status, frame_use, frame_positions, frame_covariances, frame_chi2 = associate_frame(  # type: ignore[call-arg]
+            *geometry,
             tof,
             speed,
             snr_db,
@@ -136,18 +97,7 @@ def echoes_and_objects(
             omega,
             amplitude,
             offset,
-            seeds,
-            window_low,
-            window_high,
-            cos_fov,
-            k_gate,
-            merge_reach,
-            merge_sigma,
-            gates,
-            check_beams,
-            min_own,
-            sharing_rounds,
-            amplitude_log_sigma,
+            *tail,
             node_limit,
             max_rows,
             origin,

@@ -368,7 +368,7 @@ def samples_results_batch(
     options = estimator.options
     echo_arguments = echo_kernel_arguments(frames, estimator.mf, options, options.threads)
     status, found_rows, echo_use, positions, covariances, chi2 = kernels.echoes_and_objects(
-        echo_arguments[0], n_rx, *echo_arguments[1:], *locate_arguments
+        echo_arguments, n_rx, locate_arguments
     )
     channels = with_clean(frames, kernel_channels(echo_arguments), estimator.mf, options)
     statuses: list[int] = status.tolist()
