@@ -672,3 +672,46 @@ def test_the_fixed_kernel_arguments_follow_the_options_threads_and_channels() ->
         )
     finally:
         numba.set_num_threads(threads)
+
+
+def test_two_threads_with_parallel_kernels_on_numba_s_workqueue_layer_do_not_kill_the_process() -> None:
+    """Two chains with two workers each, run in two Python threads at once, on the threading
+    layer numba falls back to without OpenMP or TBB: it terminated the process when both
+    started parallel loops together; run_kernel takes them one at a time. Each thread's
+    objects are those of one thread alone."""
+    import os
+    import subprocess
+    import sys
+    import textwrap
+
+    child = textwrap.dedent(
+        """
+        import threading
+        from echoloc.benchmark import bench_scene
+        from echoloc.echoes import EchoOptions
+        from echoloc.pipeline import prepare, run
+        from echoloc.simulate import simulate
+
+        recording = simulate(bench_scene(5), 64)
+        chains = [prepare(recording, echo_options=EchoOptions(workers=2)) for _ in range(2)]
+        alone = [len(o.objects) for _, o in run(chains[0], batch_frames=32)]
+        found = {}
+
+        def work(i):
+            found[i] = [len(o.objects) for _, o in run(chains[i], batch_frames=32)]
+
+        for _ in range(3):
+            threads = [threading.Thread(target=work, args=(i,)) for i in range(2)]
+            [t.start() for t in threads]
+            [t.join() for t in threads]
+            assert found[0] == found[1] == alone
+        import numba
+        print(numba.threading_layer(), sum(alone))
+        """
+    )
+    env = {**os.environ, "NUMBA_THREADING_LAYER": "workqueue"}
+    done = subprocess.run([sys.executable, "-c", child], capture_output=True, text=True, timeout=600, env=env)
+    assert done.returncode == 0, (done.stdout + done.stderr)[-2000:]
+    layer, objects = done.stdout.split()[-2:]
+    assert layer == "workqueue"
+    assert int(objects) >= 5 * 64 * 0.9

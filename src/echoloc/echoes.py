@@ -47,6 +47,7 @@ import cmath
 import itertools
 import math
 import os
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property, partial
@@ -686,8 +687,9 @@ class _Clean:
         amplitudes = np.zeros((n_rows, room), dtype=complex)
         power = np.zeros(n_rows)
         count = np.zeros(n_rows, dtype=np.int64)
-        run_rows: Callable[..., None] = kernels.clean_run_rows
-        run_rows(
+        run_kernel(
+            parts,
+            kernels.clean_run_rows,
             *self._compiled_arguments(),
             np.array(correlations, dtype=complex),  # the residuals, taken apart in place
             tofs,
@@ -1039,6 +1041,23 @@ def fft_workers(threads: int, rows: int) -> int:
     return max(1, min(threads, rows // _FFT_ROWS_PER_WORKER))
 
 
+_PARALLEL_LAUNCH = threading.Lock()
+"""Held while a compiled kernel runs its loops on several threads (:func:`run_kernel`)."""
+
+
+def run_kernel(parts: int, kernel: Callable[..., Any], *arguments: Any) -> Any:
+    """``kernel(*arguments)``; when it runs ``parts`` > 1 threads, one such call at a time.
+
+    Where neither OpenMP nor TBB is installed, numba runs parallel loops on its workqueue
+    threading layer, which terminates the process when two Python threads start parallel
+    loops at once (two stream processors with ``workers`` > 1 in two threads did). The calls
+    on one thread (every stream frame on one core) take no lock."""
+    if parts <= 1:
+        return kernel(*arguments)
+    with _PARALLEL_LAUNCH:
+        return kernel(*arguments)
+
+
 def _kernel_threads(threads: int, tasks: int) -> int:
     """Threads for a compiled parallel loop over ``tasks``, set as numba's count for the call."""
     if threads <= 1 or tasks <= 1:
@@ -1338,7 +1357,7 @@ def _batch_channels(
     out, kept, ok = _batch_outputs(n_ch, options)
     rows = np.ascontiguousarray(correlation, dtype=np.complex64).view(np.float32)
     parts = _kernel_threads(threads, n_ch)
-    kernels.batch_channels(parts, rows, mf.n_lags, constants, finishing, out, kept, ok)
+    run_kernel(parts, kernels.batch_channels, parts, rows, mf.n_lags, constants, finishing, out, kept, ok)
     return _channel_echoes(out, kept, ok)
 
 
@@ -1433,7 +1452,7 @@ def _correlated_channels(
     from echoloc import _echoes_kernels as kernels
 
     arguments = echo_kernel_arguments(frames, mf, options, threads)
-    kernels.correlate_and_fit(*arguments)
+    run_kernel(arguments[5], kernels.correlate_and_fit, *arguments)  # [5]: its parallel parts
     return kernel_channels(arguments)
 
 
@@ -1472,7 +1491,9 @@ def _compiled_batch(
     constants, _ = _kernel_constants(
         mf, options, noise_step, _MAX_SPLITS if max_splits is None else max_splits
     )
-    run(
+    run_kernel(
+        parts,
+        run,
         np.ascontiguousarray(correlation, dtype=np.complex64).view(np.float32),
         n,
         constants,

@@ -28,6 +28,7 @@ from echoloc.echoes import (
     echo_kernel_arguments,
     frame_time_s,
     kernel_channels,
+    run_kernel,
     with_clean,
 )
 from echoloc.errors import EchoLocError
@@ -367,9 +368,9 @@ def samples_results_batch(
     n_rx = frames.shape[1]
     options = estimator.options
     echo_arguments = echo_kernel_arguments(frames, estimator.mf, options, options.threads)
-    status, found_rows, echo_use, positions, covariances, chi2 = kernels.echoes_and_objects(
-        echo_arguments, n_rx, locate_arguments
-    )
+    status, found_rows, echo_use, positions, covariances, chi2 = run_kernel(
+        echo_arguments[5], kernels.echoes_and_objects, echo_arguments, n_rx, locate_arguments
+    )  # [5]: the echoes' parallel parts
     channels = with_clean(frames, kernel_channels(echo_arguments), estimator.mf, options)
     statuses: list[int] = status.tolist()
     rows: list[int] = found_rows.tolist()
