@@ -170,8 +170,8 @@ def _stream_pass(
 ) -> tuple[float, list[float], list[FrameObjects]]:
     """One pass of a fresh :class:`StreamProcessor` over ``recording``, ``batch_frames`` frames a
     call: (wall s, each frame's latency s, its objects). A batch's frames are taken off the
-    recording as it starts, so a frame's latency runs from then to its own objects
-    (:meth:`StreamProcessor.process_batch`)."""
+    recording as it starts, so a frame's latency runs from then to when its result is made
+    (:meth:`StreamProcessor.process_batch`: after the batch's one call)."""
     processor = StreamProcessor(chain)
     frames = recording_frames(recording)
     latencies: list[float] = []
