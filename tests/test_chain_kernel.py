@@ -140,3 +140,15 @@ def test_the_one_call_kernel_loads_from_the_cache_in_a_fresh_process(crowded):
     done = subprocess.run([sys.executable, "-c", child], capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
     assert int(done.stdout.split()[-1]) >= 3
+
+
+def test_frames_of_another_channel_count_are_refused_in_one_line(crowded):
+    """The kernel reads as many channels as the chain has receivers: a frame of fewer is an
+    EchoLocError naming both counts, before the kernel runs."""
+    from echoloc.errors import EchoLocError
+
+    recording = crowded[0]
+    chain = prepare(recording)
+    assert chain.one_call is not None
+    with pytest.raises(EchoLocError, match="frames of 3 channels for a chain of 4 receivers"):
+        samples_results_batch(chain, [recording.frames[0][:3]], [0], [0.0], [0])

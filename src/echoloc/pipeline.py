@@ -238,14 +238,15 @@ def run(
         samples = [recording.frames[index] for index in block]
         times = [frame_time_s(recording, index) for index in block]
         transmitters = [0 if fired is None else int(fired[index]) for index in block]
-        each = list(zip(samples, block, times, transmitters, strict=True))
         if not combine:
             try:
                 results = samples_results_batch(chain, samples, block, times, transmitters)
             except EchoLocError:
                 # One frame of the block is refused: the frames before it still come out, one
                 # at a time, and the error is raised at that frame.
-                for sample, index, time_s, transmitter in each:
+                for sample, index, time_s, transmitter in zip(
+                    samples, block, times, transmitters, strict=True
+                ):
                     yield samples_results_batch(chain, [sample], [index], [time_s], [transmitter])[0]
             else:
                 yield from results
@@ -254,7 +255,7 @@ def run(
         try:
             found = samples_echoes_batch(chain, samples, block, times)
         except EchoLocError:
-            found = (samples_echoes(chain, *frame[:3]) for frame in each)
+            found = (samples_echoes(chain, *frame) for frame in zip(samples, block, times, strict=True))
         for echoes, transmitter in zip(found, transmitters, strict=True):
             latest, objects = combine_latest(chain, latest, echoes, transmitter)
             yield echoes, objects
@@ -350,18 +351,32 @@ def samples_results_batch(
     Where the chain allows (:attr:`Chain.one_call`), both stages run in one compiled call
     (:func:`echoloc._chain_kernels.echoes_and_objects`): a stream's frame then costs 3-8 %
     less (`benchmarks/bench_chain_kernel.py`). Frames with a channel left to CLEAN, or with
-    tied weights, finish as the stages do; frames of another channel count than the
-    locator's receivers take the stages (whose locator refuses them as it always has).
+    tied weights, finish as the stages do. Frames of another channel count than the
+    recording's receivers are refused there (the kernel trusts its shapes).
     """
     one_call = chain.one_call
-    frames = None if one_call is None else _conditioned(chain, samples, indices)
-    if frames is None or one_call is None or frames.shape[1] != len(one_call[1].receivers_m):
-        # Not for this chain, or frames of another channel count (the kernel trusts its shapes).
-        found = samples_echoes_batch(chain, samples, indices, times_s)
-        return [
-            (echoes, transmitter_objects(chain, echoes, transmitter))
-            for echoes, transmitter in zip(found, transmitters, strict=True)
-        ]
+    if one_call is not None:
+        frames = _conditioned(chain, samples, indices)
+        n_rx = len(one_call[1].receivers_m)
+        if frames.shape[1] != n_rx:
+            raise EchoLocError(f"frames of {frames.shape[1]} channels for a chain of {n_rx} receivers")
+        return _one_call_results(chain, one_call, frames, indices, times_s)
+    found = samples_echoes_batch(chain, samples, indices, times_s)
+    return [
+        (echoes, transmitter_objects(chain, echoes, transmitter))
+        for echoes, transmitter in zip(found, transmitters, strict=True)
+    ]
+
+
+def _one_call_results(
+    chain: Chain,
+    one_call: tuple[MatchedEstimator, FrameLocator, tuple[Any, ...]],
+    frames: NDArray[Any],
+    indices: Sequence[int],
+    times_s: Sequence[float],
+) -> list[tuple[FrameEchoes, FrameObjects]]:
+    """:func:`samples_results_batch` of conditioned ``frames`` (n_frames, n_rx, n_samples) in
+    one compiled call, CLEAN and the locator finishing the frames it leaves to them."""
     from echoloc import _chain_kernels as kernels  # numba: imported (and compiled) on first use
 
     estimator, locator, locate_arguments = one_call
@@ -376,17 +391,12 @@ def samples_results_batch(
     rows: list[int] = found_rows.tolist()
     results = []
     for f, (index, time_s) in enumerate(zip(indices, times_s, strict=True)):
-        echoes = FrameEchoes(index, time_s, chain.speed_of_sound_m_s, tuple(channels[f]))
+        echoes = _frame_echoes(chain, index, time_s, channels[f])
         objects = None
         if statuses[f] != kernels.LEFT_TO_CLEAN:
             own = slice(rows[f], rows[f + 1])
             objects = locator.kernel_objects(
-                statuses[f],
-                echo_use[own],
-                positions[own],
-                covariances[own],
-                chi2[own],
-                n_rx,
+                statuses[f], echo_use[own], positions[own], covariances[own], chi2[own], n_rx
             )
         located = locator(echoes) if objects is None else FrameObjects(index, time_s, tuple(objects))
         results.append((echoes, located))

@@ -37,8 +37,6 @@ from echoloc.protocol import (
     KIND_FRAME,
     KIND_SESSION,
     MAX_UDP_BYTES,
-    SAMPLE_FORMAT_CODES,
-    SAMPLE_FORMATS,
     FramePayload,
     MessageHeader,
     ProtocolError,
@@ -434,12 +432,8 @@ def send_recording(
         )
     # Replayed more than once, a recording's payloads (the samples in the wire's format and
     # their CRC) are made once and kept, up to REPLAY_PAYLOAD_BYTES: later loops send them again.
-    wire_bytes = (
-        recording.n_frames * recording.n_receivers * recording.n_samples * _wire_itemsize(sample_format)
-    )
-    payloads: dict[int, FramePayload] | None = (
-        {} if loops != 1 and wire_bytes <= REPLAY_PAYLOAD_BYTES else None
-    )
+    payloads: dict[int, FramePayload] = {}
+    room_bytes = REPLAY_PAYLOAD_BYTES if loops != 1 else 0
     sock = _connect(endpoint, connect_timeout_s)
     sent_frames = sent_bytes = late = 0
     try:
@@ -472,15 +466,16 @@ def send_recording(
                 transmitter = (
                     0 if recording.frame_transmitter is None else int(recording.frame_transmitter[index])
                 )
-                payload = payloads.get(index) if payloads is not None else None
+                payload = payloads.get(index)
                 if payload is None:
                     payload = frame_payload(
                         recording.frames[index],
                         signal_kind=recording.signal_kind,
                         sample_format=sample_format,
                     )
-                    if payloads is not None:
+                    if len(payload.data) <= room_bytes:
                         payloads[index] = payload
+                        room_bytes -= len(payload.data)
                 message = frame_message(
                     payload,
                     sequence=sent_frames,
@@ -514,13 +509,6 @@ REPLAY_PAYLOAD_BYTES = 256 * 2**20
 """The most wire bytes of a recording :func:`send_recording` keeps to send again on its next
 loops (making a float32 frame of 4 x 2400 samples, its bytes and CRC-32, took about half of
 the sender's 39 µs a frame)."""
-
-
-def _wire_itemsize(sample_format: str) -> int:
-    """Bytes a sample takes on the wire in ``sample_format`` (8 for an unknown one: the refusal
-    comes from the encoder)."""
-    code = SAMPLE_FORMAT_CODES.get(sample_format)
-    return 8 if code is None else int(SAMPLE_FORMATS[code][1].itemsize)
 
 
 def lossless_format(recording: Recording, udp: bool = False) -> str:
