@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from echoloc import echoes as echoes_module
@@ -598,11 +598,24 @@ def test_the_radix_noise_median_on_noise_and_its_hard_cases(n: int) -> None:
     iterations=st.integers(1, 4),
     seed=st.integers(0, 2**16),
 )
+# Converged at a low SNR, a step whose cost change is at rounding level: one fit takes it,
+# the other turns it down and takes a smaller one later (1.8e-9 samples apart after 4
+# iterations, 1.4e-11 after 7).
+@example(
+    delay=40.0,
+    start_error=0.044816103427745994,
+    amplitude=0.2,
+    noise=0.044816103427745994,
+    iterations=4,
+    seed=4,
+)
 def test_lone_echo_step_is_the_general_fit_s(
     delay: float, start_error: float, amplitude: float, noise: float, iterations: int, seed: int
 ) -> None:
     """The batch path's scalar step for a lone echo (_lone_fit) takes the general joint fit's
-    Levenberg-Marquardt steps (_joint_fit_into, one echo, real amplitude) to rounding."""
+    Levenberg-Marquardt steps (_joint_fit_into, one echo, real amplitude) to rounding, or, where
+    rounding decides whether a converged fit's last tiny step is taken, lands within 1e-7 samples
+    (0.5 ps at 200 kHz; a wrong step would be off by thousandths of a sample or more)."""
     from echoloc import _echoes_kernels as kernels
 
     mf = MatchedFilter(PULSE, N_SAMPLES, FS, decimation=2)
@@ -629,8 +642,8 @@ def test_lone_echo_step_is_the_general_fit_s(
     tof, amp = kernels._lone_fit(
         mf.acf_table, mf.oversample, mf.half_width, data, lo, valid, start_tof, start_amp, iterations
     )
-    assert tof == pytest.approx(tofs[0], abs=1e-9)
-    assert amp.real == pytest.approx(amps[0].real, rel=1e-9, abs=1e-12)
+    assert tof == pytest.approx(tofs[0], abs=1e-7)
+    assert amp.real == pytest.approx(amps[0].real, rel=1e-7, abs=1e-12)
     assert amp.imag == 0.0
 
 
