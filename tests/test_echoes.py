@@ -148,6 +148,37 @@ def test_autocorrelation_table_is_normalised_and_symmetric() -> None:
     assert np.abs(row) == pytest.approx(np.abs(row[::-1]), abs=1e-12)
 
 
+def test_a_kept_autocorrelation_table_is_the_built_one_and_a_copy() -> None:
+    """Filters of the same template share the table's building, not the table: the kept one
+    is the one built to the bit, each filter gets its own, and another pulse (or oversampling,
+    or decimation) gets its own table; at most a few are kept."""
+    from echoloc import echoes
+
+    echoes._ACF_TABLES.clear()
+    first = MatchedFilter(PULSE, N_SAMPLES, FS)
+    second = MatchedFilter(PULSE.copy(), N_SAMPLES, FS)
+    built = first._built_acf_table()
+    assert np.array_equal(first.acf_table, built)
+    assert len(echoes._ACF_TABLES) == 1
+    first.acf_table[0, 0] = 7.0  # one filter's copy written over
+    assert np.array_equal(second.acf_table, built)
+    assert second.acf_table is not first.acf_table
+    others = [
+        MatchedFilter(PULSE, N_SAMPLES, FS, oversample=64),
+        MatchedFilter(PULSE, N_SAMPLES, FS, decimation=2),
+        MatchedFilter(-PULSE, N_SAMPLES, FS),
+        MatchedFilter(
+            barker_waveform(7, carrier_hz=50e3, cycles_per_bit=4, sample_rate_hz=FS).samples, N_SAMPLES, FS
+        ),
+    ]
+    for mf in others:
+        assert np.array_equal(mf.acf_table, mf._built_acf_table())
+    assert others[0].acf_table.shape[0] == 64
+    for n in range(echoes._ACF_TABLES_KEPT + 3):  # filters of other lengths: other FFT lengths
+        assert MatchedFilter(PULSE, 1000 + 97 * n, FS, oversample=8).acf_table.shape[0] == 8
+    assert len(echoes._ACF_TABLES) == echoes._ACF_TABLES_KEPT
+
+
 def test_main_lobe_is_one_chip_wide() -> None:
     """The -6 dB width of a Barker code's ACF envelope is one chip (triangle of half-base one chip)."""
     mf = MatchedFilter(PULSE, N_SAMPLES, FS)
