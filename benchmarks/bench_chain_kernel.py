@@ -8,7 +8,10 @@ streams `echoloc bench`'s frames through :class:`echoloc.stream.StreamProcessor`
 frame a call and 16 a call (a backlog), pinned to one core, in alternating rounds (medians
 reported), and checks that both ways give the same records. Then it times every frame alone,
 one call each (five times, averaged), to split the frames whose channels all stay on the
-batch path from those with a channel left to CLEAN.
+batch path from those with a channel left to CLEAN. Last, the one call alone on the batch-path
+frames, four ways (one frame's buffer again and again, copies of that frame, each frame
+repeated, cycling through the frames): what the samples' cache state costs, against the code
+meeting different frames one after another.
 
     python benchmarks/bench_chain_kernel.py [--frames 200] [--rounds 7]
 """
@@ -18,15 +21,62 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
+from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from echoloc.benchmark import _stream_pass, bench_scene, pinned_cores
 from echoloc.echoes import EchoOptions, _correlated_channels
 from echoloc.output import echoes_record, objects_record
 from echoloc.pipeline import Chain, prepare
 from echoloc.simulate import simulate
-from echoloc.stream import STREAM_BATCH_FRAMES, StreamProcessor, recording_frames
+from echoloc.stream import STREAM_BATCH_FRAMES, StreamFrame, StreamProcessor, recording_frames
+
+
+def frame_order_study(
+    chain: Chain, frames: list[StreamFrame], keep: NDArray[np.bool_], rounds: int
+) -> dict[str, float]:
+    """The one compiled call alone (µs a call, median of ``rounds``) over the frames ``keep``
+    marks, four ways: one frame's arguments again and again; as many copies of that frame;
+    each frame repeated 20 times (their mean); cycling through the frames."""
+    from echoloc import _chain_kernels as kernels
+    from echoloc.echoes import echo_kernel_arguments
+    from echoloc.pipeline import _conditioned
+
+    assert chain.one_call is not None
+    estimator, _, locate_arguments = chain.one_call
+    n_rx = frames[0].samples.shape[0]
+
+    def arguments(frame: StreamFrame) -> tuple[Any, ...]:
+        samples = frame.samples.copy()  # a copy of its own
+        conditioned = _conditioned(chain, [samples], [frame.index])
+        return echo_kernel_arguments(conditioned, estimator.mf, estimator.options, 1)
+
+    kept = [f for f, k in zip(frames, keep, strict=True) if k]
+    one = arguments(kept[0])
+    ways = {
+        "one frame's buffer again and again": [one] * len(kept),
+        "copies of that frame": [arguments(kept[0]) for _ in kept],
+        "cycling through the frames": [arguments(f) for f in kept],
+    }
+
+    def per_call_us(calls: list[tuple[Any, ...]]) -> float:
+        started = time.perf_counter()
+        for call in calls:
+            kernels.echoes_and_objects(call, n_rx, locate_arguments)
+        return (time.perf_counter() - started) / len(calls) * 1e6
+
+    timings: dict[str, list[float]] = {name: [] for name in ways}
+    timings["each frame repeated (mean)"] = []
+    for _ in range(rounds):
+        for name, calls in ways.items():
+            timings[name].append(per_call_us(calls))
+        timings["each frame repeated (mean)"].append(
+            float(np.mean([per_call_us([call] * 20) for call in ways["cycling through the frames"]]))
+        )
+    return {name: statistics.median(values) for name, values in timings.items()}
+
 
 SOUND_LIMIT_FRAMES_S = 85.8
 """What sound allows one transmitter for 2 m of range at 343.2 m/s (`echoloc bench`)."""
@@ -66,6 +116,7 @@ def main() -> None:
         to_clean = np.array(
             [any(c is None for c in channels[i * n_rx : (i + 1) * n_rx]) for i in range(len(frames))]
         )
+        order = frame_order_study(one_call, frames, ~to_clean, args.rounds)
         timings: dict[tuple[str, int], list[float]] = {}
         for _ in range(args.rounds):
             for batch in (1, STREAM_BATCH_FRAMES):
@@ -89,6 +140,9 @@ def main() -> None:
         f"{each_us[~to_clean].mean():.1f} µs on average, the {int(to_clean.sum())} with a channel for CLEAN "
         f"{each_us[to_clean].mean():.1f} µs, which adds {clean_share:.1f} µs to the average frame."
     )
+    print(f"\nThe one call alone on those {int((~to_clean).sum())} frames, µs a call:")
+    for name, us in order.items():
+        print(f"- {name}: {us:.1f}")
     same = records["one call"] == records["two stages"]
     print(
         f"\nThe same echoes and objects both ways: {'yes' if same else 'NO'} ({recording.n_frames} frames)."
