@@ -148,25 +148,28 @@ def test_autocorrelation_table_is_normalised_and_symmetric() -> None:
     assert np.abs(row) == pytest.approx(np.abs(row[::-1]), abs=1e-12)
 
 
-def test_a_kept_autocorrelation_table_is_the_built_one_and_a_copy() -> None:
+def test_a_kept_autocorrelation_table_is_the_built_one_and_a_copy(monkeypatch: pytest.MonkeyPatch) -> None:
     """Filters of the same template share the table's building, not the table: the kept one
-    is the one built to the bit, each filter gets its own, and another pulse (or oversampling,
-    or decimation) gets its own table; at most a few are kept."""
+    is the one built to the bit, each filter gets its own copy (from a build or from the store),
+    what the table does not depend on (sample rate, arrival) shares it, another pulse or
+    oversampling or decimation gets its own, and the store drops the least recently used
+    table first and never holds more than its bytes."""
     from echoloc import echoes
 
     echoes._ACF_TABLES.clear()
     first = MatchedFilter(PULSE, N_SAMPLES, FS)
-    second = MatchedFilter(PULSE.copy(), N_SAMPLES, FS)
     built = first._built_acf_table()
     assert np.array_equal(first.acf_table, built)
-    assert len(echoes._ACF_TABLES) == 1
-    first.acf_table[0, 0] = 7.0  # one filter's copy written over
+    first.acf_table[0, 0] = 7.0  # the built table's copy written over
+    second = MatchedFilter(PULSE.copy(), N_SAMPLES, FS * 2, arrival_s=1e-4)  # a hit
     assert np.array_equal(second.acf_table, built)
-    assert second.acf_table is not first.acf_table
+    second.acf_table[0, 1] = 7.0  # a kept table's copy written over
+    assert np.array_equal(MatchedFilter(PULSE, N_SAMPLES, FS).acf_table, built)
+    assert len(echoes._ACF_TABLES) == 1
     others = [
         MatchedFilter(PULSE, N_SAMPLES, FS, oversample=64),
         MatchedFilter(PULSE, N_SAMPLES, FS, decimation=2),
-        MatchedFilter(-PULSE, N_SAMPLES, FS),
+        MatchedFilter(PULSE.astype(np.float32), N_SAMPLES, FS),
         MatchedFilter(
             barker_waveform(7, carrier_hz=50e3, cycles_per_bit=4, sample_rate_hz=FS).samples, N_SAMPLES, FS
         ),
@@ -174,9 +177,26 @@ def test_a_kept_autocorrelation_table_is_the_built_one_and_a_copy() -> None:
     for mf in others:
         assert np.array_equal(mf.acf_table, mf._built_acf_table())
     assert others[0].acf_table.shape[0] == 64
-    for n in range(echoes._ACF_TABLES_KEPT + 3):  # filters of other lengths: other FFT lengths
-        assert MatchedFilter(PULSE, 1000 + 97 * n, FS, oversample=8).acf_table.shape[0] == 8
-    assert len(echoes._ACF_TABLES) == echoes._ACF_TABLES_KEPT
+    assert len(echoes._ACF_TABLES) == 1 + len(others)
+    # Room for three tables of the default head: the oldest goes, unless it was used since.
+    monkeypatch.setattr(echoes, "_ACF_TABLES_BYTES", 3 * built.nbytes)
+    echoes._ACF_TABLES.clear()
+    lengths = [2000, 2400, 2500, 2800]  # FFTs of 2250, 2700, 2880, 3072
+    filters = [MatchedFilter(PULSE, n, FS) for n in lengths]
+    assert len({mf.n_fft for mf in filters}) == len(lengths)
+    keys = []
+    for mf in filters[:3]:
+        mf.acf_table  # noqa: B018 - built and kept
+        keys.append(next(reversed(echoes._ACF_TABLES)))
+    MatchedFilter(PULSE, lengths[0], FS).acf_table  # noqa: B018 - the first, used again
+    filters[3].acf_table  # noqa: B018 - a fourth: the least recently used (the second) goes
+    assert keys[0] in echoes._ACF_TABLES
+    assert keys[1] not in echoes._ACF_TABLES
+    assert sum(t.nbytes for t in echoes._ACF_TABLES.values()) <= 3 * built.nbytes
+    monkeypatch.setattr(echoes, "_ACF_TABLES_BYTES", built.nbytes - 1)
+    echoes._ACF_TABLES.clear()
+    assert np.array_equal(MatchedFilter(PULSE, N_SAMPLES, FS).acf_table, built)
+    assert not echoes._ACF_TABLES  # too large to keep
 
 
 def test_main_lobe_is_one_chip_wide() -> None:

@@ -599,7 +599,7 @@ def test_the_radix_noise_median_on_noise_and_its_hard_cases(n: int) -> None:
     seed=st.integers(0, 2**16),
 )
 # Converged at a low SNR, a step whose cost change is at rounding level: one fit takes it,
-# the other turns it down and takes a smaller one later (1.8e-9 samples apart after 4
+# the other turns it down and takes a smaller one later (1.8e-9 lags apart after 4
 # iterations, 1.4e-11 after 7).
 @example(
     delay=40.0,
@@ -614,8 +614,9 @@ def test_lone_echo_step_is_the_general_fit_s(
 ) -> None:
     """The batch path's scalar step for a lone echo (_lone_fit) takes the general joint fit's
     Levenberg-Marquardt steps (_joint_fit_into, one echo, real amplitude) to rounding, or, where
-    rounding decides whether a converged fit's last tiny step is taken, lands within 1e-7 samples
-    (0.5 ps at 200 kHz; a wrong step would be off by thousandths of a sample or more)."""
+    rounding decides whether a converged fit's last tiny step is taken, lands within 1e-7 lags
+    (the filter keeps every 2nd sample: 2e-7 samples, 1 ps at 200 kHz; a wrong step would be
+    off by thousandths of a lag or more)."""
     from echoloc import _echoes_kernels as kernels
 
     mf = MatchedFilter(PULSE, N_SAMPLES, FS, decimation=2)

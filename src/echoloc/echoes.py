@@ -159,9 +159,12 @@ def analytic_weights(n_fft: int) -> NDArray[np.float64]:
 
 
 _ACF_TABLES: dict[tuple[Any, ...], NDArray[np.complex128]] = {}
-"""The last :data:`_ACF_TABLES_KEPT` sub-sample tables built (:attr:`MatchedFilter.acf_table`),
-least recently used first; 0.84 MiB each for the default head."""
-_ACF_TABLES_KEPT = 8
+"""The sub-sample tables last built (:attr:`MatchedFilter.acf_table`), least recently used
+first, up to :data:`_ACF_TABLES_BYTES` in all."""
+_ACF_TABLES_BYTES = 16 << 20
+"""What the kept tables may take: 19 of the default head's (0.84 MiB each). A table is
+``oversample x (2 half_width + 1) x 16`` bytes, which grows with the template (256 MiB for a
+65 520-sample one); one larger than this is not kept."""
 _ACF_TABLES_LOCK = threading.Lock()
 
 
@@ -284,11 +287,11 @@ class MatchedFilter:
 
         Row j holds R(m - j/U) for m = -H..H (in lags), with R(0) = 1 for j = 0.
 
-        Building it takes ~12 ms (256 phase ramps and inverse FFTs), the most of preparing a
-        stream's session, so the last few tables are kept by what defines them (the template,
-        the FFT length, the oversampling, the decimation): a sender that starts its session
-        again, or the head ``warm_kernels`` prepared, finds its table made. Each filter gets
-        its own copy (0.1 ms).
+        Building it takes ~12 ms for the default head (256 phase ramps and inverse FFTs), the
+        most of preparing a stream's session, so the tables last built are kept (up to
+        :data:`_ACF_TABLES_BYTES`) by what defines them (the template, the FFT length, the
+        oversampling, the decimation): a sender that starts its session again, or the head
+        ``warm_kernels`` prepared, finds its table made. Each filter gets its own copy (0.1 ms).
         """
         key = (self.template.tobytes(), self.template.dtype.str, self.n_fft, self.oversample, self.decimation)
         with _ACF_TABLES_LOCK:
@@ -297,10 +300,13 @@ class MatchedFilter:
                 _ACF_TABLES[key] = kept  # now the most recently used
                 return kept.copy()
         table = self._built_acf_table()
-        with _ACF_TABLES_LOCK:
-            _ACF_TABLES[key] = table.copy()
-            while len(_ACF_TABLES) > _ACF_TABLES_KEPT:
-                del _ACF_TABLES[next(iter(_ACF_TABLES))]  # the least recently used
+        if table.nbytes <= _ACF_TABLES_BYTES:
+            with _ACF_TABLES_LOCK:
+                _ACF_TABLES.pop(key, None)  # another thread's, built meanwhile: made the newest
+                _ACF_TABLES[key] = table.copy()
+                total = sum(t.nbytes for t in _ACF_TABLES.values())
+                while total > _ACF_TABLES_BYTES:
+                    total -= _ACF_TABLES.pop(next(iter(_ACF_TABLES))).nbytes  # least recently used
         return table
 
     def _built_acf_table(self) -> NDArray[np.complex128]:

@@ -168,10 +168,10 @@ class StreamStats:
 class LatencyHistogram:
     """Quantiles of positive durations in constant memory: log-spaced bins, 1 % wide.
 
-    Bins cover 100 ns to 1000 s; a quantile is the geometric centre of its bin, so
-    it is within 0.5 % of the exact order statistic (values outside are clamped to
-    the end bins), and never outside the smallest and largest value counted (a bin's
-    centre can lie beyond them: a p99 above the maximum). Memory: about 2300 counters
+    Bins cover 100 ns to 1000 s; a quantile is the geometric centre of its bin, so it is
+    within 0.5 % of the exact order statistic for values in that range (values outside are
+    counted in the end bins), and never outside the smallest and largest value counted (a
+    bin's centre can lie beyond them: a p99 above the maximum). Memory: about 2300 counters
     (18 kB), whatever the stream's length.
     """
 
