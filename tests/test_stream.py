@@ -312,12 +312,17 @@ def test_udp_losses_garbage_and_misfits_are_counted_never_silent(recording):
 
 
 def test_processor_counts_late_frames_and_refuses_misfits(recording):
-    processor = StreamProcessor(prepare(recording), deadline_s=0.05)
+    processor = StreamProcessor(prepare(recording), deadline_s=0.5)
     old = StreamFrame(0, recording.frames[0], 0.0, 0, time.monotonic() - 1.0)
     result = processor.process(old)
     assert result.late
     assert result.latency_s >= 1.0
-    assert processor.stats().late == 1
+    # A frame that just arrived, and one without an arrival time, are on time.
+    fresh = processor.process(StreamFrame(1, recording.frames[1], 0.01, 0, time.monotonic()))
+    assert not fresh.late
+    assert fresh.latency_s < 0.5
+    assert not processor.process(StreamFrame(2, recording.frames[2], 0.02)).late
+    assert (processor.stats().late, processor.stats().processed) == (1, 3)
     with pytest.raises(EchoLocError, match="3 channels"):
         processor.process(StreamFrame(1, recording.frames[0][:3], 0.0))
 

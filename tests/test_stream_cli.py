@@ -11,6 +11,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import h5py
@@ -115,8 +116,27 @@ def test_stream_prints_what_locate_prints_and_counts_nothing_lost(recording_path
     assert stdout == located.stdout
     assert len(stdout.splitlines()) == 15
     summary = stream.lines[-1]
-    assert "received 15, processed 15, lost 0, dropped 0" in summary
+    assert "received 15, processed 15, lost 0, dropped 0, late 0, out of order 0" in summary
     assert "malformed 0, rejected 0" in summary
+
+
+def test_a_second_session_keeps_the_counts_of_the_first(tmp_path, recording_path):
+    """Two senders in turn, the second's head at another temperature (a new session, a new
+    chain): every frame is located as `locate` locates its file, and the counters are the
+    stream's, not the last session's (they once said processed 15 of 30)."""
+    warmer = tmp_path / "warmer.h5"
+    write_recording(simulate(replace(default_scene(), temperature_c=30.0, seed=1), 15), warmer)
+    stream = Proc("stream", "--listen", "127.0.0.1:0", "--json", "--max-frames", "30")
+    port = stream.port()
+    for path in (recording_path, warmer):
+        sent = echoloc("send", path, "--to", f"127.0.0.1:{port}", "--speed", "0")
+        assert sent.returncode == 0, sent.stderr
+    code, stdout = stream.finish()
+    assert code == 0, stream.lines
+    located = [echoloc("locate", path, "--json", check=True).stdout for path in (recording_path, warmer)]
+    assert stdout == "".join(located)
+    assert sum("session: 4 receivers" in line for line in stream.lines) == 2
+    assert "received 30, processed 30, lost 0, dropped 0, late 0" in stream.lines[-1]
 
 
 def test_stream_with_the_live_view_and_its_map_changes_nothing_it_prints(recording_path):
@@ -144,10 +164,49 @@ def test_stream_reports_counts_on_sigint(recording_path):
     found = re.search(r"received (\d+), processed (\d+), lost (\d+), dropped (\d+)", stream.lines[-1])
     assert found is not None, stream.lines
     received, processed, lost, dropped = map(int, found.groups())
-    # Every one of the 15 frames sent is accounted for: processed, lost or dropped.
+    left = re.search(r"dropped \d+, unprocessed (\d+)", stream.lines[-1])
+    unprocessed = 0 if left is None else int(left.group(1))
+    # Every one of the 15 frames sent is accounted for: processed, lost, dropped, or left
+    # unprocessed by the interrupt (still queued, or in the batch it cut short).
     assert received + lost == 15
-    assert processed + dropped == received
+    assert processed + dropped + unprocessed == received
     assert stream.lines[-1].endswith("(interrupted)")
+
+
+def test_frames_left_when_the_stream_stops_are_counted_unprocessed(recording_path):
+    """Stopped after 5 frames while the sender's 15 came in: those received and neither
+    processed nor dropped are reported as left unprocessed, never silently."""
+    stream = Proc("stream", "--listen", "127.0.0.1:0", "--max-frames", "5")
+    port = stream.port()
+    echoloc("send", recording_path, "--to", f"127.0.0.1:{port}", "--speed", "0")  # may be cut off
+    code, _ = stream.finish()
+    assert code == 0, stream.lines
+    found = re.search(r"received (\d+), processed (\d+), lost 0, dropped (\d+)", stream.lines[-1])
+    assert found is not None, stream.lines
+    received, processed, dropped = map(int, found.groups())
+    assert processed == 5
+    left = re.search(r"dropped \d+, unprocessed (\d+)", stream.lines[-1])
+    assert (0 if left is None else int(left.group(1))) == received - processed - dropped
+
+
+def test_frames_left_when_recording_stops_are_counted_unrecorded(tmp_path, recording_path):
+    """`record` stopped after 5 frames while 15 came in: every frame received is recorded,
+    dropped, or reported as unrecorded, and the file holds the 5."""
+    out = tmp_path / "five.h5"
+    record = Proc("record", out, "--listen", "127.0.0.1:0", "--max-frames", "5")
+    port = record.port()
+    echoloc("send", recording_path, "--to", f"127.0.0.1:{port}", "--speed", "0")  # may be cut off
+    code, _ = record.finish()
+    assert code == 0, record.lines
+    found = re.search(
+        r"(\d+) frames in \d+ batch(?:es)? .* received (\d+), lost 0, dropped (\d+)", record.lines[-1]
+    )
+    assert found is not None, record.lines
+    recorded, received, dropped = map(int, found.groups())
+    assert recorded == 5
+    left = re.search(r"dropped \d+, unrecorded (\d+)", record.lines[-1])
+    assert (0 if left is None else int(left.group(1))) == received - recorded - dropped
+    assert read_recording(out).n_frames == 5
 
 
 def test_send_to_nothing_is_one_line_and_exit_2(recording_path):
@@ -165,7 +224,8 @@ def test_record_then_read_back_equals_what_was_sent(tmp_path, recording_path):
     send_recording(source, Endpoint("127.0.0.1", port), speed=0, sample_format="float32")
     code, _ = record.finish()
     assert code == 0, record.lines
-    assert "15 frames in 4 batches" in record.lines[-1]
+    assert "15 frames in 4 batches to" in record.lines[-1]
+    assert "received 15, lost 0, dropped 0, malformed 0" in record.lines[-1]
     back = read_recording(out)
     np.testing.assert_array_equal(back.frames, source.frames.astype(np.float32))
     np.testing.assert_array_equal(back.receivers_m, source.receivers_m)
@@ -261,7 +321,7 @@ def test_bench_reports_both_chains_and_the_physics():
         (["stream", "--listen", "127.0.0.1:abc"], "port 'abc' is not a number"),
         (["record", "x.h5", "--udp", "--listen", "127.0.0.1:99999"], "outside 0..65535"),
         (["send", "/no/such.h5"], "no such file"),
-        (["send", "x.h5", "--rate", "0"], None),
+        (["send", "x.h5", "--rate", "0"], "--rate must be > 0"),
         (["stream", "--listen", "127.0.0.1:0", "--duration", "-1"], "--duration"),
         (["record", "x.h5", "--listen", "127.0.0.1:0", "--batch-seconds", "0"], "--batch-seconds"),
     ],

@@ -2073,6 +2073,8 @@ class _LiveStream:
         self.as_json = as_json
         self.record_path = record_path
         self.processor: Any = None
+        self._processed_before = 0  # by the processors of earlier sessions
+        self._late_before = 0
         self.recorder: Any = None
         self.header: Recording | None = None
         self.view: Any = None
@@ -2084,7 +2086,12 @@ class _LiveStream:
         self._last_table = 0.0
 
     def stats(self) -> Any:
-        return self.processor.stats(**self.listener.counters())
+        """The stream's counters: the listener's, and the processors' of every session so far
+        (each session has its own processor; its latencies are the current session's)."""
+        stats = self.processor.stats(**self.listener.counters())
+        return replace(
+            stats, processed=stats.processed + self._processed_before, late=stats.late + self._late_before
+        )
 
     def handle(self, item: Any) -> None:
         """A new session (a SessionEvent), or the frames that queued up (a list)."""
@@ -2094,6 +2101,9 @@ class _LiveStream:
         if isinstance(item, SessionEvent):
             header = item.header
             chain = self.make_chain(header)
+            if self.processor is not None:  # the counters go on across sessions
+                self._processed_before += self.processor.processed
+                self._late_before += self.processor.late
             self.processor = StreamProcessor(chain, deadline_s=self.deadline_s)
             self.processor.warm_up()
             if self.view is not None:
@@ -2172,7 +2182,10 @@ class _LiveStream:
         if self.processor is None:
             line = ", ".join(f"{k} {v}" for k, v in self.listener.counters().items()) + "; no session arrived"
         else:
-            line = self.stats().summary()
+            # The listener has stopped: what it received and the queue did not drop is either
+            # processed or was left (queued, or in a batch an interrupt cut short).
+            stats = self.stats()
+            line = replace(stats, unprocessed=stats.received - stats.processed - stats.dropped).summary()
         self._say(line + (" (interrupted)" if interrupted else ""))
         if self.recorder is not None and self.record_error is None:
             self._say(
@@ -2280,11 +2293,16 @@ def record_command(
     if recorder is None:
         raise EchoLocError(f"{output}: no session arrived on {listener.address}, nothing recorded")
     dropped = counters["dropped"] + recorder.dropped
+    # Received and neither recorded nor dropped: still queued when recording stopped, or of a
+    # second session.
+    unrecorded = counters["received"] - recorder.frames - dropped
+    left = f", unrecorded {unrecorded}" if unrecorded else ""
     end = " (interrupted)" if interrupted else ""
     stderr.print(
-        f"echoloc: record: {recorder.frames} frames in {recorder.batches} batches to {output}; "
-        f"lost {counters['lost']}, dropped {dropped}, malformed {counters['malformed']}, "
-        f"rejected {counters['rejected']}{end}",
+        f"echoloc: record: {recorder.frames} frames in {recorder.batches} "
+        f"batch{'' if recorder.batches == 1 else 'es'} to {output}; "
+        f"received {counters['received']}, lost {counters['lost']}, dropped {dropped}{left}, "
+        f"malformed {counters['malformed']}, rejected {counters['rejected']}{end}",
         markup=False,
         highlight=False,
     )

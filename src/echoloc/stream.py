@@ -113,6 +113,10 @@ class StreamStats:
     rejected
         Well-formed frames that do not fit the session (channels, samples, rate), or
         that came before any session.
+    unprocessed
+        Frames received but not processed when the stream stopped: still queued, or in a
+        batch that an interrupt cut short (``echoloc stream`` counts them as it ends, so that
+        received = processed + dropped + unprocessed; 0 while it runs).
     latency_p50_s, latency_p99_s, latency_max_s
         From arrival to result, s (NaN before the first frame).
     """
@@ -125,6 +129,7 @@ class StreamStats:
     out_of_order: int = 0
     malformed: int = 0
     rejected: int = 0
+    unprocessed: int = 0
     latency_p50_s: float = math.nan
     latency_p99_s: float = math.nan
     latency_max_s: float = math.nan
@@ -144,6 +149,7 @@ class StreamStats:
             "out_of_order": self.out_of_order,
             "malformed": self.malformed,
             "rejected": self.rejected,
+            "unprocessed": self.unprocessed,
             "latency_p50_ms": ms(self.latency_p50_s),
             "latency_p99_ms": ms(self.latency_p99_s),
             "latency_max_ms": ms(self.latency_max_s),
@@ -156,9 +162,10 @@ class StreamStats:
         def fmt(v: float | None) -> str:
             return "-" if v is None else f"{v:.3f}"
 
+        unprocessed = f", unprocessed {self.unprocessed}" if self.unprocessed else ""
         return (
             f"received {self.received}, processed {self.processed}, lost {self.lost}, "
-            f"dropped {self.dropped}, late {self.late}, out of order {self.out_of_order}, "
+            f"dropped {self.dropped}{unprocessed}, late {self.late}, out of order {self.out_of_order}, "
             f"malformed {self.malformed}, rejected {self.rejected}; latency p50 "
             f"{fmt(r['latency_p50_ms'])} ms, p99 {fmt(r['latency_p99_ms'])} ms, "
             f"max {fmt(r['latency_max_ms'])} ms"
