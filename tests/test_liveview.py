@@ -123,11 +123,21 @@ def test_foxglove_client_receives_and_decodes_objects_traces_and_stats(results):
         assert np.min(np.linalg.norm(centres - ball, axis=1)) < 2e-3
     assert all(t.text.endswith(" mm") for t in entity.texts)
 
-    # PointCloud, protobuf: x, y, z, score as float32.
+    # PointCloud, protobuf: x, y, z, score as float32, one point per object of the frame
+    # published (whichever of the four it was: matched on all four columns).
     channel, _, payload = got["/echoloc/points"]
     cloud = _protobuf_class(channel).FromString(payload)
     assert cloud.point_stride == 16
     points = np.frombuffer(cloud.data, "<f4").reshape(-1, 4)
+    points = points[np.argsort(points[:, 2])]
+    expected = [
+        np.array([[*o.position_m, o.score] for o in sorted(r.objects.objects, key=lambda o: o.position_m[2])])
+        for r, _ in frames
+    ]
+    assert any(
+        e.shape == points.shape and np.allclose(points, e.astype(np.float32), rtol=0, atol=1e-7)
+        for e in expected
+    )
     np.testing.assert_allclose(np.sort(points[:, 2]), np.sort(centres[:, 2]), atol=1e-6)
 
     # Echo traces: the matched filter's envelope per receiver, peaking at one of its echoes.
