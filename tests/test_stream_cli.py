@@ -228,6 +228,8 @@ def test_record_then_read_back_equals_what_was_sent(tmp_path, recording_path):
     assert "received 15, lost 0, dropped 0, malformed 0" in record.lines[-1]
     back = read_recording(out)
     np.testing.assert_array_equal(back.frames, source.frames.astype(np.float32))
+    with h5py.File(out, "r") as f:  # float32 on the wire: float32 on disk, nothing rounded
+        assert f["frames"].dtype == np.float32
     np.testing.assert_array_equal(back.receivers_m, source.receivers_m)
     np.testing.assert_array_equal(back.waveform, source.waveform)
     np.testing.assert_allclose(back.frame_times_s, np.arange(15) * 0.01)
@@ -258,13 +260,15 @@ def test_record_killed_with_sigkill_keeps_every_flushed_batch(tmp_path, recordin
     assert record.popen.returncode == -signal.SIGKILL
     with h5py.File(out, "r") as f:  # the file opens ...
         assert f["frames"].shape[0] >= written
+        assert f["frames"].dtype == np.float64  # as sent: float32 would round these samples
     back = read_recording(out)  # ... and passes the contract's every check
     reported = [int(m.group(1)) for line in record.lines if (m := re.search(r"(\d+) frames written", line))]
     # At most the batch being written is lost: everything reported flushed is there.
     assert back.n_frames >= reported[-1]
     assert back.n_frames % 5 == 0
     n = source.n_frames
-    expected = np.stack([source.frames[k % n] for k in range(back.n_frames)]).astype(np.float32)
+    # Sent as float64 (float32 would round these samples), recorded as float64.
+    expected = np.stack([source.frames[k % n] for k in range(back.n_frames)])
     np.testing.assert_array_equal(back.frames, expected)
     # Frame times run on across the loops at the recording's own step (10 ms).
     np.testing.assert_allclose(np.diff(back.frame_times_s), 0.01, atol=1e-9)
@@ -281,11 +285,15 @@ def test_stream_record_writes_the_processed_frames(tmp_path, recording_path):
     out = tmp_path / "both.h5"
     stream = Proc("stream", "--listen", "127.0.0.1:0", "--once", "--json", "--record", out)
     port = stream.port()
-    send_recording(read_recording(recording_path), Endpoint("127.0.0.1", port), speed=0)
+    source = read_recording(recording_path)
+    send_recording(source, Endpoint("127.0.0.1", port), speed=0)
     code, stdout = stream.finish()
     assert code == 0, stream.lines
     assert [json.loads(line)["frame"] for line in stdout.splitlines()] == list(range(15))
-    assert read_recording(out).n_frames == 15
+    back = read_recording(out)
+    # The samples as sent: float32 on the wire only where it holds them exactly ("auto").
+    np.testing.assert_array_equal(back.frames, source.frames)
+    np.testing.assert_array_equal(back.receivers_m, source.receivers_m)
     assert any("recorded 15 frames" in line for line in stream.lines)
 
 
@@ -298,8 +306,10 @@ def test_help_of_the_real_time_commands(command):
     result = CliRunner().invoke(cli, [command, "--help"])
     assert result.exit_code == 0
     assert f"Usage: cli {command}" in result.output or f"Usage: echoloc {command}" in result.output
-    if command in ("stream", "record"):
+    if command in ("stream", "record", "send"):
         assert "127.0.0.1:7447" in result.output  # loopback unless told otherwise
+    if command == "bench":
+        assert all(option in result.output for option in ("--rounds", "--workers", "--reflectors"))
 
 
 def test_bench_reports_both_chains_and_the_physics():
@@ -371,7 +381,7 @@ def test_a_busy_port_is_one_line_and_exit_2(capsys):
 
 def test_stream_records_a_batch_before_processing_it(tmp_path, recording_path):
     """`stream --record`: frames are written before the chain runs on them, so a batch whose
-    processing fails is still in the recording, sample for sample (to float32)."""
+    processing fails is still in the recording, sample for sample."""
     from echoloc.cli import _LiveStream
     from echoloc.pipeline import prepare
     from echoloc.stream import StreamProcessor, recording_frames
@@ -397,5 +407,5 @@ def test_stream_records_a_batch_before_processing_it(tmp_path, recording_path):
     assert session.record_error is None
     kept = read_recording(out)
     assert kept.n_frames == 3
-    # The recorder stores float32 (recording.write_recording_stream's default), as `record` does.
-    np.testing.assert_array_equal(np.asarray(kept.frames), np.asarray(source.frames[:3]).astype(np.float32))
+    # The recorder stores the samples as they came: float64 here, which float32 would round.
+    np.testing.assert_array_equal(np.asarray(kept.frames), np.asarray(source.frames[:3]))

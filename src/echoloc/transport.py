@@ -16,6 +16,7 @@ The edges of a live stream, kept apart from the processing:
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import math
 import queue
@@ -27,6 +28,7 @@ from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -549,13 +551,26 @@ def _connect(endpoint: Endpoint, timeout_s: float) -> socket.socket:
 # ----------------------------------------------------------------------------- recording
 
 
+def _lossless_storage(first: FrameBatch | None) -> type[np.floating[Any]]:
+    """float32 when every sample of the first batch is a float32 value (float32 or int16 on
+    the wire, or complex64), else float64: frames arrive as float64 whatever the wire carried,
+    and a sender that chose float64 (:func:`lossless_format`) must not be rounded on disk."""
+    if first is None:
+        return np.float32
+    frames = np.asarray(first.frames)
+    single = frames.astype(np.complex64 if frames.dtype.kind == "c" else np.float32)
+    return np.float32 if np.array_equal(single, frames) else np.float64
+
+
 class Recorder:
     """Appends frames to an HDF5 recording from its own thread, one flushed batch at a time.
 
     Frames given to :meth:`add` are gathered into batches of ``batch_frames`` frames
     or ``batch_s`` seconds, whichever comes first, and appended by
     :func:`echoloc.recording.append_recording_stream`: a recorder killed at any
-    moment loses at most the batch it was gathering or writing. The hand-over queue
+    moment loses at most the batch it was gathering or writing. The file is made with the
+    first batch, in the precision the samples came in (:func:`_lossless_storage`; a sender
+    that changes precision later is rounded to the first). The hand-over queue
     is bounded (``max_frames``); frames that find it full are counted in
     :attr:`dropped`, never waited for, so recording never holds up the stream.
     """
@@ -650,7 +665,14 @@ class Recorder:
 
     def _run(self) -> None:
         try:
-            append_recording_stream(self.header, self._batches(), self.path)
+            batches = self._batches()
+            first = next(batches, None)
+            append_recording_stream(
+                self.header,
+                batches if first is None else itertools.chain([first], batches),
+                self.path,
+                frames_dtype=_lossless_storage(first),
+            )
         except BaseException as error:  # handed to close(), which raises it in the caller's thread
             self.error = error
             while True:  # what was handed over and will not be written
