@@ -330,6 +330,24 @@ def test_processor_counts_late_frames_and_refuses_misfits(recording):
         processor.process(StreamFrame(1, recording.frames[0][:3], 0.0))
 
 
+def test_a_new_session_takes_its_chain_and_keeps_the_streams_counters(recording, two_tx):
+    """start_session: the new chain's frames come out as a fresh processor's would (no echoes of
+    the old session combined into them), while processed, late and the latencies go on."""
+    processor = StreamProcessor(prepare(recording), deadline_s=0.5)
+    processor.process(StreamFrame(0, recording.frames[0], 0.0, 0, time.monotonic() - 1.0))  # late
+    processor.process(StreamFrame(1, recording.frames[1], 0.01))
+    chain = prepare(two_tx)
+    processor.start_session(chain)
+    assert processor.chain is chain
+    got = [processor.process(f) for f in recording_frames(two_tx)]
+    fresh = StreamProcessor(chain)
+    expected = [fresh.process(f) for f in recording_frames(two_tx)]
+    assert [objects_record(r.objects) for r in got] == [objects_record(r.objects) for r in expected]
+    stats = processor.stats()
+    assert (stats.processed, stats.late) == (2 + two_tx.n_frames, 1)
+    assert processor.latency.count == 2 + two_tx.n_frames
+
+
 def test_a_sender_written_from_the_protocol_page_alone_is_located_right():
     """examples/minimal_sender.py uses only the standard library and docs/STREAM_PROTOCOL.md."""
     import subprocess

@@ -2073,8 +2073,6 @@ class _LiveStream:
         self.as_json = as_json
         self.record_path = record_path
         self.processor: Any = None
-        self._processed_before = 0  # by the processors of earlier sessions
-        self._late_before = 0
         self.recorder: Any = None
         self.header: Recording | None = None
         self.view: Any = None
@@ -2086,12 +2084,8 @@ class _LiveStream:
         self._last_table = 0.0
 
     def stats(self) -> Any:
-        """The stream's counters: the listener's, and the processors' of every session so far
-        (each session has its own processor; its latencies are the current session's)."""
-        stats = self.processor.stats(**self.listener.counters())
-        return replace(
-            stats, processed=stats.processed + self._processed_before, late=stats.late + self._late_before
-        )
+        """The stream's counters: the listener's and the processor's, over every session."""
+        return self.processor.stats(**self.listener.counters())
 
     def handle(self, item: Any) -> None:
         """A new session (a SessionEvent), or the frames that queued up (a list)."""
@@ -2101,10 +2095,10 @@ class _LiveStream:
         if isinstance(item, SessionEvent):
             header = item.header
             chain = self.make_chain(header)
-            if self.processor is not None:  # the counters go on across sessions
-                self._processed_before += self.processor.processed
-                self._late_before += self.processor.late
-            self.processor = StreamProcessor(chain, deadline_s=self.deadline_s)
+            if self.processor is None:
+                self.processor = StreamProcessor(chain, deadline_s=self.deadline_s)
+            else:
+                self.processor.start_session(chain)  # the counters go on across sessions
             self.processor.warm_up()
             if self.view is not None:
                 self.view.set_session(header)

@@ -355,11 +355,17 @@ class StreamProcessor:
     """
 
     def __init__(self, chain: Chain, *, deadline_s: float | None = None) -> None:
-        self.chain = chain
         self.deadline_s = deadline_s
         self.latency = LatencyHistogram()
         self.processed = 0
         self.late = 0
+        self.start_session(chain)
+
+    def start_session(self, chain: Chain) -> None:
+        """Go on with a new session's ``chain`` (a sender that started again, another head):
+        the frames it takes and the transmitters it combines are the new chain's; the counters
+        and latencies go on, so :meth:`stats` stays the stream's."""
+        self.chain = chain
         recording = chain.recording
         # A recording says with frame_transmitter whether its frames are combined (as
         # pipeline.run does); a session header has no per-frame fields: its frames

@@ -520,9 +520,15 @@ def lossless_format(recording: Recording, udp: bool = False) -> str:
     samples in all do not, and are sent rounded to float32 (a relative error of
     6e-8, far below any ADC's).
     """
-    frames = np.asarray(recording.frames)
-    exact = bool(np.array_equal(frames.astype(np.float32), frames))
-    return "float32" if exact or udp else "float64"
+    return "float32" if udp or _single_precision_exact(recording.frames) else "float64"
+
+
+def _single_precision_exact(frames: Any) -> bool:
+    """Is every sample a float32 value (complex64 for complex samples)?"""
+    frames = np.asarray(frames)
+    return bool(
+        np.array_equal(frames.astype(np.complex64 if frames.dtype.kind == "c" else np.float32), frames)
+    )
 
 
 def _connect(endpoint: Endpoint, timeout_s: float) -> socket.socket:
@@ -555,11 +561,7 @@ def _lossless_storage(first: FrameBatch | None) -> type[np.floating[Any]]:
     """float32 when every sample of the first batch is a float32 value (float32 or int16 on
     the wire, or complex64), else float64: frames arrive as float64 whatever the wire carried,
     and a sender that chose float64 (:func:`lossless_format`) must not be rounded on disk."""
-    if first is None:
-        return np.float32
-    frames = np.asarray(first.frames)
-    single = frames.astype(np.complex64 if frames.dtype.kind == "c" else np.float32)
-    return np.float32 if np.array_equal(single, frames) else np.float64
+    return np.float32 if first is None or _single_precision_exact(first.frames) else np.float64
 
 
 class Recorder:
