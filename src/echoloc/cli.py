@@ -2375,6 +2375,10 @@ _BARE_GROUP: Any = getattr(click.exceptions, "NoArgsIsHelpError", ())
 """What click (8.2 on) raises for ``echoloc`` without a command: its help, not an error
 (click 8.1 printed the help and exited 0 itself)."""
 
+from echoloc.cli_import import import_group  # noqa: E402  (registered beside its use)
+
+cli.add_command(import_group, name="import")
+
 
 def main(argv: list[str] | None = None) -> None:
     """Run the CLI; bad input becomes one line on stderr and exit code 2."""
