@@ -34,6 +34,8 @@ import numpy as np
 import scipy.fft
 from numba import njit, prange
 
+from echoloc.echoes import _PRECISION_AMPLITUDE, _PRECISION_POWER
+
 
 @njit(cache=True, nogil=True)
 def weigh_and_fold(spectrum: Any, weights: Any, out: Any) -> None:  # pragma: no cover - compiled
@@ -889,6 +891,42 @@ lowers the cost by less than this fraction of it: they only choose the basin (ha
 cycle wide), and the cluster's joint fit after the split settles the pair in it."""
 
 
+@njit(cache=True)
+def _window_max(
+    keys: Any, values: Any, count: int, reach: int, out: Any, queue: Any
+) -> None:  # pragma: no cover - compiled
+    """``out[i]`` = the largest ``values[j]``, j < ``count``, with ``|keys[j] - keys[i]| <= reach``
+    (``keys`` ascending; ``i`` itself included): a sliding maximum over a monotone queue of
+    indices (``queue``, room for ``count``), one pass."""
+    head = 0
+    tail = 0
+    right = 0
+    for i in range(count):
+        while right < count and keys[right] <= keys[i] + reach:
+            while tail > head and values[queue[tail - 1]] <= values[right]:
+                tail -= 1
+            queue[tail] = right
+            tail += 1
+            right += 1
+        while keys[queue[head]] < keys[i] - reach:
+            head += 1
+        out[i] = values[queue[head]]
+
+
+@njit(cache=True)
+def _local_floor(
+    keys: Any, power: Any, count: int, reach: int, out: Any, scratch: Any, queue: Any
+) -> None:  # pragma: no cover - compiled
+    """The dynamic range's reference for each candidate (echoes._local_strongest): ``out[i]`` = the
+    largest power among the candidates within ``reach`` lags of candidate i that are the largest
+    within ``reach`` lags of themselves (certain echoes: no stronger one's sidelobes reach them), 0
+    if none. ``keys`` (the candidates' lags) ascending; ``scratch`` and ``queue`` room for ``count``."""
+    _window_max(keys, power, count, reach, scratch, queue)
+    for i in range(count):
+        scratch[i] = power[i] if power[i] >= scratch[i] else 0.0
+    _window_max(keys, scratch, count, reach, out, queue)
+
+
 @njit(cache=True, inline="always")
 def _sort_by_delay(tofs: Any, amps: Any, peaks: Any, state: Any, count: int) -> None:  # pragma: no cover
     """Sort the first ``count`` echoes by delay, their amplitudes, peaks and states alongside
@@ -1407,6 +1445,7 @@ def batch_echoes(
         dynamic_range,
         first,
         max_candidates,
+        residue,
         max_joint,
         complex_iterations,
         real_iterations,
@@ -1420,6 +1459,10 @@ def batch_echoes(
     power_map = np.zeros(n)
     residual_power = np.zeros(n)  # the checks' |data - model|^2 around each echo
     maxima = np.zeros(n + 1, dtype=np.int64)
+    maxima_power = np.zeros(n + 1)
+    local_floor = np.zeros(n + 1)
+    local_scratch = np.zeros(n + 1)
+    queue = np.zeros(n + 1, dtype=np.int64)
     n_noise = (n + noise_step - 1) // noise_step
     noise = np.zeros(n_noise)
     median_scratch = np.zeros((3, n_noise))
@@ -1490,10 +1533,10 @@ def batch_echoes(
         power = max(noise_median / math.log(2.0), 1e-300)
         out_power[ch] = power
         threshold = threshold_factor * power
-        # Candidates: local maxima above the threshold, within the dynamic range. The test of a
-        # sample above the threshold is branch-free (it is written, the count advances by the
-        # test): there the tests are unpredictable, and mispredicted branches cost more than
-        # the arithmetic.
+        # Candidates: local maxima above the threshold, within the dynamic range of the strong
+        # echoes around them (_local_floor). The test of a sample above the threshold is
+        # branch-free (it is written, the count advances by the test): there the tests are
+        # unpredictable, and mispredicted branches cost more than the arithmetic.
         n_cand = 0
         strongest = 0.0
         for k in range(max(first, 1), n - 1):
@@ -1505,11 +1548,14 @@ def batch_echoes(
                 strongest = max(strongest, pk * local_max)
         if n_cand == 0:
             continue
+        for i in range(n_cand):
+            maxima_power[i] = power_map[maxima[i]]
+        _local_floor(maxima, maxima_power, n_cand, residue, local_floor, local_scratch, queue)
         m = 0
         for i in range(n_cand):
             k = maxima[i]
-            pk = power_map[k]
-            if pk >= strongest * dynamic_range:
+            pk = maxima_power[i]
+            if pk >= local_floor[i] * dynamic_range and pk >= strongest * _PRECISION_POWER:
                 if m == max_candidates:
                     m += 1
                     break
@@ -1786,13 +1832,17 @@ def finish_channels(
     blanking_s: float,
     threshold_db: float,
     floor_ratio: float,
+    support_s: float,
     tof_s: Any,
     amplitude: Any,
     snr_db: Any,
     kept: Any,
 ) -> None:  # pragma: no cover - compiled
     """echoes.finish_channel of every channel the batch path fitted: delays in seconds, output
-    SNR, blanked, sub-threshold and out-of-range echoes dropped, in ascending delay (stable)."""
+    SNR, blanked, sub-threshold and out-of-range echoes dropped, and those weaker by more than
+    the dynamic range (``floor_ratio``) than an echo within ``support_s`` of them; in ascending
+    delay (stable)."""
+    seconds = np.empty(out_tof.shape[1])
     for ch in range(len(out_count)):
         kept[ch] = 0
         if not ok[ch]:
@@ -1800,14 +1850,18 @@ def finish_channels(
         count = out_count[ch]
         strongest = 0.0
         for e in range(count):
+            seconds[e] = out_tof[ch, e] / lag_rate_hz + arrival_s
             strongest = max(strongest, out_amp[ch, e])
-        floor = strongest * floor_ratio
         m = 0
         for e in range(count):
-            t = out_tof[ch, e] / lag_rate_hz + arrival_s
+            t = seconds[e]
             a = out_amp[ch, e]
             snr = 10 * np.log10(max(a * a, 1e-300) / out_power[ch])
-            if t >= blanking_s and snr >= threshold_db and a >= floor and np.isfinite(t):
+            faint = a < strongest * _PRECISION_AMPLITUDE
+            for j in range(count):
+                # (not >: a delay that is not a number is near every echo, as finish_channel takes it)
+                faint |= (not abs(t - seconds[j]) > support_s) and a < out_amp[ch, j] * floor_ratio
+            if t >= blanking_s and snr >= threshold_db and not faint and np.isfinite(t):
                 # Insertion into the kept echoes, after any of equal delay (a stable sort).
                 i = m
                 while i > 0 and tof_s[ch, i - 1] > t:
@@ -1832,11 +1886,11 @@ def batch_channels(
     and its outputs' allocation).
 
     ``constants`` are batch_echoes' arguments from ``table`` to ``noise_step``, ``finishing``
-    finish_channels' from ``lag_rate_hz`` to ``floor_ratio``; ``out`` (3, n_ch, slots) takes the
+    finish_channels' from ``lag_rate_hz`` to ``support_s``; ``out`` (3, n_ch, slots) takes the
     delays (s), amplitudes and SNRs (dB), ``kept`` their counts and ``ok`` False for the channels
     left to CLEAN.
     """
-    lag_rate_hz, arrival_s, blanking_s, threshold_db, floor_ratio = finishing
+    lag_rate_hz, arrival_s, blanking_s, threshold_db, floor_ratio, support_s = finishing
     n_ch = corr.shape[0]
     slots = out.shape[2]
     out_tof = np.zeros((n_ch, slots))
@@ -1861,6 +1915,7 @@ def batch_channels(
         blanking_s,
         threshold_db,
         floor_ratio,
+        support_s,
         out[0],
         out[1],
         out[2],
@@ -1997,6 +2052,7 @@ def clean_extract(
     count: int,
     threshold: float,
     floor: float,
+    residue: int,
     first: int,
     max_echoes: int,
     refine_passes: int,
@@ -2004,25 +2060,30 @@ def clean_extract(
     """_Clean._extract: take echoes out of ``residual`` strongest first; the new number of components.
 
     ``tofs``/``amps`` hold ``count`` components and room for ``max_echoes``;
-    ``threshold`` is the detection threshold on |c|^2 (threshold factor times the noise power).
+    ``threshold`` is the detection threshold on |c|^2 (threshold factor times the noise power);
+    ``floor`` the dynamic range as an amplitude ratio, applied within ``residue`` lags of each
+    component (_mask_floor).
     """
     n = len(residual)
     strongest = 0.0
     for i in range(count):
         strongest = max(strongest, abs(amps[i]))
     cluster = np.zeros(max_echoes + 1, dtype=np.int64)
-    # The search for the strongest sample keeps |c|^2 and its maximum per block of samples,
-    # refreshed only where a subtraction changed the residual (the template's reach around
-    # the echoes fitted): a scan of every sample per echo was half the extraction's time.
+    # The search for the strongest sample keeps |c|^2 (0 where the dynamic range masks it) and
+    # its maximum per block of samples, refreshed only where a subtraction changed the residual
+    # (the template's reach around the echoes fitted, which holds the masks they changed): a
+    # scan of every sample per echo was half the extraction's time.
     scan = max(first, 0)
     power = np.zeros(n)
     block = np.zeros(max((n - scan + _BLOCK - 1) // _BLOCK, 0))
-    _refresh_power(residual, power, block, scan, scan, n)
+    _power_into(residual, power, scan, scan, n)
+    _mask_floor(power, scan, n, tofs, amps, count, floor, residue)
+    _block_maxima(power, block, scan, scan, n)
     while count < max_echoes:
         # The first strongest sample (its power: the square root is taken once, at the peak).
         peak, top = _strongest(power, block, scan)
         height = abs(residual[peak]) if top > 0 else 0.0
-        if height**2 < threshold or height < floor * strongest:
+        if height**2 < threshold or height < _PRECISION_AMPLITUDE * strongest:
             break
         tof, amp = clean_fit(table, u, half, rate, fit_half, residual, peak)
         clean_subtract(table, u, half, residual, tof, amp)
@@ -2042,7 +2103,11 @@ def clean_extract(
                     clean_refit(table, u, half, rate, fit_half, residual, tofs, amps, cluster[j])
                     after = _reach(u, half, tofs[cluster[j]], n)
                     lo, hi = min(lo, before[0], after[0]), max(hi, before[1], after[1])
-        _refresh_power(residual, power, block, scan, lo, hi)
+        # The masks reach past the subtraction (residue >= half): refreshed over their reach.
+        lo, hi = max(lo - (residue - half), 0), min(hi + (residue - half), n)
+        _power_into(residual, power, scan, lo, hi)
+        _mask_floor(power, max(lo, scan), hi, tofs, amps, count, floor, residue)
+        _block_maxima(power, block, scan, lo, hi)
         strongest = max(strongest, abs(amps[count - 1]))
     return count
 
@@ -2064,13 +2129,44 @@ def _refresh_power(
 ) -> None:  # pragma: no cover - compiled
     """``power = |residual|^2`` over ``lo..hi-1`` (from ``scan`` on), and the maxima of the blocks
     that touch it (block ``b``: samples ``scan + b _BLOCK`` onwards; 0 if nothing is positive)."""
-    n = len(residual)
+    _power_into(residual, power, scan, lo, hi)
+    _block_maxima(power, block, scan, lo, hi)
+
+
+@njit(cache=True, inline="always")
+def _power_into(residual: Any, power: Any, scan: int, lo: int, hi: int) -> None:  # pragma: no cover
+    """``power = |residual|^2`` (``re^2 + im^2``) over ``lo..hi-1``, from ``scan`` on."""
+    for s in range(max(lo, scan), hi):
+        value = residual[s]
+        power[s] = value.real * value.real + value.imag * value.imag
+
+
+@njit(cache=True)
+def _mask_floor(
+    power: Any, lo: int, hi: int, tofs: Any, amps: Any, count: int, floor: float, residue: int
+) -> None:  # pragma: no cover - compiled
+    """_Clean._below_floor: ``power`` set to 0 over ``lo..hi-1`` where it is below
+    ``(floor |a|)^2`` of a component within ``residue`` lags (``|s - tof| <= residue``): the
+    residue and sidelobes of a strong echo, not echoes."""
+    for i in range(count):
+        tof = tofs[i]
+        if not np.isfinite(tof):
+            continue
+        level = floor * abs(amps[i])
+        level = level * level
+        for s in range(max(math.ceil(tof - residue), lo), min(math.floor(tof + residue) + 1, hi)):
+            if power[s] < level:
+                power[s] = 0.0
+
+
+@njit(cache=True, inline="always")
+def _block_maxima(power: Any, block: Any, scan: int, lo: int, hi: int) -> None:  # pragma: no cover
+    """The maxima of the blocks of ``power`` that touch ``lo..hi-1`` (from ``scan`` on), as
+    _refresh_power leaves them."""
+    n = len(power)
     lo = max(lo, scan)
     if hi <= lo:
         return
-    for s in range(lo, hi):
-        value = residual[s]
-        power[s] = value.real * value.real + value.imag * value.imag
     for b in range((lo - scan) // _BLOCK, (hi - 1 - scan) // _BLOCK + 1):
         top = 0.0
         for s in range(scan + b * _BLOCK, min(scan + (b + 1) * _BLOCK, n)):
@@ -2667,6 +2763,7 @@ def clean_run(
     rate: float,
     fit_half: int,
     mainlobe: float,
+    residue: int,
     merge_samples: float,
     cluster_samples: float,
     acf_energy: float,
@@ -2691,10 +2788,14 @@ def clean_run(
     amps = np.zeros(max(max_echoes, 1), dtype=np.complex128)
     power = _clean_noise_power(residual)
     args = (table, u, half, rate, fit_half, cluster_samples, residual, tofs, amps)
-    count = clean_extract(*args, 0, threshold_factor * power, floor, first, max_echoes, refine_passes)
+    count = clean_extract(
+        *args, 0, threshold_factor * power, floor, residue, first, max_echoes, refine_passes
+    )
     # The first noise estimate includes the echoes' sidelobes; redo it on the residual.
     power = _clean_noise_power(residual)
-    count = clean_extract(*args, count, threshold_factor * power, floor, first, max_echoes, refine_passes)
+    count = clean_extract(
+        *args, count, threshold_factor * power, floor, residue, first, max_echoes, refine_passes
+    )
     out_power[0] = power
     threshold = threshold_factor * power
     # _merge_close: fuse components closer than a quarter main lobe (one echo CLEAN split).
@@ -2786,6 +2887,7 @@ def clean_run_rows(
     rate: float,
     fit_half: int,
     mainlobe: float,
+    residue: int,
     merge_samples: float,
     cluster_samples: float,
     acf_energy: float,
@@ -2815,6 +2917,7 @@ def clean_run_rows(
             rate,
             fit_half,
             mainlobe,
+            residue,
             merge_samples,
             cluster_samples,
             acf_energy,

@@ -21,6 +21,14 @@ estimators are in :mod:`echoloc.envelopes` and the registry of all of them in
     off with its sign flipped, each left out, the stretch read afresh as two echoes
     (:meth:`_Clean._choose_overlapping`, :meth:`_Clean._choose_order`).
 
+    Detection follows each channel's noise (its power the median of the correlation's, see
+    below): an echo is kept when its output SNR reaches ``threshold_db``. The dynamic range
+    (``dynamic_range_db``) is local: it drops what a strong echo leaves within the
+    template's support around it (sidelobes, the residue of an imperfect subtraction), not
+    what lies beyond, so a strong direct path or cross-talk sets no scale for the echoes a
+    template's length after it (:meth:`_Clean._below_floor`, :func:`_local_strongest`,
+    :func:`finish_channel`).
+
     Speed: frames are processed in batches (:func:`matched_filter_batch`). The
     correlation of all channels is one single-precision FFT pass; a batch path in
     compiled loops (:mod:`echoloc._echoes_kernels`, stated in numpy by
@@ -70,6 +78,16 @@ a float32 frame stands that far above (or below) its noise, and beyond it, about
 the power ratio is no longer a float."""
 
 
+PRECISION_DB = 100.0
+"""Echoes more than this below their channel's strongest are dropped, near it or not: what the
+frames resolve (16-bit samples span 96 dB; the single-precision correlation's rounding grows
+from 1e-7 of its strongest value over the FFTs' stages), and in a noiseless frame, where the
+threshold stops nothing, the far tails of band-limited echoes (110 dB down 230 samples away).
+Far below the echoes the local dynamic range keeps (``EchoOptions.dynamic_range_db``)."""
+_PRECISION_POWER = 10 ** (-PRECISION_DB / 10)
+_PRECISION_AMPLITUDE = 10 ** (-PRECISION_DB / 20)
+
+
 @dataclass(frozen=True)
 class EchoOptions:
     """Options of every estimator.
@@ -84,8 +102,17 @@ class EchoOptions:
     max_echoes
         At most this many echoes per receiver and frame.
     dynamic_range_db
-        Echoes weaker than the strongest of their channel by more than this are
-        dropped (residue of imperfect subtraction, not echoes), dB.
+        Echoes weaker by more than this than an echo that overlaps them are dropped:
+        the residue of an imperfect subtraction (a template that differs from the echo,
+        a delay or amplitude slightly off) and a strong echo's sidelobes, not echoes, dB.
+        That residue scales with the strong echo and lies within the correlation's support
+        around it, the template's length (:attr:`MatchedFilter.support_s`); so the matched
+        filter holds an echo only to the echoes within that of it. Detection elsewhere
+        follows the noise alone (``threshold_db`` over each channel's own noise power):
+        the direct path or cross-talk, however strong, sets no scale for the echoes after
+        it once they are a template's length away, and an echo 80 dB below it is found if
+        it stands above the noise. (The envelope estimators keep one floor per channel,
+        below its strongest echo.)
     refine_passes
         Passes of re-fitting each echo with the others removed (matched filter).
     threshold_fraction
@@ -276,6 +303,23 @@ class MatchedFilter:
         """Lags kept on either side of an autocorrelation peak (template length + 2 samples)."""
         return -(-(len(self.template) + 2) // self.decimation)
 
+    @cached_property
+    def residue_lags(self) -> int:
+        """How far what an echo leaves in the correlation reaches on either side of its peak, lags:
+        the template's length (:attr:`half_width`), where its sidelobes end, and a main lobe
+        more. An echo is band-limited where the template may not be (a pulse's abrupt end or
+        phase flips, interpolated, ring on past it by about the band's inverse, a main lobe), so
+        what its subtraction leaves reaches that far: the residue of a pyroomacoustics direct
+        path 97 dB above the noise stood 23 dB above it one lag past the template's length,
+        below it five lags on. The dynamic range holds an echo only to the echoes within this
+        of it (:meth:`_Clean._below_floor`, :func:`_local_strongest`, :func:`finish_channel`)."""
+        return self.half_width + math.ceil(self.mainlobe_lags)
+
+    @cached_property
+    def support_s(self) -> float:
+        """:attr:`residue_lags` in seconds."""
+        return self.residue_lags / self.lag_rate_hz
+
     def _lags_of(self, full: NDArray[np.complex128]) -> NDArray[np.complex128]:
         """Lags -half_width..half_width (in units of D samples) of a full-rate circular sequence."""
         lags = np.arange(-self.half_width, self.half_width + 1) * self.decimation
@@ -383,9 +427,11 @@ class MatchedFilter:
     def correlate_single(self, frames: NDArray[np.floating]) -> NDArray[np.complex64]:
         """:meth:`correlate` in single precision: three times faster, for detection and fits.
 
-        Rounding errors are ~1e-7 of the frame's strongest correlation, 1e-5 of an echo
-        40 dB weaker (the dynamic range kept); the fits read the samples they need in
-        double precision.
+        Rounding errors are ~1e-7 of the frame's strongest correlation, spread over every
+        lag like white noise: 1e-3 of an echo 80 dB weaker. They stay far below the noise of
+        any recorded frame (float32 samples, or 16-bit ones: 96 dB), and where they do not,
+        the noise power, estimated from the correlation itself, includes them. The fits read
+        the samples they need in double precision.
         """
         return self.correlate_single_rows(frames)[..., : self.n_lags]
 
@@ -451,6 +497,7 @@ class _Clean:
         self.compiled = compiled
         self.table = mf.acf_table
         self.half = mf.half_width
+        self.residue = mf.residue_lags
         self.fit_half = max(1, round(mf.mainlobe_lags / 2))
         self.merge_samples = mf.mainlobe_lags / 4
         self.cluster_samples = 2 * mf.mainlobe_lags
@@ -639,7 +686,12 @@ class _Clean:
         return merged
 
     def _extract(self, residual: NDArray[np.complex128], components: list[_Component], power: float) -> int:
-        """Take echoes out of ``residual`` strongest first while above the threshold; how many."""
+        """Take echoes out of ``residual`` strongest first while above the threshold; how many.
+
+        The strongest sample is looked for among those the dynamic range leaves
+        (:meth:`_below_floor`): near a strong echo what its subtraction left is not searched,
+        elsewhere everything above the threshold is, however weak beside the frame's strongest.
+        """
         threshold = 10 ** (self.options.threshold_db / 10)
         floor = 10 ** (-self.options.dynamic_range_db / 20)
         first = self.mf.first_lag(self.options.blanking_s)
@@ -649,9 +701,10 @@ class _Clean:
             magnitude = np.abs(residual)
             # Nothing is looked for inside the blanking interval (ring-down, direct coupling).
             magnitude[:first] = 0.0
+            magnitude[self._below_floor(residual, components, floor)] = 0.0
             peak = int(np.argmax(magnitude))
             height = float(magnitude[peak])
-            if height**2 < threshold * power or height < floor * strongest:
+            if height**2 < threshold * power or height < _PRECISION_AMPLITUDE * strongest:
                 break
             component = self._fit(residual, peak)
             shape, start = self._shape(component.tof_samples)
@@ -665,6 +718,30 @@ class _Clean:
                 self._refit_together([*cluster, component], residual)
             strongest = max(strongest, abs(component.amplitude))
         return added
+
+    def _below_floor(
+        self, residual: NDArray[np.complex128], components: list[_Component], floor: float
+    ) -> NDArray[np.bool_]:
+        """The samples of ``residual`` that the dynamic range leaves out of the search: those
+        whose power ``re^2 + im^2`` is below ``(floor |a|)^2`` of a component within
+        :attr:`MatchedFilter.residue_lags` of them (``|s - tof| <= residue_lags``).
+
+        What imperfect subtraction leaves of an echo (a template that differs from the echo, a
+        delay or amplitude slightly off), and its sidelobes, lie within that reach and scale
+        with the echo; farther out the echo leaves nothing, so nothing is masked there.
+        """
+        n = len(residual)
+        level = np.zeros(n)
+        for c in components:
+            if not math.isfinite(c.tof_samples):
+                continue
+            lo = max(math.ceil(c.tof_samples - self.residue), 0)
+            hi = min(math.floor(c.tof_samples + self.residue) + 1, n)
+            if hi > lo:
+                amplitude = floor * abs(c.amplitude)
+                np.fmax(level[lo:hi], amplitude * amplitude, out=level[lo:hi])
+        powers = residual.real**2 + residual.imag**2
+        return np.asarray(powers < level)
 
     def _refit_together(self, cluster: list[_Component], residual: NDArray[np.complex128]) -> None:
         """Successive refinement: fit each member with the others removed, a few passes."""
@@ -747,6 +824,7 @@ class _Clean:
             self.mf.phase_rate_rad_per_lag,
             self.fit_half,
             self.mf.mainlobe_lags,
+            self.mf.residue_lags,
             self.merge_samples,
             self.cluster_samples,
             self.mf.acf_energy,
@@ -1059,7 +1137,7 @@ def with_clean(
             amplitude = np.array([abs(c.amplitude) for c in components])
             snr_db = 10 * np.log10(np.maximum(amplitude**2, 1e-300) / power)
             tof_s = tof / mf.lag_rate_hz + mf.arrival_s
-            channels[index] = finish_channel(tof_s, amplitude, snr_db, options)
+            channels[index] = finish_channel(tof_s, amplitude, snr_db, options, mf.support_s)
     done = [c for c in channels if c is not None]
     return [done[i * n_rx : (i + 1) * n_rx] for i in range(n_frames)]
 
@@ -1323,7 +1401,7 @@ class _BatchOutput:
     ok: NDArray[np.bool_]  # False: the channel goes to CLEAN
 
 
-_KernelConstants = tuple[tuple[Any, ...], tuple[float, float, float, float, float]]
+_KernelConstants = tuple[tuple[Any, ...], tuple[float, float, float, float, float, float]]
 
 
 def _kernel_constants(
@@ -1331,7 +1409,7 @@ def _kernel_constants(
 ) -> _KernelConstants:
     """The arguments of the compiled batch path that stay the same from frame to frame:
     :func:`echoloc._echoes_kernels.batch_echoes`' from ``table`` to ``noise_step``, and
-    :func:`echoloc._echoes_kernels.finish_channels`' from ``lag_rate_hz`` to ``floor_ratio``.
+    :func:`echoloc._echoes_kernels.finish_channels`' from ``lag_rate_hz`` to ``support_s``.
     Built once for each ``mf`` and set of options (:attr:`MatchedFilter.kernel_constants_memo`)."""
     key = (
         options.threshold_db,
@@ -1356,6 +1434,7 @@ def _kernel_constants(
             10 ** (-options.dynamic_range_db / 10),
             max(mf.first_lag(options.blanking_s), 1),
             4 * options.max_echoes,
+            mf.residue_lags,
             _MAX_JOINT,
             _COMPLEX_ITERATIONS,
             _REAL_ITERATIONS,
@@ -1369,6 +1448,7 @@ def _kernel_constants(
             options.blanking_s,
             options.threshold_db,
             10 ** (-options.dynamic_range_db / 20),
+            mf.support_s,
         )
         found = memo[key] = (batch, finishing)
     return found
@@ -1573,8 +1653,10 @@ def _isolated_echoes(
     """Echoes of every channel (n_channels, n_samples) that stand apart from each other.
 
     Candidates are the envelope's local maxima above the detection threshold (noise
-    power from the median, as CLEAN). Strongest first, a candidate is a sidelobe when
-    the echoes already accepted explain it: its magnitude is below 1.5 times the sum
+    power from the median, as CLEAN), less those weaker by more than the dynamic range than
+    a certain echo within the template's support of them (:func:`_local_strongest`): a
+    strong echo's sidelobes and fine structure, not echoes. Strongest first, a candidate
+    is a sidelobe when the echoes already accepted explain it: its magnitude is below 1.5 times the sum
     of their amplitudes times the template's sidelobe envelope at that lag. Each
     accepted echo is fitted as CLEAN fits an isolated echo (envelope parabola, then
     the carrier phase; least-squares amplitude over the main lobe); then echoes within two
@@ -1594,11 +1676,14 @@ def _isolated_echoes(
     k = k + first
     peak = (power_map[ch, k] > power_map[ch, k - 1]) & (power_map[ch, k] >= power_map[ch, k + 1])
     ch, k = ch[peak], k[peak]
-    # Candidates weaker than the channel's strongest by more than the dynamic range are
-    # dropped, as CLEAN drops them.
+    # Candidates weaker by more than the dynamic range than a certain echo within the template's
+    # support of them are dropped (its residue and sidelobes), as CLEAN does not look there.
+    local = _local_strongest(ch, k, power_map[ch, k], mf.residue_lags)
     strongest = np.zeros(n_ch)
     np.maximum.at(strongest, ch, power_map[ch, k])
-    loud = power_map[ch, k] >= strongest[ch] * 10 ** (-options.dynamic_range_db / 10)
+    loud = (power_map[ch, k] >= local * 10 ** (-options.dynamic_range_db / 10)) & (
+        power_map[ch, k] >= strongest[ch] * _PRECISION_POWER
+    )
     ch, k = ch[loud], k[loud]
     results: list[_FastResult | None] = [(np.zeros(0), np.zeros(0), float(p)) for p in power]
     if len(ch) == 0:
@@ -1717,6 +1802,37 @@ def _isolated_echoes(
     return results
 
 
+def _window_max(
+    ch: NDArray[np.int64], k: NDArray[np.int64], values: NDArray[Any], reach: int
+) -> NDArray[Any]:
+    """For each candidate (sorted by channel, then lag ``k``), the largest of ``values`` over
+    the candidates of its channel within ``reach`` lags of it, itself included."""
+    out = values.copy()
+    for step in range(1, len(values)):
+        near = (ch[step:] == ch[:-step]) & (k[step:] - k[:-step] <= reach)
+        if not np.any(near):
+            break  # lags ascend within a channel: candidates farther apart in the order are too
+        out[step:] = np.where(near, np.maximum(out[step:], values[:-step]), out[step:])
+        out[:-step] = np.where(near, np.maximum(out[:-step], values[step:]), out[:-step])
+    return out
+
+
+def _local_strongest(
+    ch: NDArray[np.int64], k: NDArray[np.int64], power: NDArray[Any], reach: int
+) -> NDArray[Any]:
+    """The dynamic range's reference for each candidate (sorted by channel, then lag): the
+    largest ``power`` among the candidates within ``reach`` lags of it that are the largest
+    within ``reach`` lags of themselves, 0 if none.
+
+    Such a candidate is an echo for certain (no stronger echo's sidelobes reach it, so the
+    sidelobe test accepts it), while any other may be a sidelobe: taking every candidate as a
+    reference would carry a strong echo's reach on through its own sidelobes, twice the
+    template's support. (:func:`echoloc._echoes_kernels._local_floor` in compiled loops.)
+    """
+    peaks = _window_max(ch, k, power, reach)
+    return _window_max(ch, k, np.where(power >= peaks, power, 0.0), reach)
+
+
 _MAX_JOINT = 4
 """The largest cluster the batched joint fit takes (larger ones go to CLEAN)."""
 _CLEAN_COMPLEX_ITERATIONS = 200
@@ -1815,16 +1931,21 @@ def finish_channel(
     amplitude: NDArray[np.float64],
     snr_db: NDArray[np.float64],
     options: EchoOptions,
+    support_s: float = math.inf,
 ) -> ChannelEchoes:
-    """Drop blanked and sub-threshold echoes, sort by arrival."""
-    strongest = float(amplitude.max()) if len(amplitude) else 0.0
-    floor = strongest * 10 ** (-options.dynamic_range_db / 20)
-    keep = (
-        (tof_s >= options.blanking_s)
-        & (snr_db >= options.threshold_db)
-        & (amplitude >= floor)
-        & np.isfinite(tof_s)
-    )
+    """Drop blanked and sub-threshold echoes, and echoes weaker by more than the dynamic range
+    than an echo within ``support_s`` of them; sort by arrival.
+
+    ``support_s`` is how far an echo's residue reaches (the matched filter's:
+    :attr:`MatchedFilter.support_s`); infinite (the default, the envelope estimators'), every
+    echo of the channel: the floor is then the strongest echo's.
+    """
+    floor = amplitude * 10 ** (-options.dynamic_range_db / 20)
+    # (not >: a delay that is not a number is near every echo, and dropped below anyway)
+    near = ~(np.abs(tof_s[:, None] - tof_s[None, :]) > support_s)
+    faint = np.any(near & (amplitude[:, None] < floor[None, :]), axis=1)
+    faint |= amplitude < (float(amplitude.max()) if len(amplitude) else 0.0) * _PRECISION_AMPLITUDE
+    keep = (tof_s >= options.blanking_s) & (snr_db >= options.threshold_db) & ~faint & np.isfinite(tof_s)
     order = np.argsort(tof_s[keep], kind="stable")
     return ChannelEchoes(tof_s[keep][order], amplitude[keep][order], snr_db[keep][order])
 
