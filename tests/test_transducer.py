@@ -103,6 +103,10 @@ def test_piston_minus_3db_angle_within_1_percent_of_the_root(name: str) -> None:
     beam = piston_beam_angles(t.radius_m, t.centre_frequency_hz, C)
     ka = 2 * math.pi * t.centre_frequency_hz / C * t.radius_m
     assert beam.ka == pytest.approx(ka, rel=1e-12)
+    if ka < X_MINUS_3DB:
+        # A piston this small (the CH101's port) is within 3 dB at every angle: no -3 dB point.
+        assert math.isnan(beam.half_angle_3db_rad)
+        return
     x = ka * math.sin(beam.half_angle_3db_rad)
     assert x == pytest.approx(_x_3db_by_newton(), rel=0.01)
     assert x == pytest.approx(X_3DB_PUBLISHED, rel=1e-4)
@@ -301,6 +305,8 @@ def test_digital_resonator_keeps_centre_gain_and_bandwidth(name: str, sample_rat
     """The sampled-signal resonator: gain 1 at f0 and the same -3 dB width, at 200 kHz and 1 MHz."""
     t = PRESETS[name]
     f0 = t.centre_frequency_hz
+    if f0 >= sample_rate_hz / 2:
+        pytest.skip(f"{name} at {f0:g} Hz cannot be sampled at {sample_rate_hz:g} Hz")
 
     def h(f: float) -> complex:
         return complex(frequency_response(t, f, sample_rate_hz=sample_rate_hz)[()])

@@ -147,11 +147,17 @@ class RingDown:
     envelope decays as ``exp(-t / decay_s)`` after the drive stops. ``direct_path``
     adds the acoustic wave that travels straight from the transmitter to each receiver
     (weighted by both beams at 90° off boresight for a flat head).
+
+    ``levels``, if given, is the peak per receiver instead (one value per receiver, same
+    units as ``level``, which must then be 0): a monostatic chip records its own
+    transmitter's ring-down at its full level while the other receivers of the head see
+    only electrical cross-talk of the drive, tens of times weaker.
     """
 
     level: float = 0.0
     decay_s: float = 0.3e-3
     direct_path: bool = False
+    levels: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         _finite("ring_down.level", self.level)
@@ -160,6 +166,30 @@ class RingDown:
             raise SceneError(f"ring_down.level must be >= 0, got {self.level}")
         if not self.decay_s > 0:
             raise SceneError(f"ring_down.decay_s must be > 0, got {self.decay_s}")
+        if self.levels is not None:
+            levels = tuple(self.levels)
+            for value in levels:
+                _finite("ring_down.levels", value)
+                if value < 0:
+                    raise SceneError(f"ring_down.levels must all be >= 0, got {list(levels)}")
+            if not levels:
+                raise SceneError("ring_down.levels must name one level per receiver, got []")
+            if self.level != 0:
+                raise SceneError("ring_down.level and ring_down.levels exclude each other")
+            object.__setattr__(self, "levels", tuple(float(v) for v in levels))
+
+    @property
+    def active(self) -> bool:
+        """Whether any receiver records a ring-down (a level above 0 anywhere)."""
+        return self.level > 0 or (self.levels is not None and max(self.levels) > 0)
+
+    def receiver_levels(self, n_rx: int) -> NDArray[np.float64]:
+        """Ring-down peak at each of ``n_rx`` receivers, relative to the emitted pulse's peak, (n_rx,)."""
+        if self.levels is None:
+            return np.full(n_rx, float(self.level))
+        if len(self.levels) != n_rx:
+            raise SceneError(f"ring_down.levels names {len(self.levels)} levels for {n_rx} receivers")
+        return np.array(self.levels, dtype=float)
 
 
 @dataclass(frozen=True)
@@ -176,6 +206,15 @@ class ReceiverSpec:
     5. They are recorded as ``signal_kind`` at ``output_rate_hz`` (default
        ``sample_rate_hz``): ``rf``, ``iq`` (complex baseband) or ``envelope`` (the
        magnitude a ToF chip reports, typically at ~20 kHz).
+
+    A ToF chip demodulates to complex baseband and decimates with a CIC filter:
+    ``baseband_filter_s`` > 0 (envelope or iq only) passes the baseband at
+    ``sample_rate_hz`` through ``baseband_filter_order`` cascaded moving averages, each
+    ``baseband_filter_s`` long (causal: it delays an echo by about
+    ``order * baseband_filter_s / 2``), before it is resampled to ``output_rate_hz``.
+    ``record_waveform = False`` (envelope only) leaves the recording without a
+    ``waveform``, as a chip that does not report its pulse (FORMATS.md allows that for
+    envelope data; the echo's delay is then a calibration constant).
     """
 
     signal_kind: SignalKind = "rf"
@@ -184,6 +223,9 @@ class ReceiverSpec:
     noise: Literal["white", "band"] = "white"
     gain: GainSpec = field(default_factory=GainSpec)
     adc: AdcSpec | None = None
+    baseband_filter_s: float = 0.0
+    baseband_filter_order: int = 1
+    record_waveform: bool = True
 
     def __post_init__(self) -> None:
         if self.signal_kind not in ("rf", "envelope", "iq"):
@@ -196,6 +238,19 @@ class ReceiverSpec:
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise SceneError(f"receiver.{name} must be > 0, got {value}")
+        _finite("receiver.baseband_filter_s", self.baseband_filter_s)
+        if self.baseband_filter_s < 0:
+            raise SceneError(f"receiver.baseband_filter_s must be >= 0, got {self.baseband_filter_s}")
+        order = self.baseband_filter_order
+        if isinstance(order, bool) or not isinstance(order, int) or order < 1:
+            raise SceneError(f"receiver.baseband_filter_order must be a whole number >= 1, got {order!r}")
+        if self.baseband_filter_s > 0 and self.signal_kind == "rf":
+            raise SceneError("receiver.baseband_filter_s needs signal_kind 'envelope' or 'iq'")
+        if not self.record_waveform and self.signal_kind != "envelope":
+            raise SceneError(
+                "receiver.record_waveform = false needs signal_kind 'envelope' (rf and iq recordings "
+                "must carry their waveform)"
+            )
 
 
 @dataclass(frozen=True, eq=False)
@@ -291,6 +346,11 @@ class Scene:
 
     ``path_jitter_m`` is the standard deviation of an independent random error on
     every path (transducer jitter); ``drift.turbulence`` is the shared per-frame one.
+    ``timing_jitter_s`` is the receiving chip's timing jitter, s: every echo of a
+    receiver in a frame arrives later by one delay drawn from ``N(0, sigma²)`` for that
+    receiver and frame (a ToF chip's sampling start wanders against its transmit).
+    One sigma for every receiver, or a tuple of one per receiver. It moves the echoes
+    only; the frame start (ring-down, cross-talk, direct path) stays where it is.
     ``snr_db`` follows the module's noise convention; None means no noise.
 
     Transmitters: with several, ``firing = "sequential"`` fires one per frame in turn
@@ -311,6 +371,7 @@ class Scene:
     random: RandomReflectors | None = None
     snr_db: float | None = None
     path_jitter_m: float = 0.0
+    timing_jitter_s: float | tuple[float, ...] = 0.0
     seed: int | None = 0
     transducer: str | None = None
     absorption: bool = False
@@ -346,10 +407,11 @@ class Scene:
             )
         if self.path_jitter_m < 0:
             raise SceneError(f"path_jitter_m must be >= 0, got {self.path_jitter_m}")
+        self._check_timing_jitter()
         if self.max_order not in (1, 2):
             raise SceneError(f"max_order must be 1 or 2, got {self.max_order}")
         empty = self.random is None and len(positions) == 0 and not self.objects
-        if empty and not (self.ring_down.direct_path or self.ring_down.level > 0):
+        if empty and not (self.ring_down.direct_path or self.ring_down.active):
             # An empty scene records only noise; with a ring-down or direct path it is
             # the background (or the DIRECT template) a user may want.
             raise SceneError("the scene has no reflectors: give [[reflectors]] or [random_reflectors]")
@@ -426,10 +488,36 @@ class Scene:
             )
         except SceneError as error:
             raise SceneError(f"receiver.output_rate_hz: {error}") from None
+        try:
+            self.ring_down.receiver_levels(len(self.array.receivers_m))
+        except SceneError as error:
+            raise SceneError(f"{error} (the array has {len(self.array.receivers_m)})") from None
         self._check_speeds()
         # Raises early for an impossible pulse.
         for transmitter in range(n_tx):
             self.waveform(transmitter)
+
+    def _check_timing_jitter(self) -> None:
+        """``timing_jitter_s``: one finite sigma >= 0, or one per receiver."""
+        value = self.timing_jitter_s
+        n_rx = len(self.array.receivers_m)
+        if isinstance(value, tuple | list):
+            sigmas = tuple(value)
+            if len(sigmas) != n_rx:
+                raise SceneError(f"noise.timing_jitter_s names {len(sigmas)} values for {n_rx} receivers")
+            object.__setattr__(self, "timing_jitter_s", sigmas)
+        else:
+            sigmas = (value,)
+        for sigma in sigmas:
+            _finite("noise.timing_jitter_s", sigma)
+            if sigma < 0:
+                raise SceneError(f"noise.timing_jitter_s must be >= 0, got {sigma}")
+
+    def timing_jitter_per_receiver_s(self) -> NDArray[np.float64]:
+        """Standard deviation of each receiver's per-frame timing jitter, s, (n_rx,)."""
+        return np.broadcast_to(
+            np.asarray(self.timing_jitter_s, dtype=float), (len(self.array.receivers_m),)
+        ).copy()
 
     def _check_speeds(self) -> None:
         """Every reflector and the head must move slower than sound (Doppler needs c - v > 0)."""

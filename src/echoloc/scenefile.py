@@ -4,6 +4,11 @@ Every key is checked: an unknown key, a missing one or a value of the wrong kind
 raises :class:`~echoloc.errors.SceneError` naming the file, the key and the value.
 The README's "Scene files" section lists every key; ``examples/`` has a file for
 each test set-up of the report's chapter 4.
+
+Scene presets ship with the package as ``echoloc/scenes/NAME.toml``
+(:func:`preset_names`, :func:`preset_path`): :func:`load_scene` takes such a name
+(``ch101``) wherever no file of that name exists, so ``echoloc simulate ch101 -o
+out.h5`` simulates the CH101-like head.
 """
 
 from __future__ import annotations
@@ -12,6 +17,7 @@ import math
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -54,9 +60,19 @@ _SECTIONS: dict[str, set[str]] = {
         "humidity_drift_per_s",
         "turbulence",
     },
-    "noise": {"snr_db", "path_jitter_m", "kind"},
-    "ring_down": {"level", "decay_s", "direct_path"},
-    "receiver": {"signal_kind", "output_rate_hz", "adc_rate_hz", "adc_bits", "full_scale", "gain"},
+    "noise": {"snr_db", "path_jitter_m", "timing_jitter_s", "kind"},
+    "ring_down": {"level", "levels", "decay_s", "direct_path"},
+    "receiver": {
+        "signal_kind",
+        "output_rate_hz",
+        "adc_rate_hz",
+        "adc_bits",
+        "full_scale",
+        "gain",
+        "baseband_filter_s",
+        "baseband_filter_order",
+        "record_waveform",
+    },
     "motion": {"velocity_m_s", "angular_velocity_deg_s", "pan_deg", "tilt_deg", "scan_period_s"},
     "random_reflectors": {"count", "x_m", "y_m", "z_m", "strength"},
 }
@@ -139,6 +155,17 @@ class _Table:
 
     def points(self, name: str) -> NDArray[np.float64]:
         return _points(self.key(name), self.raw(name))
+
+    def numbers(self, name: str) -> tuple[float, ...]:
+        """A non-empty list of finite numbers."""
+        value = self.raw(name)
+        if not isinstance(value, list) or not value:
+            raise SceneError(f"{self.key(name)} must be a list of numbers, got {value!r}")
+        return tuple(_number(self.key(name), v) for v in value)
+
+    def number_or_numbers(self, name: str, default: float) -> float | tuple[float, ...]:
+        """One finite number, or a list of them (e.g. one per receiver)."""
+        return self.numbers(name) if isinstance(self.raw(name, default), list) else self.number(name, default)
 
     def pair(self, name: str, default: tuple[float, float]) -> tuple[float, float]:
         return _pair(self.key(name), self.raw(name, list(default)))
@@ -251,6 +278,9 @@ def _receiver(table: _Table, noise: str) -> ReceiverSpec:
         noise=noise,  # type: ignore[arg-type]
         gain=gain_spec,
         adc=adc,
+        baseband_filter_s=table.number("baseband_filter_s", 0.0),
+        baseband_filter_order=table.integer("baseband_filter_order", 1),
+        record_waveform=table.boolean("record_waveform", True),
     )
 
 
@@ -330,14 +360,18 @@ def _scene_from_dict(data: Mapping[str, Any], source: str) -> Scene:
     if noise.has("snr_db"):
         kwargs["snr_db"] = noise.number("snr_db")
     kwargs["path_jitter_m"] = noise.number("path_jitter_m", 0.0)
+    kwargs["timing_jitter_s"] = noise.number_or_numbers("timing_jitter_s", 0.0)
     noise_kind = noise.choice("kind", ("white", "band"), "white")
 
     ring = sections["ring_down"]
     defaults = RingDown()
+    if ring.has("level") and ring.has("levels"):
+        raise SceneError("ring_down.level and ring_down.levels exclude each other")
     kwargs["ring_down"] = RingDown(
         level=ring.number("level", defaults.level),
         decay_s=ring.number("decay_s", defaults.decay_s),
         direct_path=ring.boolean("direct_path", defaults.direct_path),
+        levels=ring.numbers("levels") if ring.has("levels") else None,
     )
     kwargs["receiver"] = _receiver(sections["receiver"], noise_kind)
     motion = sections["motion"]
@@ -396,9 +430,32 @@ def _scene_from_dict(data: Mapping[str, Any], source: str) -> Scene:
     return Scene(**kwargs)
 
 
+def preset_names() -> tuple[str, ...]:
+    """Names of the scene presets shipped in ``echoloc/scenes`` (file names without ``.toml``), sorted."""
+    folder = resources.files("echoloc") / "scenes"
+    if not folder.is_dir():
+        return ()
+    return tuple(sorted(item.name[:-5] for item in folder.iterdir() if item.name.endswith(".toml")))
+
+
+def preset_path(name: str) -> Path:
+    """Path of the shipped scene preset ``name`` (``ch101`` or ``ch101.toml``); SceneError if none."""
+    stem = name[:-5] if name.endswith(".toml") else name
+    if stem not in preset_names():
+        presets = ", ".join(preset_names()) or "none"
+        raise SceneError(f"{name}: no scene preset of that name (presets: {presets})")
+    return Path(str(resources.files("echoloc") / "scenes" / f"{stem}.toml"))
+
+
 def load_scene(path: str | Path) -> Scene:
-    """Read and validate a scene TOML file."""
+    """Read and validate a scene TOML file, or a shipped preset by name (:func:`preset_names`).
+
+    A bare name (no folder) that is not an existing file but names a preset loads the
+    preset; an existing file always wins.
+    """
     path = Path(path)
+    if not path.exists() and path.parent == Path(".") and str(path).removesuffix(".toml") in preset_names():
+        path = preset_path(str(path))
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:

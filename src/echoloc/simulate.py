@@ -18,7 +18,9 @@ Per frame, in the order the sound meets them:
 5. **Transducers.** Both beams' piston directivity at the carrier, the band-pass
    of the transmitter and receiver (in the returned pulse), ISO 9613-1 absorption
    per frequency over each path, and the transmitter's ring-down at the frame start.
-6. **Echo synthesis** (:mod:`echoloc.synthesis`): band-limited fractional delays.
+6. **Echo synthesis** (:mod:`echoloc.synthesis`): band-limited fractional delays,
+   each receiver's echoes late by its timing jitter for the frame
+   (``timing_jitter_s``, :func:`timing_offsets_s`).
 7. **Receiver chain** (:mod:`echoloc.receiver`): noise, time-varying gain, ADC
    clipping and quantisation, decimation, and the recorded signal kind.
 
@@ -128,12 +130,13 @@ def _ring_down(scene: Scene, transmitter: int, n_adc: int) -> FloatArray:
     """The transmitter's ring-down at every receiver (n_rx, n_adc).
 
     The electrical drive through a two-pole resonator at the carrier whose impulse
-    response decays as ``exp(-t / decay_s)``, scaled to a peak of ``level``.
+    response decays as ``exp(-t / decay_s)``, scaled to a peak of ``level`` (or of
+    each receiver's entry of ``levels``).
     """
     rate = scene.adc_rate_hz
     n_rx = len(scene.array.receivers_m)
     spec = scene.ring_down
-    if spec.level == 0:
+    if not spec.active:
         return np.zeros((n_rx, n_adc))
     drive = np.zeros(n_adc)
     pulse = scene.waveform(transmitter, rate).samples[:n_adc]
@@ -141,8 +144,19 @@ def _ring_down(scene: Scene, transmitter: int, n_adc: int) -> FloatArray:
     radius = np.exp(-1.0 / (spec.decay_s * rate))
     omega = 2 * np.pi * scene.pulse.carrier_hz / rate
     ringing = scipy.signal.lfilter([1.0], [1.0, -2 * radius * np.cos(omega), radius**2], drive)
-    ringing *= spec.level / np.max(np.abs(ringing))
-    return np.tile(ringing, (n_rx, 1))
+    ringing /= np.max(np.abs(ringing))
+    return np.asarray(spec.receiver_levels(n_rx)[:, None] * ringing[None, :], dtype=float)
+
+
+def timing_offsets_s(sigma_s: FloatArray, standard_normal: FloatArray) -> FloatArray:
+    """Per-frame, per-receiver timing offsets, s: ``sigma_s * standard_normal``.
+
+    ``sigma_s`` (n_rx,) is each receiver's timing jitter (standard deviation, s);
+    ``standard_normal`` (n_frames, n_rx) are draws from N(0, 1). An echo of receiver r
+    in frame f arrives ``offset[f, r]`` seconds late (early if negative).
+    """
+    sigma = np.asarray(sigma_s, dtype=float)
+    return np.asarray(np.asarray(standard_normal, dtype=float) * sigma[None, :], dtype=float)
 
 
 def _direct_path(scene: Scene, transmitter: int, table: PulseTable, n_adc: int) -> FloatArray:
@@ -311,6 +325,11 @@ def _batch(scene: Scene, plan: _Plan, first_frame: int, n: int, rng: np.random.G
         frame_transmitter = (frame % n_tx).astype(np.int64)
         fired = frame_transmitter[None, :] == np.arange(n_tx)[:, None]
 
+    jitter_s = scene.timing_jitter_per_receiver_s()
+    offsets_s = None
+    if np.any(jitter_s > 0):
+        # One delay per receiver and frame, shared by every transmitter fired in it.
+        offsets_s = timing_offsets_s(jitter_s, rng.standard_normal((n, len(receivers))))
     analog = np.zeros((n, len(receivers), plan.n_adc))
     truth: FloatArray | None = None
     for tx in range(n_tx):
@@ -336,9 +355,10 @@ def _batch(scene: Scene, plan: _Plan, first_frame: int, n: int, rng: np.random.G
         if scene.path_jitter_m > 0:
             path = path + rng.normal(0.0, scene.path_jitter_m, size=path.shape)
         gain = _echo_gain(scene, paths, tx)
-        analog[rows] += synthesize(
-            plan.tables[tx], path / c_col, gain, plan.n_adc, time_scale=alpha, path_m=path
-        )
+        delay = path / c_col
+        if offsets_s is not None:
+            delay = delay + offsets_s[rows][:, :, None]
+        analog[rows] += synthesize(plan.tables[tx], delay, gain, plan.n_adc, time_scale=alpha, path_m=path)
         analog[rows] += plan.frame_start[tx]
         if truth is None or scene.firing == "sequential":
             # Truth is seen from the frame's transmitter (transmitter 0 when all fire at once).
@@ -379,6 +399,8 @@ def _receive(scene: Scene, plan: _Plan, analog: FloatArray, rng: np.random.Gener
         signal = quantise(signal, spec.adc)
     if scene.adc_rate_hz != scene.sample_rate_hz:
         signal = resample(signal, scene.adc_rate_hz, scene.sample_rate_hz)[..., : scene.n_samples]
+    if spec.baseband_filter_s > 0:
+        return _chip_output(scene, signal)
     if spec.signal_kind != "rf" or scene.output_rate_hz != scene.sample_rate_hz:
         recorded: Samples = to_signal_kind(
             signal,
@@ -391,8 +413,64 @@ def _receive(scene: Scene, plan: _Plan, analog: FloatArray, rng: np.random.Gener
     return signal
 
 
+def moving_average(samples: NDArray[Any], length: int, order: int = 1) -> NDArray[Any]:
+    """``order`` cascaded causal moving averages of ``length`` samples along the last axis.
+
+    The decimating filter of a ToF chip (a CIC filter, E. B. Hogenauer, IEEE Trans.
+    ASSP 29 (1981) 155-162, normalised to unit gain at 0 Hz): output sample k is the
+    mean of the previous stage's samples k - length + 1 .. k, zero before the start.
+    Each stage delays a signal by ``(length - 1) / 2`` samples. Real or complex input.
+    """
+    if length < 1 or order < 1:
+        raise ValueError(f"length and order must be >= 1, got {length} and {order}")
+    out = np.asarray(samples)
+    kernel = np.ones(length) / length
+    for _ in range(order):
+        out = scipy.signal.lfilter(kernel, [1.0], out, axis=-1)
+    return out
+
+
+def _chip_output(scene: Scene, signal: FloatArray) -> Samples:
+    """A ToF chip's output: baseband, its CIC filter (``baseband_filter_*``), resampled; envelope or iq."""
+    spec = scene.receiver
+    iq = to_signal_kind(
+        signal,
+        "iq",
+        sample_rate_hz=scene.sample_rate_hz,
+        carrier_hz=scene.pulse.carrier_hz,
+        output_rate_hz=scene.sample_rate_hz,
+    )
+    length = max(round(spec.baseband_filter_s * scene.sample_rate_hz), 1)
+    filtered = moving_average(iq, length, spec.baseband_filter_order)
+    out = np.asarray(resample(filtered, scene.sample_rate_hz, scene.output_rate_hz), dtype=np.complex128)
+    if spec.signal_kind == "envelope":
+        return np.asarray(np.abs(out), dtype=np.float64)
+    return out
+
+
+def _chip_template(scene: Scene, returned_pulse: FloatArray) -> NDArray[Any]:
+    """The echo template of a chip with a baseband filter: an echo at t = 0 through :func:`_chip_output`.
+
+    Cut after its last sample at or above 1e-4 of its peak magnitude, as
+    :func:`echoloc.receiver.template_for_kind` cuts.
+    """
+    tail = 8 * round(
+        scene.receiver.baseband_filter_order * scene.receiver.baseband_filter_s * scene.sample_rate_hz
+    )
+    frame = np.zeros(2 * len(returned_pulse) + tail + 64)
+    frame[: len(returned_pulse)] = returned_pulse
+    out = _chip_output(scene, frame)
+    magnitude = np.abs(out)
+    last = int(np.flatnonzero(magnitude >= 1e-4 * magnitude.max())[-1])
+    return np.asarray(out[: last + 1])
+
+
 def _templates(scene: Scene) -> list[NDArray[np.generic]]:
     """Each transmitter's echo template in the recorded representation and rate."""
+    if scene.receiver.baseband_filter_s > 0:
+        return [
+            _chip_template(scene, scene.returned_pulse(tx)) for tx in range(len(scene.array.transmitters_m))
+        ]
     return [
         template_for_kind(
             scene.returned_pulse(tx),
@@ -415,7 +493,7 @@ def recording_header(scene: Scene) -> Recording:
     )
     n_tx = len(scene.array.transmitters_m)
     transmitter_waveforms = None
-    if n_tx > 1 and len(set(scene.codes())) > 1:
+    if scene.receiver.record_waveform and n_tx > 1 and len(set(scene.codes())) > 1:
         width = max(len(t) for t in templates)
         transmitter_waveforms = np.zeros((n_tx, width), dtype=templates[0].dtype)
         for i, template in enumerate(templates):
@@ -428,7 +506,7 @@ def recording_header(scene: Scene) -> Recording:
         transmitters_m=scene.array.transmitters_m,
         receivers_m=scene.array.receivers_m,
         frames=frames,
-        waveform=np.asarray(templates[0]),
+        waveform=np.asarray(templates[0]) if scene.receiver.record_waveform else None,
         transmitter_axes=scene.array.transmitter_axes,
         receiver_axes=scene.array.receiver_axes,
         signal_kind=scene.receiver.signal_kind,

@@ -392,6 +392,9 @@ class Transducer:
         return cls(name, centre_frequency_hz, centre_frequency_hz / q, radius_m)
 
 
+CH101_BANDWIDTH_HZ = 10_000.0
+"""-3 dB bandwidth of one CH101 transducer (one pass), Hz, as fitted to real echo widths."""
+
 PRESETS: dict[str, Transducer] = {
     # Polaroid 600-series / 607281 electrostatic transducer (report ch. 2.4.2.6, appendix A).
     # Centre 50 kHz as the report uses it (the Polaroid 6500 ranging module drives 16
@@ -423,6 +426,18 @@ PRESETS: dict[str, Transducer] = {
         centre_frequency_hz=40_000.0,
         bandwidth_hz=4_000.0,
         radius_m=radius_for_beam_width(30.0, 40_000.0),
+    ),
+    # TDK InvenSense (Chirp) CH101: a PMUT at 175 kHz (the SPiEL data's carrier_hz;
+    # C. Hahne, ICRA 2023, doi:10.1109/ICRA48891.2023.10161199). Bandwidth: fitted to
+    # that data's echo envelopes (benchmarks/compare_ch101.py), not a data-sheet figure.
+    # Radius: an effective one for a beam that stays within 1 dB (two ways) out to 50°
+    # off axis, as the data's echo amplitudes times range² do (the chip's port is a
+    # sub-millimetre opening, far smaller than the 1.96 mm wavelength).
+    "ch101": Transducer(
+        name="ch101",
+        centre_frequency_hz=175_000.0,
+        bandwidth_hz=CH101_BANDWIDTH_HZ,
+        radius_m=0.35e-3,
     ),
 }
 """Named transducer models; see the comments in the source for the source of each number."""
