@@ -100,11 +100,26 @@ def test_per_frame_background_needs_the_frame_index() -> None:
         conditioned("threshold", recording, Conditioning(), EchoOptions())
 
 
-def test_envelope_background_is_floored_at_zero() -> None:
-    """A magnitude minus the empty scene's magnitude cannot go negative."""
-    frames = np.array([[[1.0, 0.2, 3.0]]])
-    recording = small_recording(frames, signal_kind="envelope", background=np.array([[0.5, 0.5, 0.5]]))
-    np.testing.assert_allclose(condition_frame(frames[0], recording, Conditioning()), [[0.5, 0.0, 2.5]])
+def test_envelope_background_is_subtracted_in_power_and_floored_at_zero() -> None:
+    """Magnitudes of an echo and of a background with unrelated phase add in power on average
+    (E|s + b|^2 = |s|^2 + |b|^2), so the echo's magnitude is sqrt(|f|^2 - |b|^2), 0 where the
+    empty scene is the stronger: a 3-4-5 triangle gives exact values."""
+    frames = np.array([[[5.0, 0.2, 13.0]]])
+    recording = small_recording(frames, signal_kind="envelope", background=np.array([[3.0, 0.5, 5.0]]))
+    np.testing.assert_allclose(condition_frame(frames[0], recording, Conditioning()), [[4.0, 0.0, 12.0]])
+
+
+def test_envelope_power_subtraction_is_unbiased_over_random_phases() -> None:
+    """Averaged over the relative phase of echo and background, the power-subtracted magnitude
+    squared equals the echo's power exactly (the cross term averages to zero)."""
+    echo, clutter = 2.0, 0.5  # |s + b|^2 - |b|^2 = 4 + 2 cos(phase) > 0: nothing floored
+    phases = np.linspace(0, 2 * np.pi, 4096, endpoint=False)
+    measured = np.abs(echo + clutter * np.exp(1j * phases))
+    recording = small_recording(
+        measured[None, None, :], signal_kind="envelope", background=np.full((1, 4096), clutter)
+    )
+    conditioned = condition_frame(measured[None, :], recording, Conditioning())
+    assert np.mean(conditioned**2) == pytest.approx(echo**2, rel=1e-9)
 
 
 def test_asking_for_missing_background_or_gain_is_an_error() -> None:

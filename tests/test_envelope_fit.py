@@ -120,7 +120,9 @@ def test_both_estimators_are_registered_for_every_signal_kind() -> None:
         (name, kind)
         for name in sorted(ESTIMATORS)
         for kind in LOW_RATE_KINDS
-        if kind in ESTIMATORS[name].signal_kinds
+        # envelope-peak takes one peak an echo: a single-lobed echo envelope, as a ToF chip
+        # gives; this test's Barker pulse has a lobe per chip (tests/test_envelope_peaks.py).
+        if kind in ESTIMATORS[name].signal_kinds and name != "envelope-peak"
     ],
 )
 @settings(max_examples=12, deadline=None)

@@ -194,7 +194,9 @@ def test_a_template_for_another_estimator_is_refused_not_ignored(tmp_path: Path)
 
     ball = ball_recording(0.6, None)
     template = sent_template(ball)
-    with pytest.raises(EchoLocError, match="only to the matched estimator, not to 'envelope-zero'"):
+    with pytest.raises(
+        EchoLocError, match="only to the matched and envelope-peak estimators, not to 'envelope-zero'"
+    ):
         prepare_estimator(ball, EchoOptions(template=template), "envelope-zero")
     (tmp_path / "object.npz").write_bytes(b"\x80\x04K\x01.")  # a pickle, not an .npz
     with pytest.raises(RecordingError, match="not a template file") as info:

@@ -33,8 +33,22 @@ from echoloc.echoes import ChannelEchoes, FrameEchoes
 from echoloc.errors import EchoLocError
 from echoloc.locate import model_paths_m
 from echoloc.recording import Recording
+from echoloc.templates import Template
 
 CALIBRATION_FORMAT = "echoloc-calibration"
+
+MAD_TO_SIGMA = 1.4826
+"""sigma of Gaussian errors over their median absolute deviation (1 / Phi^-1(3/4))."""
+
+SPEED_FIT_MAX_RELATIVE_STD = 0.005
+"""The speed of sound is fitted only where the targets determine it to 0.5 % (1 sigma, about
+3 K of air temperature); else the assumed speed is kept and only the delays are fitted."""
+
+MIN_PATH_SIGMA_M = 1e-6
+"""The least path uncertainty a calibration reports, m (a noiseless simulation fits exactly)."""
+
+MAX_SHAPE_SAMPLES = 65536
+"""The most samples a calibration file's echo shape may hold."""
 
 
 @dataclass(frozen=True)
@@ -45,6 +59,9 @@ class Calibration:
     receiver_delays_s: tuple[float, ...]
     echoes_used: int = 0
     residual_rms_s: float = 0.0
+    path_sigma_m: float | None = None
+    echo_shape: Template | None = None
+    speed_fitted: bool = True
 
 
 def fit_calibration(
@@ -53,11 +70,14 @@ def fit_calibration(
     *,
     speed_of_sound_m_s: float,
     gate_m: float = 0.02,
+    echo_shape: Template | None = None,
 ) -> Calibration:
     """Least-squares speed of sound and receiver delays from frames with known reflectors.
 
     ``echoes`` are the uncorrected echoes of frames of ``recording``; ``gate_m`` is the
-    largest path difference at which an echo counts as a target's.
+    largest path difference at which an echo counts as a target's; ``echo_shape``, the
+    learnt shape the echoes were timed with, is kept with the result. ``path_sigma_m`` is
+    1.4826 times the median absolute path residual (at least :data:`MIN_PATH_SIGMA_M`).
     """
     truth = recording.truth_positions_m
     if truth is None:
@@ -115,11 +135,36 @@ def fit_calibration(
         spread_m = float(np.median(np.abs(design @ solution - observed))) / slowness
         relative_gate, absolute_gate_m = 0.0, max(5 * spread_m, 1e-3)
     residual = observed - design @ solution
+    # Targets spread over too narrow a range of paths leave the speed of sound undetermined
+    # (it trades with the delays): then it stays the assumed one and only the delays are fitted.
+    spread_s = MAD_TO_SIGMA * float(np.median(np.abs(residual)))
+    normal = design.T @ design
+    if np.linalg.cond(normal) < 1e15:
+        slowness_std = spread_s * math.sqrt(float(np.linalg.inv(normal)[0, 0]))
+    else:
+        slowness_std = math.inf
+    speed_fitted = slowness_std <= SPEED_FIT_MAX_RELATIVE_STD * slowness
+    if not speed_fitted:
+        slowness = 1.0 / speed_of_sound_m_s
+        delays = np.array(
+            [
+                float(np.median((observed - slowness * design[:, 0])[design[:, 1 + i] > 0]))
+                for i in range(n_rx)
+            ]
+        )
+        solution = np.concatenate([[slowness], delays])
+        residual = observed - design @ solution
+    # The path error of this rig, robustly (the MAD's consistency factor for Gaussian
+    # errors): what the association's gate and the covariance should assume.
+    path_sigma_m = MAD_TO_SIGMA * float(np.median(np.abs(residual))) / slowness
     return Calibration(
         speed_of_sound_m_s=1.0 / slowness,
         receiver_delays_s=tuple(float(d) for d in delays),
         echoes_used=len(rows),
         residual_rms_s=float(np.sqrt(np.mean(residual**2))),
+        path_sigma_m=max(path_sigma_m, MIN_PATH_SIGMA_M),
+        echo_shape=echo_shape,
+        speed_fitted=bool(speed_fitted),
     )
 
 
@@ -135,7 +180,7 @@ def apply_calibration(echoes: FrameEchoes, calibration: Calibration) -> FrameEch
 def write_calibration(calibration: Calibration, path: str | os.PathLike[str]) -> Path:
     """Write the calibration JSON (see the module docstring)."""
     target = Path(path)
-    record = {
+    record: dict[str, object] = {
         "format": CALIBRATION_FORMAT,
         "version": 1,
         "speed_of_sound_m_s": calibration.speed_of_sound_m_s,
@@ -143,6 +188,17 @@ def write_calibration(calibration: Calibration, path: str | os.PathLike[str]) ->
         "echoes_used": calibration.echoes_used,
         "residual_rms_s": calibration.residual_rms_s,
     }
+    record["speed_of_sound_fitted"] = calibration.speed_fitted
+    if calibration.path_sigma_m is not None:
+        record["path_sigma_m"] = calibration.path_sigma_m
+    shape = calibration.echo_shape
+    if shape is not None:
+        record["echo_shape"] = {
+            "name": shape.name,
+            "sample_rate_hz": shape.sample_rate_hz,
+            "arrival_s": shape.arrival_s,
+            "samples": [float(v) for v in shape.samples],
+        }
     try:
         target.write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")
     except OSError as error:
@@ -188,9 +244,52 @@ def read_calibration(path: str | os.PathLike[str], n_receivers: int | None = Non
         and residual >= 0
     ):
         raise EchoLocError(f"{source}: residual_rms_s must be a finite number >= 0, got {residual!r}")
+    path_sigma = record.get("path_sigma_m")
+    if path_sigma is not None and not (
+        isinstance(path_sigma, int | float)
+        and not isinstance(path_sigma, bool)
+        and math.isfinite(path_sigma)
+        and path_sigma > 0
+    ):
+        raise EchoLocError(f"{source}: path_sigma_m must be a finite number > 0, got {path_sigma!r}")
     return Calibration(
         speed_of_sound_m_s=float(speed),
         receiver_delays_s=tuple(float(d) for d in delays),
         echoes_used=int(echoes_used),
         residual_rms_s=float(residual),
+        path_sigma_m=None if path_sigma is None else float(path_sigma),
+        echo_shape=_read_shape(source, record.get("echo_shape")),
     )
+
+
+def _read_shape(source: Path, value: object) -> Template | None:
+    """The calibration's ``echo_shape`` (optional): name, sample_rate_hz, arrival_s, samples."""
+    if value is None:
+        return None
+    if not isinstance(value, dict):
+        raise EchoLocError(f"{source}: echo_shape must be an object")
+    unknown = set(value) - {"name", "sample_rate_hz", "arrival_s", "samples"}
+    if unknown:
+        raise EchoLocError(f"{source}: echo_shape has unknown key(s) {', '.join(sorted(unknown))}")
+    samples = value.get("samples")
+    if not (
+        isinstance(samples, list)
+        and 2 <= len(samples) <= MAX_SHAPE_SAMPLES
+        and all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in samples)
+    ):
+        raise EchoLocError(
+            f"{source}: echo_shape.samples must be a list of 2 to {MAX_SHAPE_SAMPLES} finite numbers"
+        )
+    numbers = {}
+    for key in ("sample_rate_hz", "arrival_s"):
+        number = value.get(key)
+        if not (isinstance(number, int | float) and not isinstance(number, bool) and math.isfinite(number)):
+            raise EchoLocError(f"{source}: echo_shape.{key} must be a finite number, got {number!r}")
+        numbers[key] = float(number)
+    name = value.get("name", "learnt")
+    if not isinstance(name, str):
+        raise EchoLocError(f"{source}: echo_shape.name must be text")
+    try:
+        return Template(np.array(samples, dtype=float), numbers["sample_rate_hz"], numbers["arrival_s"], name)
+    except EchoLocError as error:
+        raise EchoLocError(f"{source}: echo_shape: {error}") from None

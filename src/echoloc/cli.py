@@ -14,7 +14,7 @@ import os
 import sys
 import time
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
@@ -35,11 +35,18 @@ from echoloc.air import (
     speed_of_sound_m_s,
 )
 from echoloc.calibrate import fit_calibration, read_calibration, write_calibration
-from echoloc.conditioning import Conditioning, parse_blind_zone
+from echoloc.conditioning import Conditioning, condition_frames, parse_blind_zone
 from echoloc.echoes import THRESHOLD_DB_LIMIT, EchoOptions, FrameEchoes, frame_time_s
+from echoloc.envelope_peaks import arrivals_from_truth, learn_echo_shape
 from echoloc.errors import EchoLocError, missing_directory
-from echoloc.estimators import ESTIMATORS
-from echoloc.evaluate import Evaluation, evaluate, match
+from echoloc.estimators import (
+    AUTO,
+    ENVELOPE_PEAK_THRESHOLD_DB,
+    ESTIMATORS,
+    default_estimator,
+    default_threshold_db,
+)
+from echoloc.evaluate import Evaluation, evaluate, frames_at_positions, match
 from echoloc.locate import FrameObjects, LocateOptions
 from echoloc.output import echoes_record, json_line, objects_record
 from echoloc.pipeline import (
@@ -55,7 +62,7 @@ from echoloc.recording import Recording, read_recording, write_recording
 from echoloc.scene import default_scene
 from echoloc.scenefile import load_scene
 from echoloc.simulate import recording_header, simulate, simulate_to_file
-from echoloc.templates import cut_template, read_template, write_template
+from echoloc.templates import Template, cut_template, read_template, write_template
 from echoloc.transducer import (
     PRESETS,
     ShadingKind,
@@ -107,7 +114,7 @@ class Processing:
 
     recording_path: Path
     estimator: str
-    threshold_db: float
+    threshold_db: float | None
     blanking_s: float
     speed_of_sound_m_s: float | None
     frames_text: str | None
@@ -121,24 +128,28 @@ class Processing:
     field_of_view_deg: float | None = None
     method: str = "association"
     workers: int = 1
+    positions_text: str | None = None
+    echo_shape: Template | None = None
 
-    def open(self) -> tuple[Recording, Chain, range]:
+    def open(self) -> tuple[Recording, Chain, Sequence[int]]:
         """Read the recording, check the options, prepare the chain and the frames to run."""
         _finite("--speed-of-sound", self.speed_of_sound_m_s, positive=True)
         _finite("--blanking-s", self.blanking_s, minimum=0.0)
-        _threshold_db(self.threshold_db)
+        if self.threshold_db is not None:
+            _threshold_db(self.threshold_db)
         _finite("--path-sigma-m", self.path_sigma_m, positive=True)
         _finite("--field-of-view-deg", self.field_of_view_deg, positive=True)
         if self.field_of_view_deg is not None and self.field_of_view_deg > 180:
             raise EchoLocError(f"--field-of-view-deg must be at most 180, got {self.field_of_view_deg:g}")
-        template = None if self.template_path is None else read_template(self.template_path)
+        template = self.echo_shape if self.template_path is None else read_template(self.template_path)
+        recording = read_recording(self.recording_path, repair_nonfinite=self.repair_nonfinite)
+        name = default_estimator(recording) if self.estimator == AUTO else self.estimator
         echo_options = EchoOptions(
-            threshold_db=self.threshold_db,
+            threshold_db=default_threshold_db(name) if self.threshold_db is None else self.threshold_db,
             blanking_s=self.blanking_s,
             template=template,
             workers=self.workers,
         )
-        recording = read_recording(self.recording_path, repair_nonfinite=self.repair_nonfinite)
         calibration = (
             None
             if self.calibration_path is None
@@ -163,7 +174,14 @@ class Processing:
                 chain,
                 locate_options=replace(chain.locate_options, field_of_view_deg=self.field_of_view_deg),
             )
-        return recording, chain, _frames_option(self.frames_text, recording.n_frames)
+        frames: Sequence[int] = _frames_option(self.frames_text, recording.n_frames)
+        if self.positions_text is not None:
+            if recording.truth_positions_m is None:
+                raise EchoLocError(
+                    f"{self.recording_path}: --positions needs truth_positions in the recording"
+                )
+            frames = frames_at_positions(recording.truth_positions_m, self.positions_text, frames)
+        return recording, chain, frames
 
 
 _PROCESSING_FIELDS = [f.name for f in fields(Processing)]
@@ -179,7 +197,7 @@ _WORKERS_OPTION = click.option(
 
 
 def _located(
-    processing: Processing, recording: Recording, chain: Chain, frames: range
+    processing: Processing, recording: Recording, chain: Chain, frames: Sequence[int]
 ) -> Iterator[FrameObjects]:
     """Objects of every frame by the chosen method (``--method``)."""
     if processing.method == "backprojection":
@@ -209,17 +227,19 @@ def _processing_options(
             click.argument("recording_path", metavar="RECORDING", type=click.Path(path_type=Path)),
             click.option(
                 "--estimator",
-                type=click.Choice(sorted(ESTIMATORS)),
-                default="matched",
+                type=click.Choice([AUTO, *sorted(ESTIMATORS)]),
+                default=AUTO,
                 show_default=True,
-                help="Time-of-flight estimator.",
+                help="Time-of-flight estimator; auto: matched for rf, envelope-peak for envelope and "
+                "iq recordings without a waveform, envelope-fit with one.",
             ),
             click.option(
                 "--threshold-db",
                 type=float,
-                default=EchoOptions.threshold_db,
-                show_default=True,
-                help="Detection threshold on the echo's output SNR, dB.",
+                default=None,
+                help="Detection threshold on the echo's output SNR, dB "
+                f"[default: {EchoOptions.threshold_db:g}; "
+                f"envelope-peak {ENVELOPE_PEAK_THRESHOLD_DB:g}, on data without processing gain].",
             ),
             click.option(
                 "--blanking-s",
@@ -257,6 +277,14 @@ def _processing_options(
                 help="Override the recording's speed of sound, m/s.",
             ),
             click.option("--frames", "frames_text", default=None, help="Frames to process: N or START:STOP."),
+            click.option(
+                "--positions",
+                "positions_text",
+                default=None,
+                metavar="START:STOP:STEP",
+                help="Only the frames of these target positions (distinct truth_positions, in order of "
+                "first appearance), e.g. 0::2 to calibrate on every other and 1::2 to test on the rest.",
+            ),
             click.option(
                 "--repair-nonfinite",
                 is_flag=True,
@@ -1014,18 +1042,37 @@ def calibrate_command(processing: Processing, output: Path) -> None:
     recording, chain, frames = processing.open()
     if recording.truth_positions_m is None:
         raise EchoLocError(f"{processing.recording_path}: has no truth_positions to calibrate against")
+    estimator = default_estimator(recording) if processing.estimator == AUTO else processing.estimator
+    shape = None
+    if estimator == "envelope-peak" and processing.template_path is None:
+        # No pulse is known: learn the echo's shape from these frames' known targets (the
+        # report's BALL template), then time the echoes with it.
+        conditioned = condition_frames(recording.frames[list(frames)], recording, chain.conditioning, frames)
+        arrivals = arrivals_from_truth(recording, frames, chain.speed_of_sound_m_s)
+        try:
+            shape = learn_echo_shape(conditioned, arrivals, recording.sample_rate_hz)
+        except EchoLocError as error:
+            raise EchoLocError(f"{processing.recording_path}: {error}") from None
+        recording, chain, frames = replace(processing, echo_shape=shape).open()
     echoes = []
     with _progress(len(frames), "finding echoes", True) as advance:
         for index in frames:
             echoes.append(frame_echoes(chain, index))
             advance(1)
-    calibration = fit_calibration(recording, echoes, speed_of_sound_m_s=chain.speed_of_sound_m_s)
+    calibration = fit_calibration(
+        recording, echoes, speed_of_sound_m_s=chain.speed_of_sound_m_s, echo_shape=shape
+    )
     written = write_calibration(calibration, output)
     delays = ", ".join(f"{d * 1e6:+.3f}" for d in calibration.receiver_delays_s)
+    sigma = calibration.path_sigma_m or 0.0
+    learnt = "" if shape is None else "; the echo shape learnt from them"
+    how = "fitted; assumed" if calibration.speed_fitted else "kept: the targets do not determine it; assumed"
     stdout.print(
-        f"speed of sound {calibration.speed_of_sound_m_s:.3f} m/s (assumed {chain.speed_of_sound_m_s:.3f}); "
-        f"receiver delays {delays} µs; {calibration.echoes_used} echoes, residual "
-        f"{calibration.residual_rms_s * 1e9:.1f} ns rms. Written to {written}."
+        f"speed of sound {calibration.speed_of_sound_m_s:.3f} m/s ({how} "
+        f"{chain.speed_of_sound_m_s:.3f}); "
+        f"receiver delays {delays} µs; {calibration.echoes_used} echoes from {len(frames)} frames, "
+        f"residual {calibration.residual_rms_s * 1e9:.1f} ns rms, path σ {sigma * 1e3:.2f} mm{learnt}. "
+        f"Written to {written}."
     )
 
 

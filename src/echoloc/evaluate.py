@@ -12,13 +12,14 @@ and a pair counts only when closer than ``match_radius_m``.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
+from echoloc.errors import EchoLocError
 from echoloc.locate import FrameObjects
 
 
@@ -104,3 +105,52 @@ def evaluate(
         reported_std_m=np.array(stds).reshape(-1, 3),
         match_radius_m=match_radius_m,
     )
+
+
+def target_positions(truth_positions_m: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """The distinct target set-ups of a recording, in order of first appearance, and each
+    frame's set-up (-1: no known target). Frames whose known positions agree to 0.1 mm share
+    a set-up (a rig that holds a target still for several frames)."""
+    n_frames = len(truth_positions_m)
+    keys: dict[bytes, int] = {}
+    positions: list[NDArray[np.float64]] = []
+    which = np.full(n_frames, -1, dtype=np.int64)
+    for index in range(n_frames):
+        points = truth_positions_m[index]
+        points = points[np.all(np.isfinite(points), axis=1)]
+        if len(points) == 0:
+            continue
+        key = np.round(points / 1e-4).astype(np.int64).tobytes()
+        if key not in keys:
+            keys[key] = len(positions)
+            positions.append(points)
+        which[index] = keys[key]
+    first = np.array([p[0] for p in positions]).reshape(-1, 3)
+    return first, which
+
+
+def frames_at_positions(
+    truth_positions_m: NDArray[np.float64], spec: str, frames: Sequence[int]
+) -> list[int]:
+    """The frames among ``frames`` whose target set-up (:func:`target_positions`) is picked by
+    ``spec``, a Python slice over the set-ups: ``0::2`` every other from the first, ``1::2``
+    the rest, ``:10`` the first ten. For calibrating on some positions and testing on others."""
+    parts = spec.split(":")
+    try:
+        if len(parts) > 3:
+            raise ValueError
+        numbers = [int(p) if p.strip() else None for p in parts]
+    except ValueError:
+        raise EchoLocError(f"--positions must be a slice START:STOP:STEP, got {spec!r}") from None
+    if len(numbers) == 1:
+        index = numbers[0]
+        numbers = [index, None if index is None or index == -1 else index + 1, None]
+    if len(numbers) == 3 and numbers[2] == 0:
+        raise EchoLocError(f"--positions: the step of {spec!r} must not be 0")
+    _, which = target_positions(truth_positions_m)
+    n_positions = int(which.max()) + 1 if len(which) else 0
+    chosen = set(range(n_positions)[slice(*numbers)])
+    picked = [int(f) for f in frames if int(which[f]) in chosen]
+    if not picked:
+        raise EchoLocError(f"--positions {spec} picks no frame ({n_positions} target positions known)")
+    return picked

@@ -32,7 +32,15 @@ from echoloc.echoes import (
     with_clean,
 )
 from echoloc.errors import EchoLocError
-from echoloc.estimators import Estimator, MatchedEstimator, estimate_frames, prepare_estimator
+from echoloc.estimators import (
+    AUTO,
+    Estimator,
+    MatchedEstimator,
+    default_estimator,
+    default_threshold_db,
+    estimate_frames,
+    prepare_estimator,
+)
 from echoloc.locate import FrameLocator, FrameObjects, LocateOptions, LocateWarning, combine_frames
 from echoloc.recording import Recording, dead_receivers
 
@@ -110,7 +118,18 @@ def prepare(
     frame; a blind zone in seconds raises ``blanking_s`` to it.
     """
     conditioning = conditioning or Conditioning()
-    echo_options = effective_options(echo_options or EchoOptions(), conditioning)
+    if estimator == AUTO:
+        estimator = default_estimator(recording)
+    echo_options = echo_options or EchoOptions(threshold_db=default_threshold_db(estimator))
+    if (
+        calibration is not None
+        and calibration.echo_shape is not None
+        and echo_options.template is None
+        and estimator == "envelope-peak"
+    ):
+        # The echo shape learnt at calibration times every peak (its arrival-to-peak delay).
+        echo_options = replace(echo_options, template=calibration.echo_shape)
+    echo_options = effective_options(echo_options, conditioning)
     if calibration is not None and len(calibration.receiver_delays_s) != recording.n_receivers:
         raise EchoLocError(
             f"{recording.source}: the calibration has delays for {len(calibration.receiver_delays_s)} "
@@ -162,6 +181,9 @@ def prepare(
             receiver_axes=recording.receiver_axes,
             field_of_view_deg=90.0 if recording.field_of_view_deg is None else recording.field_of_view_deg,
         )
+        if calibration is not None and calibration.path_sigma_m is not None:
+            # The path error measured on the rig's own targets, not the a-priori 0.5 mm.
+            locate_options = replace(locate_options, path_sigma_m=calibration.path_sigma_m)
     # Dead receivers (the reader warns about them) are left out of localisation.
     usable = np.ones(recording.n_receivers, dtype=bool)
     usable[dead_receivers(recording)] = False
