@@ -142,14 +142,18 @@ class Processing:
         if self.field_of_view_deg is not None and self.field_of_view_deg > 180:
             raise EchoLocError(f"--field-of-view-deg must be at most 180, got {self.field_of_view_deg:g}")
         template = self.echo_shape if self.template_path is None else read_template(self.template_path)
-        recording = read_recording(self.recording_path, repair_nonfinite=self.repair_nonfinite)
-        name = default_estimator(recording) if self.estimator == AUTO else self.estimator
+        # The options are checked before the file is read; the threshold's default waits for
+        # the recording's estimator.
         echo_options = EchoOptions(
-            threshold_db=default_threshold_db(name) if self.threshold_db is None else self.threshold_db,
+            threshold_db=EchoOptions.threshold_db if self.threshold_db is None else self.threshold_db,
             blanking_s=self.blanking_s,
             template=template,
             workers=self.workers,
         )
+        recording = read_recording(self.recording_path, repair_nonfinite=self.repair_nonfinite)
+        name = default_estimator(recording) if self.estimator == AUTO else self.estimator
+        if self.threshold_db is None:
+            echo_options = replace(echo_options, threshold_db=default_threshold_db(name))
         calibration = (
             None
             if self.calibration_path is None
