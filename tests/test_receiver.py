@@ -46,6 +46,8 @@ from echoloc.transducer import PRESETS, apply_response, frequency_response
 from echoloc.waveform import barker_waveform
 
 FS = 200e3
+SAMPLED_PRESETS = sorted(n for n, t in PRESETS.items() if t.centre_frequency_hz < FS / 2)
+"""The presets these tests can sample at FS (the CH101's 175 kHz needs more than 350 kHz)."""
 FC = 50e3
 _RATES = {"sample_rate_hz": FS, "carrier_hz": FC, "output_rate_hz": FS}
 
@@ -187,7 +189,7 @@ def test_white_noise_mean_and_std() -> None:
     assert white_noise(5, 0.0, np.random.default_rng(0)).tolist() == [0.0] * 5
 
 
-@pytest.mark.parametrize("name", sorted(PRESETS))
+@pytest.mark.parametrize("name", SAMPLED_PRESETS)
 def test_band_limited_noise_has_std_sigma_from_the_first_sample(name: str) -> None:
     transducer = PRESETS[name]
     x = band_limited_noise((2000, 512), 0.3, np.random.default_rng(11), transducer, FS)
@@ -198,7 +200,7 @@ def test_band_limited_noise_has_std_sigma_from_the_first_sample(name: str) -> No
     assert x[:, :5].std() == pytest.approx(x[:, -5:].std(), rel=0.06)
 
 
-@pytest.mark.parametrize("name", sorted(PRESETS))
+@pytest.mark.parametrize("name", SAMPLED_PRESETS)
 def test_band_limited_noise_spectrum_follows_the_transducer(name: str) -> None:
     transducer = PRESETS[name]
     sigma = 0.5
@@ -231,7 +233,7 @@ def test_band_limited_noise_spectrum_follows_the_transducer(name: str) -> None:
     assert psd[far].mean() < 0.02 * psd[band].mean()
 
 
-@pytest.mark.parametrize("name", sorted(PRESETS))
+@pytest.mark.parametrize("name", SAMPLED_PRESETS)
 def test_noise_power_gain_is_the_mean_of_h_squared_and_pi_over_2_b(name: str) -> None:
     transducer = PRESETS[name]
     f = np.linspace(0, FS, 400_001)

@@ -286,8 +286,8 @@ def _processing_options(
                 "positions_text",
                 default=None,
                 metavar="START:STOP:STEP",
-                help="Only the frames of these target positions (distinct truth_positions, in order of "
-                "first appearance), e.g. 0::2 to calibrate on every other and 1::2 to test on the rest.",
+                help="Only the frames of these target positions (distinct truth_positions, ordered by "
+                "z, y, x), e.g. 0::2 to calibrate on every other and 1::2 to test on the rest.",
             ),
             click.option(
                 "--repair-nonfinite",
@@ -605,13 +605,13 @@ def template_command(
 @click.option("--json", "as_json", is_flag=True, help="JSON Lines per FORMATS.md instead of a table.")
 def echoes(processing: Processing, as_json: bool) -> None:
     """Times of flight of the echoes in every frame of RECORDING, per receiver."""
-    _, chain, frames = processing.open()
+    recording, chain, frames = processing.open()
     if as_json:
         for index in frames:
             click.echo(json_line(echoes_record(frame_echoes(chain, index))))
         return
     table = Table(
-        title=f"Echoes in {processing.recording_path} ({processing.estimator}, "
+        title=f"Echoes in {processing.recording_path} ({_estimator_name(processing, recording)}, "
         f"c = {chain.speed_of_sound_m_s:.2f} m/s)"
     )
     for column in ("frame", "receiver", "tof µs", "path m", "amplitude", "SNR dB"):
@@ -647,7 +647,7 @@ def locate(processing: Processing, as_json: bool) -> None:
         for objects in _located(processing, recording, chain, frames):
             click.echo(json_line(objects_record(objects)))
         return
-    table = Table(title=f"Objects in {processing.recording_path} ({processing.estimator})")
+    table = Table(title=f"Objects in {processing.recording_path} ({_estimator_name(processing, recording)})")
     for column in ("frame", "x mm", "y mm", "z mm", "±σ x, y, z mm", "range mm", "rx", "score"):
         table.add_column(column, justify="right")
     for objects in _located(processing, recording, chain, frames):
@@ -999,9 +999,19 @@ def evaluate_command(processing: Processing, match_radius_m: float, as_json: boo
             advance(1)
     report = evaluate(results, recording.truth_positions_m, match_radius_m)
     if as_json:
-        click.echo(json.dumps(_json_safe(_evaluation_record(report, processing.estimator)), allow_nan=False))
+        click.echo(
+            json.dumps(
+                _json_safe(_evaluation_record(report, _estimator_name(processing, recording))),
+                allow_nan=False,
+            )
+        )
         return
-    _print_evaluation(report, processing.recording_path, processing.estimator)
+    _print_evaluation(report, processing.recording_path, _estimator_name(processing, recording))
+
+
+def _estimator_name(processing: Processing, recording: Recording) -> str:
+    """The estimator that ran: ``--estimator``, or the recording's default for ``auto``."""
+    return default_estimator(recording) if processing.estimator == AUTO else processing.estimator
 
 
 def _evaluation_record(report: Evaluation, estimator: str) -> dict[str, Any]:
@@ -1046,7 +1056,7 @@ def calibrate_command(processing: Processing, output: Path) -> None:
     recording, chain, frames = processing.open()
     if recording.truth_positions_m is None:
         raise EchoLocError(f"{processing.recording_path}: has no truth_positions to calibrate against")
-    estimator = default_estimator(recording) if processing.estimator == AUTO else processing.estimator
+    estimator = _estimator_name(processing, recording)
     shape = None
     if estimator == "envelope-peak" and processing.template_path is None:
         # No pulse is known: learn the echo's shape from these frames' known targets (the

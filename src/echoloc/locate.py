@@ -78,6 +78,11 @@ class LocateOptions:
     transmitter_axes, receiver_axes
         Unit boresight vector per transmitter and per receiver (FORMATS.md
         ``transmitter_axes``/``receiver_axes``); None: every one along ``boresight``.
+    missing_channels
+        In a frame where no object has an echo on every channel, objects may lack one on
+        this many channels (one channel at a time is excused, the best-scoring answer
+        kept): a ToF chip's channel that misses a weak echo still leaves a 3-of-4 object,
+        with the larger covariance of fewer ellipsoids. 0: never.
     """
 
     path_sigma_m: float = 0.5e-3
@@ -90,6 +95,7 @@ class LocateOptions:
     field_of_view_deg: float = 90.0
     transmitter_axes: NDArray[np.float64] | None = field(default=None, compare=False)
     receiver_axes: NDArray[np.float64] | None = field(default=None, compare=False)
+    missing_channels: int = 0
 
 
 class LocateWarning(UserWarning):
@@ -1549,15 +1555,35 @@ class FrameLocator:
         objects = None
         if self._flat_arguments and tof.dtype == snr_db.dtype == np.float64:
             objects = self._compiled(offset, tof, c, snr_db, flat_amplitudes)
-        if objects is None:
+        if objects is None or (not objects and self.options.missing_channels > 0):
             echoes = _Echoes(
                 offset,
                 (tof * c).astype(float, copy=False),
                 _flat_path_sigmas(snr_db, c, self.options),
                 flat_amplitudes,
             )
-            objects = _objects(setup, echoes, self.options, len(channels))
+            if objects is None:
+                objects = _objects(setup, echoes, self.options, len(channels))
+            if not objects and self.options.missing_channels > 0:
+                objects = self._excusing_one(echoes, len(channels))
         return FrameObjects(frame_echoes.frame, frame_echoes.time_s, tuple(objects))
+
+    def _excusing_one(self, echoes: _Echoes, n_channels: int) -> list[LocatedObject]:
+        """Objects that need no echo on one channel (``missing_channels``), trying each channel
+        in turn; the answer whose best object scores highest."""
+        if n_channels - 1 < max(self.options.min_receivers, len(self.transmitter_m)):
+            return []
+        best: list[LocatedObject] = []
+        for excused in range(n_channels):
+            required = np.ones(n_channels, dtype=bool)
+            required[excused] = False
+            setup = _setup(
+                self.transmitter_m, self.receivers_m, self.usable, None, None, required, self.options
+            )
+            found = _objects(setup, echoes, self.options, n_channels)
+            if found and (not best or max(o.score for o in found) > max(o.score for o in best)):
+                best = found
+        return best
 
     def _compiled(
         self,
