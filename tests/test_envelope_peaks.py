@@ -20,7 +20,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from echoloc.calibrate import Calibration, read_calibration, write_calibration
-from echoloc.cli import cli
+from echoloc.cli import cli, main
 from echoloc.echoes import EchoOptions
 from echoloc.envelope_peaks import (
     learn_echo_shape,
@@ -185,3 +185,41 @@ def test_real_ch101_flow_with_defaults_only(tmp_path: Path) -> None:
     assert found / n >= 0.95
     assert np.median(errors) <= 0.022
     assert np.percentile(errors, 90) <= 0.06
+
+
+def test_template_learns_the_echo_shape_of_an_envelope_recording(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`echoloc template` on envelope data without a waveform: the shape learnt from known
+    targets peaks where the echoes do, 2.3 samples after their arrival."""
+    from echoloc.recording import write_recording
+    from echoloc.templates import read_template
+
+    rng = np.random.default_rng(5)
+    receivers = np.array([[0.0, 0.0, 0.0], [0.075, 0.0, 0.0], [-0.0375, 0.065, 0.0]])
+    targets = np.column_stack([rng.uniform(-0.05, 0.05, (40, 2)), rng.uniform(0.12, 0.3, 40)])
+    paths = np.linalg.norm(targets, axis=1)[:, None] + np.linalg.norm(
+        targets[:, None] - receivers[None], axis=2
+    )
+    arrivals = paths / 343.0 * FS
+    frames = np.stack([[gaussian_echo(a + 2.3) for a in row] for row in arrivals])
+    frames += np.abs(rng.normal(0, 3.0, size=frames.shape))
+    recording = Recording(
+        FS,
+        np.zeros((1, 3)),
+        receivers,
+        frames,
+        None,
+        signal_kind="envelope",
+        speed_of_sound_m_s=343.0,
+        truth_positions_m=targets[:, None, :],
+    )
+    path = write_recording(recording, tmp_path / "chip.h5")
+    result = CliRunner().invoke(cli, ["template", str(path), "-o", str(tmp_path / "shape.npz")])
+    assert result.exit_code == 0, result.output
+    shape = read_template(tmp_path / "shape.npz")
+    assert peak_delay_s(shape) * FS == pytest.approx(2.3, abs=0.1)
+    with pytest.raises(SystemExit) as exited:
+        main(["template", str(path), "--arrival", "direct", "-o", str(tmp_path / "x.npz")])
+    assert exited.value.code == 2
+    assert "must be 'truth' or 'peaks'" in capsys.readouterr().err

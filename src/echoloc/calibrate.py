@@ -12,9 +12,17 @@ delay, trigger offset). Each true path is paired with the echo nearest its predi
 arrival, and ``(1/c, d_1..d_n)`` follow by robust (soft L1) least squares; pairing
 and fit are repeated with a gate that narrows to a few times the fit's residual.
 
+Where the targets span too narrow a range of paths to fix ``c`` to 0.5 % (1 sigma from
+the fit's covariance), ``c`` stays the assumed one and only the delays are fitted.
+
 The file written by ``echoloc calibrate`` is JSON:
 ``{"format": "echoloc-calibration", "version": 1, "speed_of_sound_m_s": ...,
-"receiver_delays_s": [...], "echoes_used": ..., "residual_rms_s": ...}``.
+"receiver_delays_s": [...], "echoes_used": ..., "residual_rms_s": ...}`` and, optional
+(version 1 readers ignore them): ``"speed_of_sound_fitted"`` (false: kept as assumed),
+``"path_sigma_m"`` (1.4826 times the median absolute path residual, m: what ``locate``
+then assumes instead of its a-priori 0.5 mm) and ``"echo_shape"`` (the learnt echo
+envelope, :mod:`echoloc.envelope_peaks`: ``name``, ``sample_rate_hz``, ``arrival_s``,
+``samples``).
 """
 
 from __future__ import annotations

@@ -37,7 +37,13 @@ from echoloc.air import (
 from echoloc.calibrate import fit_calibration, read_calibration, write_calibration
 from echoloc.conditioning import Conditioning, condition_frames, parse_blind_zone
 from echoloc.echoes import THRESHOLD_DB_LIMIT, EchoOptions, FrameEchoes, frame_time_s
-from echoloc.envelope_peaks import arrivals_from_truth, learn_echo_shape
+from echoloc.envelope_peaks import (
+    arrivals_from_peaks,
+    arrivals_from_truth,
+    learn_echo_shape,
+    peak_delay_s,
+    prepare_peak_detector,
+)
 from echoloc.errors import EchoLocError, missing_directory
 from echoloc.estimators import (
     AUTO,
@@ -543,7 +549,8 @@ def simulate_command(scene_path: Path, output: Path, n_frames: int, seed: int | 
     default="truth",
     show_default=True,
     help="When the echo arrives: 'direct' (transmitter to receiver), 'truth' (nearest truth_positions "
-    "reflector) or a time in seconds.",
+    "reflector) or a time in seconds; for envelope and iq recordings 'truth' or 'peaks' (strong "
+    "isolated echoes, aligned on their peaks), learnt over every receiver.",
 )
 @click.option("--receiver", type=int, default=0, show_default=True, help="Receiver to cut from.")
 @click.option(
@@ -570,6 +577,9 @@ def template_command(
     Use it with `echoes`, `locate` or `evaluate --template FILE`.
     """
     recording = read_recording(recording_path)
+    if recording.signal_kind != "rf":
+        _learn_template(recording, output, arrival, frames_text, name)
+        return
     when: str | float = arrival
     if arrival not in ("direct", "truth"):
         try:
@@ -594,6 +604,40 @@ def template_command(
     stderr.print(
         f"wrote the {template.name} template ({len(template.samples)} samples, echo arriving "
         f"{template.arrival_s * 1e6:.2f} µs in, {len(frames)} frame(s) averaged) to {written}"
+    )
+
+
+def _learn_template(
+    recording: Recording, output: Path, arrival: str, frames_text: str | None, name: str | None
+) -> None:
+    """`echoloc template` on envelope or iq data: the echo shape learnt from the frames
+    (:func:`echoloc.envelope_peaks.learn_echo_shape`), background subtracted."""
+    if arrival not in ("truth", "peaks"):
+        raise EchoLocError(
+            f"{recording.source}: on {recording.signal_kind} data --arrival must be 'truth' or 'peaks', "
+            f"got {arrival!r}"
+        )
+    frames = _frames_option(frames_text, recording.n_frames)
+    chain = prepare(recording, estimator="envelope-peak")
+    conditioned = condition_frames(
+        recording.frames[frames.start : frames.stop], recording, chain.conditioning, frames
+    )
+    if arrival == "truth":
+        arrivals = arrivals_from_truth(recording, frames, chain.speed_of_sound_m_s)
+    else:
+        detector = prepare_peak_detector(recording, None)
+        arrivals = arrivals_from_peaks(conditioned, detector, chain.echo_options)
+    try:
+        template = learn_echo_shape(
+            conditioned, arrivals, recording.sample_rate_hz, name=name or f"learnt-{arrival}"
+        )
+    except EchoLocError as error:
+        raise EchoLocError(f"{recording.source}: {error}") from None
+    written = write_template(template, output)
+    stderr.print(
+        f"wrote the {template.name} echo shape ({len(template.samples)} points at "
+        f"{template.sample_rate_hz:g} Hz, peak {peak_delay_s(template) * 1e6:.1f} µs after the arrival, "
+        f"from {len(frames)} frame(s)) to {written}"
     )
 
 
