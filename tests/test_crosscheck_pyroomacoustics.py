@@ -68,7 +68,6 @@ filter left on, the delays move by less than 2e-5 sample.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -83,6 +82,8 @@ from echoloc.simulate import simulate
 
 pra = pytest.importorskip("pyroomacoustics")
 
+from pra_support import _pra_without_highpass, pra_offset_samples  # noqa: E402, F401  (the fixture is autouse)
+
 FloatArray = NDArray[np.float64]
 
 FS = 200_000  # an int: pra's impulse-response builder takes an integer rate
@@ -90,20 +91,6 @@ DELAY_TOLERANCE_SAMPLES = 0.01
 AMPLITUDE_TOLERANCE = 0.02
 WALLS = ("west", "east", "south", "north", "floor", "ceiling")
 WALL_AXIS = {"east": 0, "north": 1, "ceiling": 2}  # the far wall of each axis: x, y, z = L
-
-
-@pytest.fixture(autouse=True)
-def _pra_without_highpass() -> Iterator[None]:
-    """Switch pra's RIR high-pass filter off for a test, restoring the global setting after."""
-    before = pra.constants.get("rir_hpf_enable")
-    pra.constants.set("rir_hpf_enable", False)
-    yield
-    pra.constants.set("rir_hpf_enable", before)
-
-
-def pra_offset_samples() -> int:
-    """The delay pra adds to every arrival: half its fractional-delay filter (ism.py, fdl // 2)."""
-    return int(pra.constants.get("frac_delay_length")) // 2
 
 
 # --------------------------------------------------------------------------- measurement

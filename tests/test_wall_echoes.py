@@ -34,8 +34,6 @@ sample for the two simulators' interpolators (the cross-check's tolerance; they 
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import numpy as np
 import pytest
 from numpy.typing import NDArray
@@ -47,6 +45,8 @@ from echoloc.recording import Recording
 from echoloc.waveform import barker_waveform
 
 pra = pytest.importorskip("pyroomacoustics")
+
+from pra_support import _pra_without_highpass, pra_offset_samples  # noqa: E402, F401  (the fixture is autouse)
 
 FloatArray = NDArray[np.float64]
 
@@ -64,20 +64,6 @@ WALLS = ("west", "east", "south", "north", "floor", "ceiling")
 SIZE_M = (4.1, 5.3, 3.2)
 TX_M = (0.7, 1.6, 1.2)
 RX_M = (0.95, 1.6, 1.2)
-
-
-@pytest.fixture(autouse=True)
-def _pra_without_highpass() -> Iterator[None]:
-    """Switch pra's RIR high-pass filter off for a test, restoring the global setting after."""
-    before = pra.constants.get("rir_hpf_enable")
-    pra.constants.set("rir_hpf_enable", False)
-    yield
-    pra.constants.set("rir_hpf_enable", before)
-
-
-def pra_offset_samples() -> int:
-    """The delay pra adds to every arrival: half its fractional-delay filter (ism.py, fdl // 2)."""
-    return int(pra.constants.get("frac_delay_length")) // 2
 
 
 def shoebox(reflecting: str | None) -> FloatArray:

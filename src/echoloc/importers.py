@@ -580,6 +580,17 @@ def spiel_recording(
         The folder, for messages.
     """
     dtype = _samples_dtype(frames if background is None else np.concatenate([frames, background]))
+    return _head_recording(
+        head,
+        source,
+        frames=frames.astype(dtype),
+        background=None if background is None else background.astype(dtype),
+        truth_positions_m=(np.asarray(positions_mm, dtype=np.float64) / 1000.0)[:, np.newaxis, :],
+    )
+
+
+def _head_recording(head: SensorHead, source: str, **data: Any) -> Recording:
+    """The validated recording of ``head``'s attributes and geometry with the ``data`` arrays."""
     recording = Recording(
         sample_rate_hz=_given(head.sample_rate_hz),
         signal_kind=_given(head.signal_kind),
@@ -589,10 +600,8 @@ def spiel_recording(
         relative_humidity=head.relative_humidity,
         transmitters_m=_geometry(head.transmitters_m),
         receivers_m=_geometry(head.receivers_m),
-        frames=frames.astype(dtype),
-        background=None if background is None else background.astype(dtype),
-        truth_positions_m=(np.asarray(positions_mm, dtype=np.float64) / 1000.0)[:, np.newaxis, :],
         source=source,
+        **data,
     )
     return validate_recording(recording)
 
@@ -777,22 +786,14 @@ def samples_recording(
         (n_w,) SENT template, or None.
     """
     _require(head, SAMPLES_REQUIRED_KEYS, "`import samples`")
-    recording = Recording(
-        sample_rate_hz=_given(head.sample_rate_hz),
-        signal_kind=_given(head.signal_kind),
-        carrier_hz=head.carrier_hz,
-        speed_of_sound_m_s=head.speed_of_sound_m_s,
-        temperature_c=head.temperature_c,
-        relative_humidity=head.relative_humidity,
-        transmitters_m=_geometry(head.transmitters_m),
-        receivers_m=_geometry(head.receivers_m),
+    return _head_recording(
+        head,
+        source,
         frames=frames,
         background=background,
         waveform=waveform,
         truth_positions_m=truth_positions_m(head.truth, int(frames.shape[0]), head.source),
-        source=source,
     )
-    return validate_recording(recording)
 
 
 def read_samples(path: Path, head: SensorHead) -> Recording:
