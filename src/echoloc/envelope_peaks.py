@@ -6,8 +6,8 @@ the delay between an echo's arrival and its envelope's features is then a calibr
 constant. This module finds echoes on such data with nothing but the data:
 
 1. **Noise that follows the data.** Each channel's noise level is measured on its own
-   samples after the blind zone, robustly (``sigma = 1.4826 median|x|``, the median
-   absolute value of zero-mean Gaussian noise times the MAD's consistency factor): an
+   samples after the blind zone, robustly (:func:`noise_sigma`: ``1.4826`` times the
+   median of the positive samples, the MAD's consistency factor for Gaussian noise): an
    echo is a local maximum more than ``threshold_db`` above it. No echo sets the scale
    for another, so a strong cross-talk residue does not hide a weak far echo.
 2. **Ring-down and cross-talk from the data** (:func:`ring_down_samples`): the
@@ -192,6 +192,17 @@ def peak_echoes(frame: NDArray[Any], detector: PeakDetector, options: EchoOption
     return channels
 
 
+def noise_sigma(magnitude: NDArray[np.float64]) -> float:
+    """A channel's noise level from its own samples: ``1.4826 median`` of its positive samples.
+
+    Zero-mean Gaussian noise has ``median|n| = 0.6745 sigma``. After background subtraction
+    in power about half of the noise-only samples are floored at 0 (where the empty scene's
+    noise was the larger), so the zeros are left out; echoes, being few, move the median
+    little."""
+    positive = magnitude[magnitude > 0]
+    return MAD_TO_SIGMA * float(np.median(positive)) if len(positive) else 0.0
+
+
 def _channel_peaks(
     x: NDArray[np.float64], first: int, factor: float, detector: PeakDetector, options: EchoOptions
 ) -> ChannelEchoes:
@@ -201,7 +212,7 @@ def _channel_peaks(
     if first >= n - 1:
         return empty
     tail = x[first:]
-    sigma = max(MAD_TO_SIGMA * float(np.median(tail)), NOISE_FLOOR_FRACTION * float(tail.max()))
+    sigma = max(noise_sigma(tail), NOISE_FLOOR_FRACTION * float(tail.max()))
     if not sigma > 0:
         return empty
     inner = x[first : n - 1]
@@ -266,7 +277,7 @@ def learn_echo_shape(
         if not (at + start >= 0 and at + stop < n_samples):
             continue
         x = magnitude[f, rx]
-        sigma = MAD_TO_SIGMA * float(np.median(x))
+        sigma = noise_sigma(x)
         segment = np.interp(at + grid, t, x)
         peak = float(segment[lobe].max())
         if not (peak > 0 and peak > min_snr * sigma):
