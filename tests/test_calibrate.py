@@ -12,6 +12,7 @@ import scipy.fft
 
 from echoloc.calibrate import Calibration, fit_calibration, read_calibration, write_calibration
 from echoloc.cli import main
+from echoloc.echoes import ChannelEchoes, FrameEchoes
 from echoloc.errors import EchoLocError
 from echoloc.evaluate import evaluate
 from echoloc.pipeline import frame_echoes, frame_objects, prepare
@@ -139,3 +140,78 @@ def test_delay_longer_than_a_frame_is_refused(
     assert err.count("\n") == 1
     assert "more than a whole frame" in err
     assert "Traceback" not in err
+
+
+# --- a rig's calibration: the measured path sigma, and a speed the targets cannot fix ------
+
+RIG_RECEIVERS_M = np.array(
+    [[0.0, 0.0, 0.0], [0.075, 0.0, 0.0], [-0.0375, 0.065, 0.0], [-0.0375, -0.065, 0.0]]
+)
+RIG_DELAYS_S = np.array([4e-6, -20e-6, -3e-6, 11e-6])
+
+
+def rig_echoes(
+    targets_m: np.ndarray, speed_m_s: float, path_sigma_m: float, seed: int
+) -> tuple[Recording, list[FrameEchoes]]:
+    """One echo per receiver and frame at ``path / c + delay``, its path off by Gaussian
+    noise of ``path_sigma_m``: what a calibration should measure back."""
+    rng = np.random.default_rng(seed)
+    n = len(targets_m)
+    recording = Recording(
+        22_000.0,
+        np.zeros((1, 3)),
+        RIG_RECEIVERS_M,
+        np.zeros((n, 4, 62)),
+        None,
+        signal_kind="envelope",
+        truth_positions_m=targets_m[:, None, :],
+    )
+    paths = np.linalg.norm(targets_m, axis=1)[:, None] + np.linalg.norm(
+        targets_m[:, None] - RIG_RECEIVERS_M[None], axis=2
+    )
+    measured = paths + rng.normal(0, path_sigma_m, paths.shape)
+    echoes = [
+        FrameEchoes(
+            f, 0.0, 343.0, tuple(ChannelEchoes(np.array([t]), np.ones(1), np.full(1, 20.0)) for t in row)
+        )
+        for f, row in enumerate(measured / speed_m_s + RIG_DELAYS_S)
+    ]
+    return recording, echoes
+
+
+def test_the_path_sigma_is_measured_back_from_the_residuals() -> None:
+    """Paths off by 6 mm (Gaussian): the calibration reports 6 mm within its sampling error
+    (the MAD's standard error on 4000 residuals is about 2 %), and fits c and the delays."""
+    rng = np.random.default_rng(2)
+    targets = np.column_stack([rng.uniform(-0.1, 0.1, (1000, 2)), rng.uniform(0.1, 0.6, 1000)])
+    recording, echoes = rig_echoes(targets, 346.0, 0.006, seed=3)
+    calibration = fit_calibration(recording, echoes, speed_of_sound_m_s=343.0, gate_m=0.05)
+    assert calibration.speed_fitted
+    assert calibration.speed_of_sound_m_s == pytest.approx(346.0, rel=2e-3)
+    assert calibration.path_sigma_m == pytest.approx(0.006, rel=0.08)
+
+
+def test_a_speed_the_targets_do_not_fix_is_kept_as_assumed() -> None:
+    """Targets all at one point (0.1 mm apart): the paths barely differ, so c trades with the
+    delays; the assumed speed is kept and the delays take up the constant."""
+    targets = np.tile([[0.0, 0.0, 0.2]], (50, 1)) + np.random.default_rng(4).normal(0, 1e-4, (50, 3))
+    recording, echoes = rig_echoes(targets, 343.0, 0.0005, seed=5)
+    calibration = fit_calibration(recording, echoes, speed_of_sound_m_s=343.0, gate_m=0.05)
+    assert not calibration.speed_fitted
+    assert calibration.speed_of_sound_m_s == 343.0
+    # The median of 50 echoes off by 1.5 us each (0.5 mm): within 1 us, about 4 sigma.
+    np.testing.assert_allclose(calibration.receiver_delays_s, RIG_DELAYS_S, atol=1e-6)
+
+
+def test_the_speed_fitted_flag_survives_the_file(tmp_path: Path) -> None:
+    calibration = Calibration(343.0, (0.0, 1e-6), speed_fitted=False)
+    assert not read_calibration(write_calibration(calibration, tmp_path / "c.json")).speed_fitted
+    record = json.loads((tmp_path / "c.json").read_text())
+    record["speed_of_sound_fitted"] = "no"
+    (tmp_path / "c.json").write_text(json.dumps(record))
+    with pytest.raises(EchoLocError, match="speed_of_sound_fitted must be true or false"):
+        read_calibration(tmp_path / "c.json")
+    record["speed_of_sound_fitted"], record["speed_of_sound_m_s"] = True, True
+    (tmp_path / "c.json").write_text(json.dumps(record))
+    with pytest.raises(EchoLocError, match="speed_of_sound_m_s must be a positive number"):
+        read_calibration(tmp_path / "c.json")

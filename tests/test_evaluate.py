@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from echoloc.evaluate import evaluate, match
+from echoloc.errors import EchoLocError
+from echoloc.evaluate import evaluate, frames_at_positions, match, target_positions
 from echoloc.locate import FrameObjects, LocatedObject
 
 
@@ -50,3 +51,46 @@ def test_figures() -> None:
     assert report.false_rate == pytest.approx(1 / 3)
     assert report.rmse_m == pytest.approx([np.sqrt(0.002**2 / 2), 0.0, np.sqrt(0.003**2 / 2)])
     assert report.mean_std_m == pytest.approx([1e-3] * 3)
+
+
+# --- target positions: calibrate on some, test on the others ----------------------------
+
+# Frames 0-1 at a far point, 2-4 at a near one, 5 with no known target, 6 back at the far one.
+FAR, NEAR, NEAR_AGAIN, NONE = [0.0, 0.0, 0.3], [0.05, 0.0, 0.1], [0.05, 0.00004, 0.1], [np.nan] * 3
+TRUTH_M = np.array([[FAR], [FAR], [NEAR], [NEAR], [NEAR_AGAIN], [NONE], [FAR]])
+
+
+def test_target_positions_are_numbered_by_depth_and_share_frames() -> None:
+    """Positions within 0.1 mm are one set-up; set-ups are numbered by z first, so the near
+    point is 0 though it appears second; a frame with no truth has none."""
+    positions, which = target_positions(TRUTH_M)
+    np.testing.assert_allclose(positions, [[0.05, 0.0, 0.1], [0.0, 0.0, 0.3]])
+    np.testing.assert_array_equal(which, [1, 1, 0, 0, 0, -1, 1])
+
+
+@pytest.mark.parametrize(
+    ("spec", "frames"),
+    [
+        ("0::2", [2, 3, 4]),
+        ("1::2", [0, 1, 6]),
+        ("1", [0, 1, 6]),
+        ("-1", [0, 1, 6]),
+        (":", [0, 1, 2, 3, 4, 6]),
+    ],
+)
+def test_positions_pick_every_frame_of_their_set_ups(spec: str, frames: list[int]) -> None:
+    assert frames_at_positions(TRUTH_M, spec, range(7)) == frames
+
+
+@pytest.mark.parametrize(
+    ("spec", "message"),
+    [
+        ("a::2", "must be a slice"),
+        ("0:1:2:3", "must be a slice"),
+        ("::0", "must not be 0"),
+        ("5:", "picks no frame"),
+    ],
+)
+def test_bad_position_slices_are_one_clear_error(spec: str, message: str) -> None:
+    with pytest.raises(EchoLocError, match=message):
+        frames_at_positions(TRUTH_M, spec, range(7))

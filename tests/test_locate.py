@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import numpy as np
@@ -11,6 +12,7 @@ from hypothesis import strategies as st
 
 from echoloc.echoes import ChannelEchoes, FrameEchoes
 from echoloc.locate import (
+    FrameLocator,
     LocateOptions,
     associate,
     chi2_tail,
@@ -548,3 +550,32 @@ def test_the_compiled_exact_solution_matches_the_numpy_one(point: tuple, receive
     for p in expected:
         assert np.min(np.linalg.norm(compiled[:n] - p, axis=1)) < 1e-6 * max(1.0, float(np.max(np.abs(p))))
     assert np.min(np.linalg.norm(points[0] - np.array(point), axis=1)) < 1e-6
+
+
+def test_a_lone_triple_is_an_object_where_one_channel_may_be_excused() -> None:
+    """The same three echoes with nothing on the fourth receiver: rejected by default, one
+    object at the point when a channel may be excused, with the larger covariance of three
+    ellipsoids than of four; a frame that has its four-echo object keeps it as it is."""
+    point = np.array([0.1, 0.1, 0.7])
+    paths = _paths_per_receiver(point[None])
+    full = FrameEchoes(
+        0, 0.0, 343.0, tuple(ChannelEchoes(p / 343.0, np.ones(len(p)), np.full(len(p), 30.0)) for p in paths)
+    )
+    missing = FrameEchoes(
+        0,
+        0.0,
+        343.0,
+        tuple(
+            c if i != 2 else ChannelEchoes(np.zeros(0), np.zeros(0), np.zeros(0))
+            for i, c in enumerate(full.channels)
+        ),
+    )
+    strict = FrameLocator(TX, CROSS, OPTIONS)
+    lenient = FrameLocator(TX, CROSS, dataclasses.replace(OPTIONS, excuse_one_channel=True))
+    assert strict(missing).objects == ()
+    (three,) = lenient(missing).objects
+    assert three.position_m == pytest.approx(point, abs=1e-7)
+    assert sorted(three.receivers) == [0, 1, 3]
+    (four,) = lenient(full).objects
+    assert len(four.receivers) == 4
+    assert np.trace(three.covariance_m2) > np.trace(four.covariance_m2)

@@ -33,20 +33,19 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TypeGuard
 
 import numpy as np
 from scipy import optimize
 
 from echoloc.echoes import ChannelEchoes, FrameEchoes
+from echoloc.envelope_peaks import MAD_TO_SIGMA
 from echoloc.errors import EchoLocError
 from echoloc.locate import model_paths_m
 from echoloc.recording import Recording
 from echoloc.templates import Template
 
 CALIBRATION_FORMAT = "echoloc-calibration"
-
-MAD_TO_SIGMA = 1.4826
-"""sigma of Gaussian errors over their median absolute deviation (1 / Phi^-1(3/4))."""
 
 SPEED_FIT_MAX_RELATIVE_STD = 0.005
 """The speed of sound is fitted only where the targets determine it to 0.5 % (1 sigma, about
@@ -195,8 +194,8 @@ def write_calibration(calibration: Calibration, path: str | os.PathLike[str]) ->
         "receiver_delays_s": list(calibration.receiver_delays_s),
         "echoes_used": calibration.echoes_used,
         "residual_rms_s": calibration.residual_rms_s,
+        "speed_of_sound_fitted": calibration.speed_fitted,
     }
-    record["speed_of_sound_fitted"] = calibration.speed_fitted
     if calibration.path_sigma_m is not None:
         record["path_sigma_m"] = calibration.path_sigma_m
     shape = calibration.echo_shape
@@ -229,12 +228,9 @@ def read_calibration(path: str | os.PathLike[str], n_receivers: int | None = Non
         raise EchoLocError(f"{source}: unsupported calibration version {record.get('version')!r}")
     speed = record.get("speed_of_sound_m_s")
     delays = record.get("receiver_delays_s")
-    if not (isinstance(speed, int | float) and math.isfinite(speed) and speed > 0):
+    if not (_finite_number(speed) and speed > 0):
         raise EchoLocError(f"{source}: speed_of_sound_m_s must be a positive number, got {speed!r}")
-    if not (
-        isinstance(delays, list)
-        and all(isinstance(d, int | float) and not isinstance(d, bool) and math.isfinite(d) for d in delays)
-    ):
+    if not (isinstance(delays, list) and all(_finite_number(d) for d in delays)):
         raise EchoLocError(f"{source}: receiver_delays_s must be a list of finite numbers")
     if n_receivers is not None and len(delays) != n_receivers:
         raise EchoLocError(
@@ -245,21 +241,14 @@ def read_calibration(path: str | os.PathLike[str], n_receivers: int | None = Non
     if not (whole and not isinstance(echoes_used, bool) and echoes_used >= 0):
         raise EchoLocError(f"{source}: echoes_used must be a whole number >= 0, got {echoes_used!r}")
     residual = record.get("residual_rms_s", 0.0)
-    if not (
-        isinstance(residual, int | float)
-        and not isinstance(residual, bool)
-        and math.isfinite(residual)
-        and residual >= 0
-    ):
+    if not (_finite_number(residual) and residual >= 0):
         raise EchoLocError(f"{source}: residual_rms_s must be a finite number >= 0, got {residual!r}")
     path_sigma = record.get("path_sigma_m")
-    if path_sigma is not None and not (
-        isinstance(path_sigma, int | float)
-        and not isinstance(path_sigma, bool)
-        and math.isfinite(path_sigma)
-        and path_sigma > 0
-    ):
+    if path_sigma is not None and not (_finite_number(path_sigma) and path_sigma > 0):
         raise EchoLocError(f"{source}: path_sigma_m must be a finite number > 0, got {path_sigma!r}")
+    speed_fitted = record.get("speed_of_sound_fitted", True)
+    if not isinstance(speed_fitted, bool):
+        raise EchoLocError(f"{source}: speed_of_sound_fitted must be true or false, got {speed_fitted!r}")
     return Calibration(
         speed_of_sound_m_s=float(speed),
         receiver_delays_s=tuple(float(d) for d in delays),
@@ -267,7 +256,13 @@ def read_calibration(path: str | os.PathLike[str], n_receivers: int | None = Non
         residual_rms_s=float(residual),
         path_sigma_m=None if path_sigma is None else float(path_sigma),
         echo_shape=_read_shape(source, record.get("echo_shape")),
+        speed_fitted=speed_fitted,
     )
+
+
+def _finite_number(value: object) -> TypeGuard[int | float]:
+    """A JSON number that is finite (``true`` and ``false`` are not numbers here)."""
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def _read_shape(source: Path, value: object) -> Template | None:
@@ -283,7 +278,7 @@ def _read_shape(source: Path, value: object) -> Template | None:
     if not (
         isinstance(samples, list)
         and 2 <= len(samples) <= MAX_SHAPE_SAMPLES
-        and all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in samples)
+        and all(_finite_number(v) for v in samples)
     ):
         raise EchoLocError(
             f"{source}: echo_shape.samples must be a list of 2 to {MAX_SHAPE_SAMPLES} finite numbers"
@@ -291,7 +286,7 @@ def _read_shape(source: Path, value: object) -> Template | None:
     numbers = {}
     for key in ("sample_rate_hz", "arrival_s"):
         number = value.get(key)
-        if not (isinstance(number, int | float) and not isinstance(number, bool) and math.isfinite(number)):
+        if not _finite_number(number):
             raise EchoLocError(f"{source}: echo_shape.{key} must be a finite number, got {number!r}")
         numbers[key] = float(number)
     name = value.get("name", "learnt")

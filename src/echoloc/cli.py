@@ -35,22 +35,16 @@ from echoloc.air import (
     speed_of_sound_m_s,
 )
 from echoloc.calibrate import fit_calibration, read_calibration, write_calibration
-from echoloc.conditioning import Conditioning, condition_frames, parse_blind_zone
+from echoloc.conditioning import Conditioning, parse_blind_zone
 from echoloc.echoes import THRESHOLD_DB_LIMIT, EchoOptions, FrameEchoes, frame_time_s
-from echoloc.envelope_peaks import (
-    arrivals_from_peaks,
-    arrivals_from_truth,
-    learn_echo_shape,
-    peak_delay_s,
-    prepare_peak_detector,
-)
-from echoloc.errors import EchoLocError, missing_directory
+from echoloc.envelope_peaks import peak_delay_s
+from echoloc.errors import EchoLocError, unwritable
 from echoloc.estimators import (
     AUTO,
     ENVELOPE_PEAK_THRESHOLD_DB,
     ESTIMATORS,
-    default_estimator,
     default_threshold_db,
+    resolve_estimator,
 )
 from echoloc.evaluate import Evaluation, evaluate, frames_at_positions, match
 from echoloc.locate import FrameObjects, LocateOptions
@@ -60,6 +54,7 @@ from echoloc.pipeline import (
     check_locatable,
     frame_echoes,
     frame_objects,
+    learn_chain_echo_shape,
     prepare,
     recording_speed_of_sound_m_s,
     run,
@@ -135,10 +130,9 @@ class Processing:
     method: str = "association"
     workers: int = 1
     positions_text: str | None = None
-    echo_shape: Template | None = None
 
     def open(self) -> tuple[Recording, Chain, Sequence[int]]:
-        """Read the recording, check the options, prepare the chain and the frames to run."""
+        """Check the options, read the recording, prepare the chain and pick the frames to run."""
         _finite("--speed-of-sound", self.speed_of_sound_m_s, positive=True)
         _finite("--blanking-s", self.blanking_s, minimum=0.0)
         if self.threshold_db is not None:
@@ -147,19 +141,31 @@ class Processing:
         _finite("--field-of-view-deg", self.field_of_view_deg, positive=True)
         if self.field_of_view_deg is not None and self.field_of_view_deg > 180:
             raise EchoLocError(f"--field-of-view-deg must be at most 180, got {self.field_of_view_deg:g}")
-        template = self.echo_shape if self.template_path is None else read_template(self.template_path)
-        # The options are checked before the file is read; the threshold's default waits for
-        # the recording's estimator.
-        echo_options = EchoOptions(
-            threshold_db=EchoOptions.threshold_db if self.threshold_db is None else self.threshold_db,
-            blanking_s=self.blanking_s,
-            template=template,
-            workers=self.workers,
-        )
+        EchoOptions(workers=self.workers)  # refuses a bad --workers before the file is read
+        template = None if self.template_path is None else read_template(self.template_path)
         recording = read_recording(self.recording_path, repair_nonfinite=self.repair_nonfinite)
-        name = default_estimator(recording) if self.estimator == AUTO else self.estimator
-        if self.threshold_db is None:
-            echo_options = replace(echo_options, threshold_db=default_threshold_db(name))
+        frames: Sequence[int] = _frames_option(self.frames_text, recording.n_frames)
+        if self.positions_text is not None:
+            if recording.truth_positions_m is None:
+                raise EchoLocError(
+                    f"{self.recording_path}: --positions needs truth_positions in the recording"
+                )
+            frames = frames_at_positions(recording.truth_positions_m, self.positions_text, frames)
+        return recording, self.chain(recording, template), frames
+
+    def estimator_name(self, recording: Recording) -> str:
+        """The estimator that runs: ``--estimator``, or the recording's default for ``auto``."""
+        return resolve_estimator(self.estimator, recording)
+
+    def chain(self, recording: Recording, template: Template | None) -> Chain:
+        """The chain for ``recording`` with these options; ``template``: the matched filter's or
+        the learnt echo shape (None: the recording's own, or the calibration's shape)."""
+        threshold_db = self.threshold_db
+        if threshold_db is None:
+            threshold_db = default_threshold_db(self.estimator_name(recording))
+        echo_options = EchoOptions(
+            threshold_db=threshold_db, blanking_s=self.blanking_s, template=template, workers=self.workers
+        )
         calibration = (
             None
             if self.calibration_path is None
@@ -184,14 +190,7 @@ class Processing:
                 chain,
                 locate_options=replace(chain.locate_options, field_of_view_deg=self.field_of_view_deg),
             )
-        frames: Sequence[int] = _frames_option(self.frames_text, recording.n_frames)
-        if self.positions_text is not None:
-            if recording.truth_positions_m is None:
-                raise EchoLocError(
-                    f"{self.recording_path}: --positions needs truth_positions in the recording"
-                )
-            frames = frames_at_positions(recording.truth_positions_m, self.positions_text, frames)
-        return recording, chain, frames
+        return chain
 
 
 _PROCESSING_FIELDS = [f.name for f in fields(Processing)]
@@ -306,8 +305,9 @@ def _processing_options(
                 "template_path",
                 type=click.Path(path_type=Path),
                 default=None,
-                help="Matched-filter template from `echoloc template` (DIRECT, a recorded echo), "
-                "for --estimator matched only; default: the recording's waveform (SENT).",
+                help="Template from `echoloc template`: the matched filter's (DIRECT, a recorded echo; "
+                "default: the recording's waveform, SENT) or envelope-peak's learnt echo shape "
+                "(default: the calibration's).",
             ),
         ]
         if calibrated:
@@ -610,29 +610,10 @@ def template_command(
 def _learn_template(
     recording: Recording, output: Path, arrival: str, frames_text: str | None, name: str | None
 ) -> None:
-    """`echoloc template` on envelope or iq data: the echo shape learnt from the frames
-    (:func:`echoloc.envelope_peaks.learn_echo_shape`), background subtracted."""
-    if arrival not in ("truth", "peaks"):
-        raise EchoLocError(
-            f"{recording.source}: on {recording.signal_kind} data --arrival must be 'truth' or 'peaks', "
-            f"got {arrival!r}"
-        )
+    """`echoloc template` on envelope or iq data: the echo shape learnt from the frames,
+    conditioned as the envelope-peak chain conditions them (:func:`learn_chain_echo_shape`)."""
     frames = _frames_option(frames_text, recording.n_frames)
-    chain = prepare(recording, estimator="envelope-peak")
-    conditioned = condition_frames(
-        recording.frames[frames.start : frames.stop], recording, chain.conditioning, frames
-    )
-    if arrival == "truth":
-        arrivals = arrivals_from_truth(recording, frames, chain.speed_of_sound_m_s)
-    else:
-        detector = prepare_peak_detector(recording, None)
-        arrivals = arrivals_from_peaks(conditioned, detector, chain.echo_options)
-    try:
-        template = learn_echo_shape(
-            conditioned, arrivals, recording.sample_rate_hz, name=name or f"learnt-{arrival}"
-        )
-    except EchoLocError as error:
-        raise EchoLocError(f"{recording.source}: {error}") from None
+    template = learn_chain_echo_shape(prepare(recording, estimator="envelope-peak"), frames, arrival, name)
     written = write_template(template, output)
     stderr.print(
         f"wrote the {template.name} echo shape ({len(template.samples)} points at "
@@ -655,7 +636,7 @@ def echoes(processing: Processing, as_json: bool) -> None:
             click.echo(json_line(echoes_record(frame_echoes(chain, index))))
         return
     table = Table(
-        title=f"Echoes in {processing.recording_path} ({_estimator_name(processing, recording)}, "
+        title=f"Echoes in {processing.recording_path} ({processing.estimator_name(recording)}, "
         f"c = {chain.speed_of_sound_m_s:.2f} m/s)"
     )
     for column in ("frame", "receiver", "tof µs", "path m", "amplitude", "SNR dB"):
@@ -691,7 +672,7 @@ def locate(processing: Processing, as_json: bool) -> None:
         for objects in _located(processing, recording, chain, frames):
             click.echo(json_line(objects_record(objects)))
         return
-    table = Table(title=f"Objects in {processing.recording_path} ({_estimator_name(processing, recording)})")
+    table = Table(title=f"Objects in {processing.recording_path} ({processing.estimator_name(recording)})")
     for column in ("frame", "x mm", "y mm", "z mm", "±σ x, y, z mm", "range mm", "rx", "score"):
         table.add_column(column, justify="right")
     for objects in _located(processing, recording, chain, frames):
@@ -819,12 +800,8 @@ _MAP_FORMATS = (".png", ".npz", ".ply", ".bt", ".ot", ".mcap")
 
 def _check_writable(path: Path) -> None:
     """Refuse an output that cannot be written before the work that would fill it."""
-    if path.is_dir():
-        raise EchoLocError(f"{path}: is a directory")
-    if problem := missing_directory(path):
+    if problem := unwritable(path):
         raise EchoLocError(f"{path}: {problem}")
-    if not os.access(path if path.exists() else path.parent, os.W_OK):
-        raise EchoLocError(f"{path}: cannot write here (permission denied)")
 
 
 def _check_plot(path: Path | None) -> None:
@@ -1045,17 +1022,12 @@ def evaluate_command(processing: Processing, match_radius_m: float, as_json: boo
     if as_json:
         click.echo(
             json.dumps(
-                _json_safe(_evaluation_record(report, _estimator_name(processing, recording))),
+                _json_safe(_evaluation_record(report, processing.estimator_name(recording))),
                 allow_nan=False,
             )
         )
         return
-    _print_evaluation(report, processing.recording_path, _estimator_name(processing, recording))
-
-
-def _estimator_name(processing: Processing, recording: Recording) -> str:
-    """The estimator that ran: ``--estimator``, or the recording's default for ``auto``."""
-    return default_estimator(recording) if processing.estimator == AUTO else processing.estimator
+    _print_evaluation(report, processing.recording_path, processing.estimator_name(recording))
 
 
 def _evaluation_record(report: Evaluation, estimator: str) -> dict[str, Any]:
@@ -1096,22 +1068,21 @@ def _print_evaluation(report: Evaluation, path: Path, estimator: str) -> None:
     "-o", "--output", type=click.Path(path_type=Path), required=True, help="Calibration JSON to write."
 )
 def calibrate_command(processing: Processing, output: Path) -> None:
-    """Fit the speed of sound and a delay per receiver from frames with known targets (truth_positions)."""
+    """Fit the speed of sound and a delay per receiver from frames with known targets (truth_positions).
+
+    The file also holds the path error measured from the fit's residuals, which `locate
+    --calibration` assumes, and, for envelope-peak (envelope or iq data without a
+    waveform), the echo shape learnt from these targets.
+    """
     recording, chain, frames = processing.open()
     if recording.truth_positions_m is None:
         raise EchoLocError(f"{processing.recording_path}: has no truth_positions to calibrate against")
-    estimator = _estimator_name(processing, recording)
     shape = None
-    if estimator == "envelope-peak" and processing.template_path is None:
+    if processing.estimator_name(recording) == "envelope-peak" and processing.template_path is None:
         # No pulse is known: learn the echo's shape from these frames' known targets (the
         # report's BALL template), then time the echoes with it.
-        conditioned = condition_frames(recording.frames[list(frames)], recording, chain.conditioning, frames)
-        arrivals = arrivals_from_truth(recording, frames, chain.speed_of_sound_m_s)
-        try:
-            shape = learn_echo_shape(conditioned, arrivals, recording.sample_rate_hz)
-        except EchoLocError as error:
-            raise EchoLocError(f"{processing.recording_path}: {error}") from None
-        recording, chain, frames = replace(processing, echo_shape=shape).open()
+        shape = learn_chain_echo_shape(chain, frames, "truth", "learnt")
+        chain = processing.chain(recording, shape)
     echoes = []
     with _progress(len(frames), "finding echoes", True) as advance:
         for index in frames:

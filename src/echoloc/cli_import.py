@@ -15,7 +15,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from echoloc.errors import EchoLocError, missing_directory
+from echoloc.errors import EchoLocError, unwritable
 from echoloc.importers import read_head, read_samples, read_spiel
 from echoloc.recording import Recording, write_recording
 
@@ -26,10 +26,8 @@ def _check_output(output: Path, force: bool) -> None:
     """Refuse, before reading anything, an output that cannot or must not be written."""
     if output.suffix.lower() not in _OUTPUT_SUFFIXES:
         raise EchoLocError(f"{output}: unknown extension {output.suffix!r}, expected .h5, .hdf5 or .npz")
-    if problem := missing_directory(output):
+    if problem := unwritable(output):
         raise EchoLocError(f"{output}: {problem}")
-    if output.is_dir():
-        raise EchoLocError(f"{output}: is a directory")
     if output.exists() and not force:
         raise EchoLocError(f"{output}: already exists (pass --force to replace it)")
 

@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -45,7 +45,7 @@ from numpy.typing import NDArray
 from echoloc.echoes import ChannelEchoes, EchoOptions
 from echoloc.errors import EchoLocError
 from echoloc.recording import Recording
-from echoloc.templates import Template
+from echoloc.templates import Template, arrival_time_s
 
 MAD_TO_SIGMA = 1.4826
 """sigma of Gaussian noise over its median absolute deviation (1 / Phi^-1(3/4))."""
@@ -81,8 +81,6 @@ class PeakDetector:
     """
 
     sample_rate_hz: float
-    n_samples: int
-    signal_kind: str
     blind_samples: NDArray[np.int64]
     peak_delay_s: float = 0.0
     support_samples: float = SHAPE_SPAN_SAMPLES[1] - SHAPE_SPAN_SAMPLES[0]
@@ -148,14 +146,7 @@ def prepare_peak_detector(recording: Recording, template: Template | None) -> Pe
         if template is None
         else len(template.samples) / template.sample_rate_hz * recording.sample_rate_hz
     )
-    return PeakDetector(
-        recording.sample_rate_hz,
-        recording.n_samples,
-        recording.signal_kind,
-        ring_down_samples(recording),
-        delay,
-        support,
-    )
+    return PeakDetector(recording.sample_rate_hz, ring_down_samples(recording), delay, support)
 
 
 def _three(values: NDArray[np.float64], k: int) -> tuple[float, float, float, bool]:
@@ -174,7 +165,7 @@ def _peak_offset(values: NDArray[np.float64], k: int) -> float:
     curvature = a - 2 * b + c
     if not curvature < 0:
         return 0.0
-    return float(np.clip(0.5 * (a - c) / curvature, -0.5, 0.5))
+    return min(max(0.5 * (a - c) / curvature, -0.5), 0.5)
 
 
 def peak_echoes(frame: NDArray[Any], detector: PeakDetector, options: EchoOptions) -> list[ChannelEchoes]:
@@ -185,11 +176,10 @@ def peak_echoes(frame: NDArray[Any], detector: PeakDetector, options: EchoOption
     fs = detector.sample_rate_hz
     blank = math.ceil(options.blanking_s * fs) if options.blanking_s > 0 else 0
     factor = 10 ** (options.threshold_db / 20)
-    channels = []
-    for rx, x in enumerate(magnitude):
-        first = max(int(detector.blind_samples[rx]) if rx < len(detector.blind_samples) else 0, blank, 1)
-        channels.append(_channel_peaks(x, first, factor, detector, options))
-    return channels
+    return [
+        _channel_peaks(x, max(int(blind), blank, 1), factor, detector, options)
+        for x, blind in zip(magnitude, detector.blind_samples, strict=True)
+    ]
 
 
 def noise_sigma(magnitude: NDArray[np.float64]) -> float:
@@ -296,22 +286,18 @@ def arrivals_from_truth(
     recording: Recording, frames: Sequence[int], speed_of_sound_m_s: float
 ) -> NDArray[np.float64]:
     """Arrival time (s) of the nearest known reflector's echo per frame and receiver (NaN where
-    the frame has no truth position): the report's BALL template's alignment."""
+    the frame has no truth position): the report's BALL template's alignment, as
+    :func:`echoloc.templates.arrival_time_s` times it."""
     truth = recording.truth_positions_m
     if truth is None:
         raise EchoLocError(f"{recording.source}: learning the echo shape needs truth_positions")
     out = np.full((len(frames), recording.n_receivers), np.nan)
     for row, index in enumerate(frames):
-        points = truth[index]
-        points = points[np.all(np.isfinite(points), axis=1)]
-        if len(points) == 0:
-            continue
-        tx_index = 0 if recording.frame_transmitter is None else int(recording.frame_transmitter[index])
-        tx = recording.transmitters_m[tx_index]
-        paths = np.linalg.norm(points - tx, axis=1)[:, None] + np.linalg.norm(
-            points[:, None, :] - recording.receivers_m[None], axis=2
-        )
-        out[row] = paths.min(axis=0) / speed_of_sound_m_s
+        if np.all(np.isfinite(truth[index]), axis=1).any():
+            out[row] = [
+                arrival_time_s(recording, index, rx, "truth", speed_of_sound_m_s)
+                for rx in range(recording.n_receivers)
+            ]
     return out
 
 
@@ -323,9 +309,7 @@ def arrivals_from_peaks(
     echoes to learn a shape from when no target position is known. The shape's arrival is
     then its peak; the calibration's delays take up the difference."""
     out = np.full(np.shape(frames)[:2], np.nan)
-    no_delay = PeakDetector(
-        detector.sample_rate_hz, detector.n_samples, detector.signal_kind, detector.blind_samples, 0.0
-    )
+    no_delay = replace(detector, peak_delay_s=0.0)
     for f, frame in enumerate(frames):
         for rx, channel in enumerate(peak_echoes(frame, no_delay, options)):
             if len(channel.tof_s) == 0:

@@ -26,10 +26,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-FloatArray = NDArray[np.float64]
+from echoloc.envelope_peaks import MAD_TO_SIGMA
 
-MAD_TO_SIGMA = 1.4826
-"""Standard deviation of a normal distribution per unit of its median absolute deviation."""
+FloatArray = NDArray[np.float64]
 
 
 def robust_sigma(values: FloatArray, axis: int | None = None) -> FloatArray:

@@ -8,6 +8,7 @@ exit code 2 (``../shared/FORMATS.md``, "Exit codes").
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 
@@ -40,3 +41,15 @@ def missing_directory(path: Path) -> str | None:
     if parent.exists():
         return f"{str(parent)!r} is not a directory"
     return f"directory {str(parent)!r} does not exist"
+
+
+def unwritable(path: Path) -> str | None:
+    """Why no file can be written at ``path`` (a directory stands there, its directory is
+    missing, or permission is denied), for an output's message; None when it can."""
+    if path.is_dir():
+        return "is a directory"
+    if problem := missing_directory(path):
+        return problem
+    if not os.access(path if path.exists() else path.parent, os.W_OK):
+        return "cannot write here (permission denied)"
+    return None

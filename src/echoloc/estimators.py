@@ -293,11 +293,15 @@ def default_estimator(recording: Recording) -> str:
     return "envelope-fit" if recording.waveform is not None else "envelope-peak"
 
 
+def resolve_estimator(name: str, recording: Recording) -> str:
+    """The estimator that runs for ``name``: :func:`default_estimator` for ``"auto"``, else ``name``."""
+    return default_estimator(recording) if name == AUTO else name
+
+
 def prepare_estimator(recording: Recording, options: EchoOptions, name: str = "matched") -> Estimator:
     """Look up estimator ``name`` (``"auto"``: :func:`default_estimator`) and precompute what it
     reuses for ``recording``."""
-    if name == AUTO:
-        name = default_estimator(recording)
+    name = resolve_estimator(name, recording)
     if name not in ESTIMATORS:
         raise EchoLocError(f"unknown estimator {name!r}; choose from {', '.join(ESTIMATORS)}")
     if options.template is not None and name not in ("matched", "envelope-peak"):

@@ -78,11 +78,11 @@ class LocateOptions:
     transmitter_axes, receiver_axes
         Unit boresight vector per transmitter and per receiver (FORMATS.md
         ``transmitter_axes``/``receiver_axes``); None: every one along ``boresight``.
-    missing_channels
-        In a frame where no object has an echo on every channel, objects may lack one on
-        this many channels (one channel at a time is excused, the best-scoring answer
-        kept): a ToF chip's channel that misses a weak echo still leaves a 3-of-4 object,
-        with the larger covariance of fewer ellipsoids. 0: never.
+    excuse_one_channel
+        In a frame where no object has an echo on every channel, let objects lack one on
+        any one channel (each channel excused in turn, the answer with the best-scoring
+        object kept): a ToF chip's channel that misses a weak echo still leaves a 3-of-4
+        object, with the larger covariance of fewer ellipsoids. False: never.
     """
 
     path_sigma_m: float = 0.5e-3
@@ -95,7 +95,7 @@ class LocateOptions:
     field_of_view_deg: float = 90.0
     transmitter_axes: NDArray[np.float64] | None = field(default=None, compare=False)
     receiver_axes: NDArray[np.float64] | None = field(default=None, compare=False)
-    missing_channels: int = 0
+    excuse_one_channel: bool = False
 
 
 class LocateWarning(UserWarning):
@@ -1555,7 +1555,7 @@ class FrameLocator:
         objects = None
         if self._flat_arguments and tof.dtype == snr_db.dtype == np.float64:
             objects = self._compiled(offset, tof, c, snr_db, flat_amplitudes)
-        if objects is None or (not objects and self.options.missing_channels > 0):
+        if objects is None or (not objects and self.options.excuse_one_channel):
             echoes = _Echoes(
                 offset,
                 (tof * c).astype(float, copy=False),
@@ -1564,14 +1564,16 @@ class FrameLocator:
             )
             if objects is None:
                 objects = _objects(setup, echoes, self.options, len(channels))
-            if not objects and self.options.missing_channels > 0:
+            if not objects and self.options.excuse_one_channel:
                 objects = self._excusing_one(echoes, len(channels))
         return FrameObjects(frame_echoes.frame, frame_echoes.time_s, tuple(objects))
 
     def _excusing_one(self, echoes: _Echoes, n_channels: int) -> list[LocatedObject]:
-        """Objects that need no echo on one channel (``missing_channels``), trying each channel
-        in turn; the answer whose best object scores highest."""
-        if n_channels - 1 < max(self.options.min_receivers, len(self.transmitter_m)):
+        """Objects that need no echo on one channel (``excuse_one_channel``), trying each
+        channel in turn; the answer whose best object scores highest. No objects where one channel
+        fewer cannot fix a position (fewer than ``min_receivers`` or the dimension)."""
+        dim = len(self.transmitter_m)
+        if n_channels - 1 < max(self.options.min_receivers, dim):
             return []
         best: list[LocatedObject] = []
         for excused in range(n_channels):

@@ -31,18 +31,24 @@ from echoloc.echoes import (
     run_kernel,
     with_clean,
 )
+from echoloc.envelope_peaks import (
+    arrivals_from_peaks,
+    arrivals_from_truth,
+    learn_echo_shape,
+    prepare_peak_detector,
+)
 from echoloc.errors import EchoLocError
 from echoloc.estimators import (
-    AUTO,
     Estimator,
     MatchedEstimator,
-    default_estimator,
     default_threshold_db,
     estimate_frames,
     prepare_estimator,
+    resolve_estimator,
 )
 from echoloc.locate import FrameLocator, FrameObjects, LocateOptions, LocateWarning, combine_frames
 from echoloc.recording import Recording, dead_receivers
+from echoloc.templates import Template
 
 PLAUSIBLE_SPEED_OF_SOUND_M_S = (100.0, 2000.0)
 """Speeds of sound (m/s) :func:`prepare` takes without a warning: every gas a sensor could
@@ -118,8 +124,7 @@ def prepare(
     frame; a blind zone in seconds raises ``blanking_s`` to it.
     """
     conditioning = conditioning or Conditioning()
-    if estimator == AUTO:
-        estimator = default_estimator(recording)
+    estimator = resolve_estimator(estimator, recording)
     echo_options = echo_options or EchoOptions(threshold_db=default_threshold_db(estimator))
     if (
         calibration is not None
@@ -184,7 +189,7 @@ def prepare(
         if estimator == "envelope-peak":
             # A ToF chip's channel misses weak echoes (the monostatic one far off axis): a
             # 3-of-4 object beats none.
-            locate_options = replace(locate_options, missing_channels=1)
+            locate_options = replace(locate_options, excuse_one_channel=True)
         if calibration is not None and calibration.path_sigma_m is not None:
             # The path error measured on the rig's own targets, not the a-priori 0.5 mm.
             locate_options = replace(locate_options, path_sigma_m=calibration.path_sigma_m)
@@ -331,6 +336,34 @@ def samples_echoes_batch(
         _frame_echoes(chain, index, time_s, channels)
         for channels, index, time_s in zip(channels_of_frames, indices, times_s, strict=True)
     ]
+
+
+def learn_chain_echo_shape(
+    chain: Chain, frames: Sequence[int], arrival: str = "truth", name: str | None = None
+) -> Template:
+    """The echo shape of ``frames`` of the chain's recording, conditioned as the chain does
+    (:func:`echoloc.envelope_peaks.learn_echo_shape`), aligned on ``arrival``: ``"truth"``,
+    the known targets' paths (the report's BALL template), or ``"peaks"``, strong isolated
+    echoes (their peaks). Errors name the recording."""
+    recording = chain.recording
+    if arrival not in ("truth", "peaks"):
+        raise EchoLocError(
+            f"{recording.source}: the arrival to align a learnt echo shape on must be 'truth' or "
+            f"'peaks', got {arrival!r}"
+        )
+    indices = list(frames)
+    conditioned = _conditioned(chain, [recording.frames[i] for i in indices], indices)
+    if arrival == "truth":
+        arrivals = arrivals_from_truth(recording, indices, chain.speed_of_sound_m_s)
+    else:
+        detector = prepare_peak_detector(recording, None)
+        arrivals = arrivals_from_peaks(conditioned, detector, chain.echo_options)
+    try:
+        return learn_echo_shape(
+            conditioned, arrivals, recording.sample_rate_hz, name=name or f"learnt-{arrival}"
+        )
+    except EchoLocError as error:
+        raise EchoLocError(f"{recording.source}: {error}") from None
 
 
 def _conditioned(
