@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -391,3 +393,21 @@ def test_objects_at_equal_distances_keep_locate_s_order() -> None:
         reference = locate_frame(frame, TRANSMITTERS[0], CROSS, OPTIONS[1])
     assert len(compiled.objects) == 2
     _assert_same(reference.objects, compiled.objects)
+
+
+def test_a_group_of_thousands_of_candidates_packs_without_recursion() -> None:
+    """A corrupt frame full of echoes made one conflict group of thousands of candidates,
+    and the branch and bound recursed once per candidate past Python's limit (a
+    RecursionError, "internal error"). A chain where candidate k shares an echo with k+1:
+    the best packing takes every other one, from the heaviest end."""
+    n = 3 * sys.getrecursionlimit()
+    chain = [
+        locate._Candidate(
+            frozenset({(0, k), (1, k + 1)} if k % 2 else {(1, k), (0, k + 1)}), 1.0 - k * 1e-6, k
+        )
+        for k in range(n)
+    ]
+    chosen = locate._best_disjoint(chain, 50_000)
+    used = [echo for k in chosen for echo in chain[k].echoes]
+    assert len(used) == len(set(used))  # a packing: no echo used twice
+    assert sorted(chosen) == list(range(0, n, 2))

@@ -1448,24 +1448,29 @@ def _pack_group(group: list[int], candidates: list[_Candidate], node_limit: int)
     best_weight = sum(items[k].weight for k in best)
     steps = 0
     picked: list[int] = []
-
-    def branch(k: int, used: frozenset[tuple[int, int]], total: float) -> None:
-        nonlocal best, best_weight, steps
+    # Depth first, "take item k" before "leave it", on an explicit stack: a group of
+    # thousands of candidates (a corrupt frame full of echoes) must not exhaust Python's
+    # recursion limit. None on the stack: the "take" subtree above it is done, untake k.
+    stack: list[tuple[int, frozenset[tuple[int, int]], float] | None] = [(0, frozenset(), 0.0)]
+    while stack:
+        node = stack.pop()
+        if node is None:
+            picked.pop()
+            continue
+        k, taken, total = node
         steps += 1
         if total > best_weight + 1e-12:
             best, best_weight = list(picked), total
         if k == len(items) or steps > node_limit:
-            return
-        if total + per_echo * len(reachable[k] - used) <= best_weight + 1e-12:
-            return
+            continue
+        if total + per_echo * len(reachable[k] - taken) <= best_weight + 1e-12:
+            continue
         item = items[k]
-        if item.weight > 0 and not (item.echoes & used):
+        stack.append((k + 1, taken, total))  # leave it: after the "take" subtree
+        if item.weight > 0 and not (item.echoes & taken):
             picked.append(k)
-            branch(k + 1, used | item.echoes, total + item.weight)
-            picked.pop()
-        branch(k + 1, used, total)
-
-    branch(0, frozenset(), 0.0)
+            stack.append(None)
+            stack.append((k + 1, taken | item.echoes, total + item.weight))
     return [group[k] for k in best]
 
 
