@@ -215,3 +215,16 @@ def test_the_speed_fitted_flag_survives_the_file(tmp_path: Path) -> None:
     (tmp_path / "c.json").write_text(json.dumps(record))
     with pytest.raises(EchoLocError, match="speed_of_sound_m_s must be a positive number"):
         read_calibration(tmp_path / "c.json")
+
+
+def test_unknown_fields_are_read_past_with_a_warning(tmp_path: Path) -> None:
+    """A field this version does not know (a later echoloc's optional one, or a typo) is
+    named in one warning; the fields it knows still read as written."""
+    from echoloc.calibrate import CalibrationWarning
+
+    calibration = Calibration(343.5, (1e-6, -2e-6, 0.0, 3e-6), echoes_used=40, residual_rms_s=1e-7)
+    path = write_calibration(calibration, tmp_path / "c.json")
+    record = json.loads(path.read_text())
+    path.write_text(json.dumps({**record, "temperature_c": 21.5, "speed_of_sound_m_S": 1.0}))
+    with pytest.warns(CalibrationWarning, match=r"c\.json: .*speed_of_sound_m_S, temperature_c"):
+        assert read_calibration(path, 4) == calibration

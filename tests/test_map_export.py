@@ -14,6 +14,7 @@ from plyfile import PlyData
 from scipy.spatial.transform import Rotation
 
 from echoloc import cli
+from echoloc.errors import EchoLocError
 from echoloc.export import SENSOR_FRAME_ID
 from echoloc.map_export import (
     MAP_CLOUD_TOPIC,
@@ -306,7 +307,7 @@ def test_an_unaligned_floor_plan_still_gives_one_octomap_voxel_per_cell(tmp_path
         (["-o", "map.png", "--cell-m", "0"], "--cell-m"),
         (["-o", "map.png", "--extent-m", "1,2,3"], "--extent-m"),
         (["-o", "map.png", "--extent-m", "1,0,0,1"], "low to high"),
-        (["-o", "map.png", "--trajectory", "missing.txt"], "cannot read"),
+        (["-o", "map.png", "--trajectory", "missing.txt"], "no such trajectory"),
     ],
 )
 def test_map_command_refuses_bad_input_in_one_line(
@@ -318,3 +319,25 @@ def test_map_command_refuses_bad_input_in_one_line(
     assert message in stderr
     assert "Traceback" not in stderr
     assert len([line for line in stderr.splitlines() if line.strip()]) == 1
+
+
+def test_a_grid_file_that_is_no_grid_or_a_device_is_one_error(tmp_path: Path) -> None:
+    """Only a regular file is read as a grid (a device never ends), and a zip archive that
+    declares more than the limit unpacked is refused from its directory, before unpacking."""
+    import zipfile
+
+    from echoloc import map_export
+
+    with pytest.raises(EchoLocError, match="not a regular file"):
+        read_grid_npz("/dev/zero")
+    junk = tmp_path / "junk.npz"
+    junk.write_bytes(b"not a zip archive")
+    with pytest.raises(EchoLocError, match=r"junk\.npz: not an echoloc grid"):
+        read_grid_npz(junk)
+    bomb = tmp_path / "bomb.npz"
+    with zipfile.ZipFile(bomb, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+        archive.writestr("log_odds.npy", bytes(map_export.MAX_GRID_BYTES // 1024 + 1))
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(map_export, "MAX_GRID_BYTES", 100_000)  # the file itself is about 4 kB
+        with pytest.raises(EchoLocError, match=r"bomb\.npz: unpacks to .* over the limit"):
+            read_grid_npz(bomb)

@@ -74,3 +74,25 @@ def test_reflector_in_front_is_accepted() -> None:
     )
     assert scene.reflector_positions_m.shape == (1, 3)
     assert isinstance(scene.array, Array)
+
+
+@pytest.mark.parametrize("rate_hz", [float("nan"), 0.0, -1.0, 0.5, 5e-324, 1.01e9, float("inf")])
+def test_scenes_and_recordings_refuse_the_same_sample_rates(rate_hz: float) -> None:
+    """One range of sample rates, defined once (in the recording contract), for both."""
+    from echoloc import recording, scene
+    from echoloc.errors import RecordingError
+
+    assert scene.SAMPLE_RATE_RANGE_HZ is recording.SAMPLE_RATE_RANGE_HZ
+    assert not hasattr(scene, "MIN_SAMPLE_RATE_HZ")
+    assert not hasattr(scene, "MAX_SAMPLE_RATE_HZ")
+    with pytest.raises(SceneError, match=re.escape("acquisition.sample_rate_hz must lie in 1..1e+09 Hz")):
+        Scene(REPORT_ARRAY, reflector_positions_m=np.zeros((0, 3)), sample_rate_hz=rate_hz)
+    rec = recording.Recording(
+        sample_rate_hz=rate_hz,
+        transmitters_m=np.zeros((1, 3)),
+        receivers_m=np.eye(3),
+        frames=np.ones((1, 3, 8)),
+        waveform=np.ones(4),
+    )
+    with pytest.raises(RecordingError, match=re.escape("sample_rate_hz must lie in 1..1e+09 Hz")):
+        recording.validate_recording(rec)

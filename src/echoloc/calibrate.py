@@ -30,6 +30,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -40,7 +41,7 @@ from scipy import optimize
 
 from echoloc.echoes import ChannelEchoes, FrameEchoes
 from echoloc.envelope_peaks import MAD_TO_SIGMA
-from echoloc.errors import EchoLocError
+from echoloc.errors import EchoLocError, read_text_input
 from echoloc.locate import model_paths_m
 from echoloc.recording import Recording
 from echoloc.templates import Template
@@ -56,6 +57,10 @@ MIN_PATH_SIGMA_M = 1e-6
 
 MAX_SHAPE_SAMPLES = 65536
 """The most samples a calibration file's echo shape may hold."""
+
+MAX_CALIBRATION_FILE_BYTES = 4 << 20
+"""The largest calibration file read, bytes: a full echo shape written by
+:func:`write_calibration` takes about 1.6 MB."""
 
 
 @dataclass(frozen=True)
@@ -184,6 +189,26 @@ def apply_calibration(echoes: FrameEchoes, calibration: Calibration) -> FrameEch
     return replace(echoes, channels=channels, speed_of_sound_m_s=calibration.speed_of_sound_m_s)
 
 
+CALIBRATION_KEYS = frozenset(
+    {
+        "format",
+        "version",
+        "speed_of_sound_m_s",
+        "receiver_delays_s",
+        "echoes_used",
+        "residual_rms_s",
+        "speed_of_sound_fitted",
+        "path_sigma_m",
+        "echo_shape",
+    }
+)
+"""The fields :func:`write_calibration` writes and :func:`read_calibration` knows."""
+
+
+class CalibrationWarning(UserWarning):
+    """A calibration file was read, with something in it skipped."""
+
+
 def write_calibration(calibration: Calibration, path: str | os.PathLike[str]) -> Path:
     """Write the calibration JSON (see the module docstring)."""
     target = Path(path)
@@ -216,15 +241,25 @@ def write_calibration(calibration: Calibration, path: str | os.PathLike[str]) ->
 def read_calibration(path: str | os.PathLike[str], n_receivers: int | None = None) -> Calibration:
     """Read and check a calibration file; ``n_receivers`` must match when given."""
     source = Path(path)
+    text = read_text_input(source, what="calibration file", max_bytes=MAX_CALIBRATION_FILE_BYTES)
     try:
-        record = json.loads(source.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise EchoLocError(f"{source}: no such calibration file") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        record = json.loads(text)
+    except RecursionError:  # arrays nested 3000 deep
+        raise EchoLocError(f"{source}: not a calibration file (JSON nested too deeply)") from None
+    except ValueError as error:  # JSONDecodeError, and a number of more than 4300 digits
         raise EchoLocError(f"{source}: not a calibration file ({error})") from None
     if not isinstance(record, dict) or record.get("format") != CALIBRATION_FORMAT:
         raise EchoLocError(f"{source}: format is not {CALIBRATION_FORMAT!r}")
-    if record.get("version") != 1:
+    version = record.get("version")
+    unknown = sorted(str(key)[:40] for key in record if key not in CALIBRATION_KEYS)
+    if unknown:  # a later echoloc may add optional fields: read on, but say what is skipped
+        warnings.warn(
+            f"{source}: ignoring unknown calibration field(s) {', '.join(unknown[:5])}"
+            + (f" and {len(unknown) - 5} more" if len(unknown) > 5 else ""),
+            CalibrationWarning,
+            stacklevel=2,
+        )
+    if isinstance(version, bool) or version != 1:  # true == 1 in Python, not in the format
         raise EchoLocError(f"{source}: unsupported calibration version {record.get('version')!r}")
     speed = record.get("speed_of_sound_m_s")
     delays = record.get("receiver_delays_s")
@@ -237,7 +272,9 @@ def read_calibration(path: str | os.PathLike[str], n_receivers: int | None = Non
             f"{source}: has delays for {len(delays)} receivers, the recording has {n_receivers}"
         )
     echoes_used = record.get("echoes_used", 0)
-    whole = isinstance(echoes_used, int) or (isinstance(echoes_used, float) and echoes_used.is_integer())
+    whole = (isinstance(echoes_used, int) and echoes_used < 2**63) or (
+        isinstance(echoes_used, float) and echoes_used.is_integer()
+    )
     if not (whole and not isinstance(echoes_used, bool) and echoes_used >= 0):
         raise EchoLocError(f"{source}: echoes_used must be a whole number >= 0, got {echoes_used!r}")
     residual = record.get("residual_rms_s", 0.0)
@@ -261,8 +298,14 @@ def read_calibration(path: str | os.PathLike[str], n_receivers: int | None = Non
 
 
 def _finite_number(value: object) -> TypeGuard[int | float]:
-    """A JSON number that is finite (``true`` and ``false`` are not numbers here)."""
-    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    """A JSON number that is finite as a float (``true`` and ``false`` are not numbers here;
+    nor is an integer too large for a float, such as 10**400)."""
+    if not isinstance(value, int | float) or isinstance(value, bool):
+        return False
+    try:
+        return math.isfinite(float(value))
+    except OverflowError:
+        return False
 
 
 def _read_shape(source: Path, value: object) -> Template | None:

@@ -28,18 +28,19 @@ The building blocks are pure: :func:`natural_sort_key`, :func:`parse_table`,
 from __future__ import annotations
 
 import math
+import os
 import re
 import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 from numpy.typing import NDArray
 
-from echoloc.errors import EchoLocError
-from echoloc.recording import SIGNAL_KINDS, Recording, validate_recording
+from echoloc.errors import EchoLocError, open_input, read_text_input
+from echoloc.recording import MAX_RECORDING_BYTES, SIGNAL_KINDS, Recording, validate_recording
 
 Position = tuple[float, float, float]
 
@@ -56,6 +57,18 @@ _NAME_POSITION = re.compile(
 )
 _DIGITS = re.compile(r"(\d+)")
 _NPY_SUFFIXES = (".npy",)
+
+# Size limits of the files read, checked before a byte is read (a device or a huge file
+# must not fill the memory).
+MAX_HEAD_BYTES = 4 << 20
+"""The largest sensor-head TOML, bytes: like a scene file, a few lines per receiver and truth span."""
+MAX_SPIEL_FILE_BYTES = 16 << 20
+"""The largest SPiEL frames or labels CSV, bytes: each holds one frame of a few channels
+(a few hundred kB of text)."""
+MAX_TABLE_BYTES = 256 << 20
+"""The largest text table of samples, bytes: parsing takes about five times the text's
+size in memory, and 256 MiB is some 30 M values, thousands of frames; longer
+recordings belong in a ``.npy``, which is read without parsing."""
 
 
 def _one_line(text: str) -> str:
@@ -302,14 +315,13 @@ def read_head(path: Path) -> SensorHead:
     EchoLocError
         If the file cannot be read, is not TOML, or :func:`parse_head` refuses it.
     """
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise _error(path, f"cannot read the sensor head: {getattr(exc, 'strerror', None) or exc}") from None
+    text = read_text_input(path, what="sensor head", max_bytes=MAX_HEAD_BYTES)
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise _error(path, f"not valid TOML: {exc}") from None
+    except RecursionError:  # arrays nested thousands deep
+        raise _error(path, "not valid TOML: nested too deeply") from None
     return parse_head(data, str(path), path.parent)
 
 
@@ -426,15 +438,9 @@ def parse_table(text: str, source: str, *, delimiter: str | None = None) -> NDAr
     return np.stack(rows)
 
 
-def _read_text(path: Path) -> str:
-    try:
-        return path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise _error(path, "no such file") from None
-    except UnicodeDecodeError:
-        raise _error(path, "not a text file (not UTF-8)") from None
-    except OSError as exc:
-        raise _error(path, f"cannot read: {exc.strerror or exc}") from None
+def _read_text(path: Path, max_bytes: int) -> str:
+    """The UTF-8 text of the regular file ``path`` of at most ``max_bytes``."""
+    return read_text_input(path, what="file", max_bytes=max_bytes)
 
 
 def read_table(path: Path) -> NDArray[np.float64]:
@@ -442,7 +448,7 @@ def read_table(path: Path) -> NDArray[np.float64]:
 
     The separator is a comma when the first row holds one, else whitespace.
     """
-    text = _read_text(path)
+    text = _read_text(path, MAX_TABLE_BYTES)
     first = next(
         (line for line in text.splitlines() if line.strip() and not line.strip().startswith("#")), ""
     )
@@ -549,7 +555,7 @@ def spiel_frame_names(folder: Path) -> list[str]:
 
 
 def _spiel_frame(path: Path, n_channels: int, n_columns: int | None) -> NDArray[np.float64]:
-    table = parse_table(_read_text(path), str(path))
+    table = parse_table(_read_text(path, MAX_SPIEL_FILE_BYTES), str(path))
     if table.shape[0] != n_channels:
         raise _error(path, f"has {table.shape[0]} channel lines, expected {n_channels} (one per receiver)")
     if n_columns is not None and table.shape[1] != n_columns:
@@ -668,7 +674,7 @@ def read_spiel(folder: Path, head: SensorHead | None = None, n_samples: int | No
         frame = _spiel_frame(frame_path, n_channels, n_columns)
         n_columns = frame.shape[1]
         labels_path = folder / f"{stem}{_LABELS_SUFFIX}"
-        labels_table = parse_table(_read_text(labels_path), str(labels_path))
+        labels_table = parse_table(_read_text(labels_path, MAX_SPIEL_FILE_BYTES), str(labels_path))
         if labels_table.shape[0] != n_channels:
             raise _error(
                 labels_path,
@@ -706,13 +712,33 @@ def read_spiel(folder: Path, head: SensorHead | None = None, n_samples: int | No
 # ----------------------------------------------------------------------------- samples layout
 
 
+def _npy_declared_bytes(fh: BinaryIO) -> int:
+    """The bytes of data a ``.npy`` header declares (shape times item size), from the header alone."""
+    version = np.lib.format.read_magic(fh)
+    if version == (1, 0):
+        shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
+    elif version == (2, 0):
+        shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
+    else:
+        raise ValueError(f"a .npy of version {version}, expected 1.0 or 2.0")
+    return math.prod(shape) * dtype.itemsize
+
+
 def _load_npy(path: Path) -> NDArray[Any]:
-    try:
-        array = np.load(path, allow_pickle=False)
-    except FileNotFoundError:
-        raise _error(path, "no such file") from None
-    except (OSError, ValueError, EOFError) as exc:
-        raise _error(path, f"not a readable .npy file ({_one_line(str(exc))})") from None
+    """A regular ``.npy`` file's array, its declared size checked against the file before it is read."""
+    with open_input(path, what="file", max_bytes=MAX_RECORDING_BYTES) as fh:
+        try:
+            declared = _npy_declared_bytes(fh)
+            stored = os.fstat(fh.fileno()).st_size - fh.tell()
+            if declared <= stored:
+                fh.seek(0)
+                array = np.load(fh, allow_pickle=False)
+        except (OSError, ValueError, EOFError) as exc:
+            raise _error(path, f"not a readable .npy file ({_one_line(str(exc))})") from None
+    if declared > stored:
+        raise _error(
+            path, f"declares {declared} bytes of data but holds {stored} (a truncated or corrupt .npy)"
+        )
     if not isinstance(array, np.ndarray):
         raise _error(path, "is not a single .npy array")
     return array

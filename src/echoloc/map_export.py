@@ -24,16 +24,17 @@ grid y = map z, grid z (its normal) = map -y, up.
 from __future__ import annotations
 
 import math
+import zipfile
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 from mcap.writer import CompressionType
 from mcap_ros2.writer import Writer as Ros2Writer
 from numpy.typing import NDArray
 
-from echoloc.errors import EchoLocError
+from echoloc.errors import EchoLocError, open_input
 from echoloc.export import (
     _HEADER_MSG,
     _QUATERNION_MSG,
@@ -104,11 +105,28 @@ def write_grid_npz(grid: OccupancyGrid, path: str | Path) -> Path:
     return target
 
 
+MAX_GRID_BYTES = 4 << 30
+"""The largest grid file read, on disk and unpacked: a 3-D grid of 10^8 cells at 6 bytes a cell
+(log-odds and update counts) with room to spare."""
+
+
 def read_grid_npz(path: str | Path, model: SensorModel | None = None) -> OccupancyGrid:
     """Read a grid written by :func:`write_grid_npz`."""
     source = str(path)
+    with open_input(path, what="grid file", max_bytes=MAX_GRID_BYTES) as handle:
+        try:
+            unpacked = sum(info.file_size for info in zipfile.ZipFile(handle).infolist())
+        except (zipfile.BadZipFile, OSError, ValueError) as error:
+            raise EchoLocError(f"{source}: not an echoloc grid ({error})") from None
+        if unpacked > MAX_GRID_BYTES:  # declared by the archive before anything is unpacked
+            raise EchoLocError(f"{source}: unpacks to {unpacked} bytes, over the limit of {MAX_GRID_BYTES}")
+        handle.seek(0)
+        return _grid_from(source, handle, model)
+
+
+def _grid_from(source: str, handle: BinaryIO, model: SensorModel | None) -> OccupancyGrid:
     try:
-        with np.load(path, allow_pickle=False) as data:
+        with np.load(handle, allow_pickle=False) as data:
             log_odds = np.asarray(data["log_odds"], dtype=np.float32)
             updates = np.asarray(data["updates"], dtype=np.uint16)
             origin = np.asarray(data["origin_m"], dtype=float)

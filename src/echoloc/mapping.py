@@ -60,7 +60,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation, Slerp
 
 from echoloc.echoes import FrameEchoes, frame_time_s
-from echoloc.errors import EchoLocError
+from echoloc.errors import EchoLocError, read_text_input
 from echoloc.locate import FrameObjects
 from echoloc.pipeline import Chain
 from echoloc.recording import Recording
@@ -391,6 +391,11 @@ class Trajectory:
         return np.asarray(np.hstack([position, rotation.reshape(-1, 4)]))
 
 
+MAX_TRAJECTORY_BYTES = 256 << 20
+"""The largest trajectory file read, bytes: at about 100 bytes a pose, an hour of poses at
+700 Hz; its rows take a few times the text's size in memory while they are parsed."""
+
+
 def read_trajectory(path: str | Path) -> Trajectory:
     """Read a trajectory in the TUM RGB-D format: ``time x y z qx qy qz qw`` per line.
 
@@ -399,14 +404,7 @@ def read_trajectory(path: str | Path) -> Trajectory:
     in the map frame (Sturm et al. 2012, the TUM benchmark's ground-truth format).
     """
     source = str(path)
-    try:
-        text = Path(path).read_text()
-    except OSError as error:
-        raise EchoLocError(f"{source}: cannot read: {error.strerror or error}") from error
-    except UnicodeDecodeError:
-        raise EchoLocError(
-            f"{source}: not a text trajectory (expected 'time x y z qx qy qz qw' lines)"
-        ) from None
+    text = read_text_input(path, what="trajectory", max_bytes=MAX_TRAJECTORY_BYTES)
     rows: list[list[float]] = []
     for number, line in enumerate(text.splitlines(), start=1):
         content = line.split("#", 1)[0].replace(",", " ").split()

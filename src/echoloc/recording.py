@@ -15,10 +15,21 @@ time.
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import json
+import math
 import os
+import re
 import secrets
+import select
 import shutil
+import socket
+import stat
+import struct
+import subprocess
+import sys
 import tempfile
+import time
 import warnings
 import zipfile
 from collections.abc import Callable, Iterable, Iterator
@@ -162,6 +173,40 @@ _NPZ_SUFFIXES = (".npz",)
 _ABSOLUTE_ZERO_C = -273.15
 _ZIP_MAGIC = b"PK\x03\x04"
 _CHUNK_BYTES = 1 << 20  # target size of a streamed HDF5 chunk (h5py's default chunk cache)
+
+SAMPLE_RATE_RANGE_HZ = (1.0, 1e9)
+"""The sample rates a recording or a scene may have, Hz (also the most a scene's ADC may
+run at). Below 1 Hz a sample period outlasts any echo and a rate as small as 5e-324
+divides by zero downstream; no airborne ultrasonic ADC comes near 1 GHz, and every array
+the simulator makes grows with the rate."""
+
+MAX_RECORDING_BYTES = 16 << 30
+"""The most a recording file may declare, in bytes once in memory (float64/complex128
+samples): a recording must fit in memory beside its processing, and a file declaring
+more is far more likely corrupt than real. Checked on the declared shapes before any
+data is read."""
+
+MAX_COMPRESSION_RATIO = 1100
+"""The most a compressed dataset may expand: deflate's limit is about 1032:1, so a file
+declaring more is corrupt."""
+
+HDF5_STALL_TIMEOUT_S = 5.0
+"""How long the HDF5 reader may make no progress before the file is refused, s, unless
+:data:`HDF5_STALL_ENV` says otherwise: a corrupt file can make libhdf5 loop forever (see
+:mod:`echoloc._hdf5_child`), while each step of a valid read (the metadata, or a 4 MiB
+block of data) takes milliseconds on a local disk."""
+
+HDF5_STALL_ENV = "ECHOLOC_HDF5_STALL_S"
+"""The environment variable that sets the HDF5 stall timeout, s: a drive spinning up, a
+network file system or a loaded machine can pause a valid read for longer than the default."""
+
+_MAX_STALL_S = 3600.0  # a longer stall timeout would leave a hung read unnoticed
+
+HDF5_START_TIMEOUT_S = 60.0
+"""How long the HDF5 reader process may take to start (Python and h5py imports), s."""
+
+_MAX_HEADER_BYTES = 16 << 20  # the largest header message the reader process may send
+_MAX_ATTRIBUTE_BYTES = 1 << 16  # the largest NPZ member read as a root attribute
 
 _AnyArray = NDArray[Any]
 
@@ -421,8 +466,9 @@ def _validate(rec: Recording, *, allow_nonfinite: bool, header_only: bool = Fals
     if not _is_real_number(rec.sample_rate_hz):
         raise _error(src, f"sample_rate_hz must be a number, got {rec.sample_rate_hz!r}")
     rate = float(rec.sample_rate_hz)
-    if not np.isfinite(rate) or rate <= 0:
-        raise _error(src, f"sample_rate_hz must be finite and > 0, got {rate!r}")
+    low, high = SAMPLE_RATE_RANGE_HZ
+    if not low <= rate <= high:  # NaN fails too
+        raise _error(src, f"sample_rate_hz must lie in {low:g}..{high:g} Hz, got {rate!r}")
     if rec.signal_kind not in SIGNAL_KINDS:
         kinds = ", ".join(repr(k) for k in SIGNAL_KINDS)
         raise _error(src, f"signal_kind is {rec.signal_kind!r}, expected one of {kinds}")
@@ -743,44 +789,421 @@ def _build(source: str, attrs: dict[str, object], data: dict[str, _AnyArray]) ->
     )
 
 
+# The declared layout of a file, checked before any data is read: a few corrupt bytes can
+# declare a dataset of gigabytes, which reading first would allocate before refusing it.
+
+
+@dataclass(frozen=True)
+class _Declared:
+    """What a file says of one dataset before it is read: its shape, dtype and stored bytes.
+
+    ``stored`` is None where the bytes on disk cannot bound the data (compressed);
+    ``dtype`` is None for a dtype no recording field can have (strings, compounds).
+    """
+
+    shape: tuple[int, ...]
+    dtype: np.dtype[Any] | None
+    dtype_text: str
+    stored: int | None
+
+    @property
+    def file_bytes(self) -> int:
+        itemsize = 0 if self.dtype is None else self.dtype.itemsize
+        return math.prod(self.shape) * itemsize
+
+    @property
+    def memory_bytes(self) -> int:
+        """Bytes in memory once read: samples become float64/complex128, integers int64."""
+        per_item = 16 if self.dtype is not None and self.dtype.kind == "c" else 8
+        return max(self.file_bytes, math.prod(self.shape) * per_item)
+
+
+def _expected_shapes(declared: dict[str, _Declared]) -> dict[str, tuple[tuple[int | None, ...], ...]]:
+    """The shapes each dataset may have given the others (None: any length), from metadata."""
+    rows = {
+        name: declared[name].shape[0] if name in declared and declared[name].shape else None
+        for name in ("transmitters", "receivers")
+    }
+    n_tx, n_rx = rows["transmitters"], rows["receivers"]
+    frames = declared["frames"].shape if "frames" in declared else None
+    n_frames, n_samples = (frames[0], frames[2]) if frames is not None and len(frames) == 3 else (None, None)
+    return {
+        "transmitters": ((None, 3),),
+        "receivers": ((None, 3),),
+        "frames": ((None, n_rx, None),),
+        "waveform": ((None,),),
+        "frame_times": ((n_frames,),),
+        "frame_transmitter": ((n_frames,),),
+        "background": ((n_rx, n_samples), (n_frames, n_rx, n_samples)),
+        "transmitter_axes": ((n_tx, 3),),
+        "receiver_axes": ((n_rx, 3),),
+        "truth_positions": ((n_frames, None, 3),),
+        "sensor_poses": ((n_frames, 7),),
+        "receiver_gain": ((n_samples,),),
+        "transmitter_waveforms": ((n_tx, None),),
+    }
+
+
+def _fits(shape: tuple[int, ...], pattern: tuple[int | None, ...]) -> bool:
+    return len(shape) == len(pattern) and all(
+        want is None or have == want for have, want in zip(shape, pattern, strict=False)
+    )
+
+
+def _pattern_text(pattern: tuple[int | None, ...]) -> str:
+    """``(n, 3)`` for ``(None, 3)``: a shape pattern for messages."""
+    return (
+        "("
+        + ", ".join("n" if n is None else str(n) for n in pattern)
+        + ("," if len(pattern) == 1 else "")
+        + ")"
+    )
+
+
+def _check_declared(source: str, declared: dict[str, _Declared]) -> None:
+    """Check every dataset's declared shape, dtype and size before any of its data is read.
+
+    The shapes must agree with one another as the contract says (frames with
+    receivers, the per-frame fields with the frame count, ...); an uncompressed
+    dataset must have all its declared bytes stored in the file (a corrupt dimension
+    would otherwise read as gigabytes of fill values); a compressed one may expand at
+    most :data:`MAX_COMPRESSION_RATIO`-fold; and all of them together must fit in
+    :data:`MAX_RECORDING_BYTES` once in memory.
+    """
+    for name, item in declared.items():
+        if item.dtype is None:
+            raise _error(source, f"{name} has dtype {item.dtype_text}, expected a numeric dtype")
+    for name in ("transmitters", "receivers"):
+        geometry = declared.get(name)
+        if geometry is not None and (
+            len(geometry.shape) != 2 or geometry.shape[1] != 3 or geometry.shape[0] < 1
+        ):
+            raise _error(source, f"{name} has shape {geometry.shape}, expected (n, 3) with n >= 1")
+    frames = declared.get("frames")
+    if frames is not None:
+        if len(frames.shape) != 3:
+            raise _error(source, f"frames has shape {frames.shape}, expected 3-D (n_frames, n_rx, n_samples)")
+        receivers = declared.get("receivers")
+        if receivers is not None and frames.shape[1] != receivers.shape[0]:
+            raise _error(
+                source, f"frames has {frames.shape[1]} channels but receivers has {receivers.shape[0]}"
+            )
+        if frames.shape[2] < 1:
+            raise _error(source, f"frames has shape {frames.shape}: no samples")
+        if frames.shape[0] < 1:
+            raise _error(source, f"frames has shape {frames.shape}: no frames")
+    for name, patterns in _expected_shapes(declared).items():
+        present = declared.get(name)
+        if present is None or any(_fits(present.shape, pattern) for pattern in patterns):
+            continue
+        wanted = " or ".join(_pattern_text(pattern) for pattern in patterns)
+        raise _error(source, f"{name} has shape {present.shape}, expected {wanted}")
+    for name, item in declared.items():
+        if item.stored is not None and item.stored < item.file_bytes:
+            raise _error(
+                source,
+                f"{name} declares shape {item.shape} of {item.dtype_text} ({item.file_bytes} bytes) "
+                f"but the file stores only {item.stored} bytes of it (a corrupt file?)",
+            )
+    total = sum(item.memory_bytes for item in declared.values())
+    if total > MAX_RECORDING_BYTES:
+        largest = max(declared, key=lambda name: declared[name].memory_bytes)
+        raise _error(
+            source,
+            f"declares {total / 2**30:.1f} GiB of data in memory ({largest} has shape "
+            f"{declared[largest].shape}), more than the {MAX_RECORDING_BYTES / 2**30:.0f} GiB "
+            "a recording may hold",
+        )
+
+
+class _Shown:
+    """An attribute value the reader cannot use, shown in messages by its repr."""
+
+    def __init__(self, text: str) -> None:
+        self._text = text
+
+    def __repr__(self) -> str:
+        return self._text
+
+
+def _child_attribute(encoded: object) -> object:
+    """An attribute as :mod:`echoloc._hdf5_child` sends it, back to a value."""
+    if isinstance(encoded, dict):
+        if "value" in encoded:
+            return encoded["value"]
+        if "bytes" in encoded and isinstance(encoded["bytes"], str):
+            return bytes.fromhex(encoded["bytes"])
+        return _Shown(str(encoded.get("repr")))
+    return _Shown(repr(encoded))
+
+
+class _ChildPipe:
+    """Messages from the HDF5 reader child, each awaited at most the stall timeout.
+
+    Every wait is a ``select`` in Python, so SIGTERM and Ctrl-C interrupt it.
+    """
+
+    def __init__(self, source: str, process: subprocess.Popen[bytes]) -> None:
+        assert process.stdout is not None
+        self._source = source
+        self._process = process
+        self._fd = process.stdout.fileno()
+
+    def _readable(self, timeout_s: float) -> bool:
+        """Wait until the pipe has bytes (or EOF); poll, not select: a descriptor past 1024
+        (a busy listener) is beyond select's reach."""
+        if hasattr(select, "poll"):
+            poller = select.poll()
+            poller.register(self._fd, select.POLLIN | select.POLLHUP | select.POLLERR)
+            return bool(poller.poll(timeout_s * 1000))
+        ready, _, _ = select.select([self._fd], [], [], timeout_s)
+        return bool(ready)
+
+    def _fill(self, view: memoryview, timeout_s: float) -> None:
+        done = 0
+        while done < len(view):
+            if not self._readable(timeout_s):
+                raise _error(
+                    self._source,
+                    f"cannot read as HDF5: libhdf5 made no progress for {timeout_s:g} s reading it "
+                    f"(a corrupt file? on a slow disk, set {HDF5_STALL_ENV} to wait longer); abandoned",
+                )
+            n = os.readv(self._fd, [view[done:]])
+            if n == 0:
+                code = self._process.wait()
+                raise _error(
+                    self._source, f"cannot read as HDF5: the reader process ended (exit code {code})"
+                )
+            done += n
+
+    def message(self, timeout_s: float, into: memoryview | None = None) -> tuple[bytes, bytes, int]:
+        """The next message's kind, payload and length; a ``D`` payload goes into ``into``."""
+        head = bytearray(9)
+        self._fill(memoryview(head), timeout_s)
+        kind, length = bytes(head[:1]), struct.unpack("<Q", head[1:])[0]
+        if kind == b"D":
+            if into is None or length > len(into):
+                raise _error(
+                    self._source, "cannot read as HDF5: the reader process sent more data than declared"
+                )
+            self._fill(into[:length], timeout_s)
+            return kind, b"", length
+        if length > _MAX_HEADER_BYTES:
+            raise _error(self._source, f"cannot read as HDF5: a header of {length} bytes")
+        payload = bytearray(length)
+        self._fill(memoryview(payload), timeout_s)
+        if kind == b"E":
+            raise _error(self._source, payload.decode("utf-8", "replace"))
+        return kind, bytes(payload), length
+
+    def expect(self, wanted: bytes, timeout_s: float) -> bytes:
+        kind, payload, _ = self.message(timeout_s)
+        if kind != wanted:
+            raise _error(
+                self._source, f"cannot read as HDF5: the reader process sent {kind!r}, expected {wanted!r}"
+            )
+        return payload
+
+
+def _hdf5_declared(source: str, described: dict[str, Any]) -> dict[str, _Declared]:
+    """The child's description of each dataset, refused where a recording cannot use it."""
+    declared: dict[str, _Declared] = {}
+    for name, item in described.items():
+        kind = item.get("kind")
+        if kind != "Dataset":
+            raise _error(source, f"{name} is a {kind}, expected a dataset")
+        if item["external"] or item["virtual"]:
+            where = "external files" if item["external"] else "other files (a virtual dataset)"
+            raise _error(source, f"{name} keeps its data in {where}, which a recording may not")
+        if item["shape"] is None:
+            raise _error(source, f"{name} has no data (an empty dataspace)")
+        descr = item["descr"]
+        declared[name] = _Declared(
+            shape=tuple(int(n) for n in item["shape"]),
+            dtype=None if descr is None else np.lib.format.descr_to_dtype(descr),
+            dtype_text=str(item["dtype"]),
+            stored=None if item["filtered"] else int(item["stored"]),
+        )
+    for name, item in declared.items():
+        if (
+            item.stored is None
+            and item.file_bytes > MAX_COMPRESSION_RATIO * int(described[name]["stored"]) + _CHUNK_BYTES
+        ):
+            raise _error(
+                source,
+                f"{name} declares shape {item.shape} ({item.file_bytes} bytes) from only "
+                f"{described[name]['stored']} compressed bytes (a corrupt file?)",
+            )
+    return declared
+
+
+def _child_sys_path() -> list[str]:
+    """The import path for the HDF5 reader child: this process's own, without the current directory.
+
+    The child must import the ``json``, ``numpy`` and ``h5py`` this process imported, never
+    a file of that name in the folder the user runs echoloc from (a ``h5py.py`` lying next
+    to the recording would run). So the child starts isolated (``-I``: no current
+    directory, no ``PYTHON*`` variables) and gets this list: relative entries made
+    absolute, the current directory ("" or its path) left out, and echoloc's own root
+    appended last (after the standard library) for a process that found echoloc through
+    something the child does not inherit, such as an import hook.
+    """
+    cwd = os.getcwd()
+    paths: list[str] = []
+    for entry in sys.path:
+        if not isinstance(entry, str) or entry == "":
+            continue
+        absolute = os.path.abspath(entry)
+        if absolute != cwd and absolute not in paths:
+            paths.append(absolute)
+    package_root = str(Path(__file__).resolve().parent.parent)
+    if package_root not in paths:
+        paths.append(package_root)
+    return paths
+
+
+def hdf5_stall_timeout_s() -> float:
+    """How long the HDF5 reader may make no progress, s: :data:`HDF5_STALL_TIMEOUT_S`, or the
+    environment variable ``ECHOLOC_HDF5_STALL_S`` (a slow disk, NFS or a loaded machine)."""
+    text = os.environ.get(HDF5_STALL_ENV)
+    if text is None or not text.strip():
+        return HDF5_STALL_TIMEOUT_S
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and 0 < value <= _MAX_STALL_S):
+        raise RecordingError(
+            _one_line(f"{HDF5_STALL_ENV}={text!r}: expected a number of seconds in (0, {_MAX_STALL_S:g}]")
+        )
+    return value
+
+
 def _load_hdf5(source: str, path: Path) -> tuple[dict[str, object], dict[str, _AnyArray]]:
-    attrs: dict[str, object] = {}
-    data: dict[str, _AnyArray] = {}
-    if not h5py.is_hdf5(path):
-        raise _error(source, "not an HDF5 file (no HDF5 signature)")
-    with h5py.File(path, "r") as f:
-        for name in (*_REQUIRED_ATTRS, *_STR_ATTRS, *_OPTIONAL_FLOAT_ATTRS):
-            if name in f.attrs:
-                attrs[name] = f.attrs[name]
-        for name in _DATASET_FIELDS:
-            if name not in f:
-                continue
-            item = f[name]
-            if not isinstance(item, h5py.Dataset):
-                raise _error(source, f"{name} is a {type(item).__name__}, expected a dataset")
-            data[name] = np.asarray(item[()])
-    return attrs, data
+    """Read the file through :mod:`echoloc._hdf5_child`, abandoning a libhdf5 that stalls.
+
+    The child costs a Python start and an h5py import on every read, and the data cross
+    a pipe (each block is read straight into its array, so no second copy). Reading only
+    the structure in the child and the data here would save the pipe, but a corrupt chunk
+    index or filter could then still hang this process, deaf to signals: the whole read
+    stays in the child. It is started with fork+exec (subprocess), which is safe with
+    threads, isolated from the current directory (see :func:`_child_sys_path`).
+    """
+    stall_s = hdf5_stall_timeout_s()
+    env = dict(os.environ)
+    env.setdefault("OPENBLAS_NUM_THREADS", "1")
+    names = json.dumps(list(_DATASET_FIELDS))
+    bootstrap = (
+        f"import sys; sys.path[:] = {_child_sys_path()!r}; from echoloc._hdf5_child import main; main()"
+    )
+    command = [sys.executable, "-I", "-c", bootstrap, str(path), names, str(os.getpid())]
+    process = subprocess.Popen(
+        command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, env=env
+    )
+    assert process.stdin is not None
+    assert process.stdout is not None
+    try:
+        pipe = _ChildPipe(source, process)
+        pipe.expect(b"R", HDF5_START_TIMEOUT_S)
+        header = json.loads(pipe.expect(b"H", stall_s))
+        attrs = {name: _child_attribute(value) for name, value in header["attrs"].items()}
+        declared = _hdf5_declared(source, header["datasets"])
+        _check_declared(source, declared)
+        try:
+            process.stdin.write(json.dumps(list(declared)).encode() + b"\n")
+            process.stdin.close()
+        except BrokenPipeError:
+            pass  # the child ended: its message, or its end, is read next
+        data: dict[str, _AnyArray] = {}
+        for name, item in declared.items():
+            assert item.dtype is not None
+            arr = np.empty(item.shape, dtype=item.dtype)
+            view = arr.reshape(-1).view(np.uint8).data
+            done = 0
+            while done < len(view):
+                kind, _, length = pipe.message(stall_s, view[done:])
+                if kind != b"D" or length == 0:
+                    raise _error(source, f"cannot read as HDF5: {name} ended early")
+                done += length
+            data[name] = arr
+        pipe.expect(b"Z", stall_s)
+        return attrs, data
+    finally:
+        for stream in (process.stdin, process.stdout):
+            with contextlib.suppress(OSError):
+                stream.close()
+        if process.poll() is None:
+            process.kill()
+        process.wait()
+
+
+def _npy_header(source: str, archive: zipfile.ZipFile, member: str) -> tuple[_Declared, int]:
+    """A member's declared shape and dtype, from its ``.npy`` header alone, and the header's length."""
+    info = archive.getinfo(member)
+    with archive.open(info) as fh:
+        version = np.lib.format.read_magic(fh)
+        if version == (1, 0):
+            shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
+        elif version == (2, 0):
+            shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
+        else:
+            raise _error(source, f"{member} is a .npy of version {version}, expected 1.0 or 2.0")
+        header_bytes = fh.tell()
+    plain = dtype.kind in "biufcUS" and dtype.fields is None and dtype.subdtype is None
+    declared = _Declared(
+        shape=tuple(int(n) for n in shape),
+        dtype=dtype if plain else None,
+        dtype_text=str(dtype),
+        stored=info.file_size - header_bytes,
+    )
+    if info.compress_type != zipfile.ZIP_STORED and declared.file_bytes > (
+        MAX_COMPRESSION_RATIO * info.compress_size + _CHUNK_BYTES
+    ):
+        raise _error(
+            source,
+            f"{member} declares shape {declared.shape} ({declared.file_bytes} bytes) from only "
+            f"{info.compress_size} compressed bytes (a corrupt file?)",
+        )
+    return declared, header_bytes
 
 
 def _load_npz(source: str, path: Path) -> tuple[dict[str, object], dict[str, _AnyArray]]:
+    """Read the archive's members, each only after its ``.npy`` header was checked."""
     attrs: dict[str, object] = {}
     data: dict[str, _AnyArray] = {}
-    with open(path, "rb") as fh:  # our own handle: closed even when np.load fails
+    with open(path, "rb") as fh:  # our own handle: closed even when reading fails
         if fh.read(len(_ZIP_MAGIC)) != _ZIP_MAGIC:
             raise _error(source, "not an NPZ file (no zip signature)")
         fh.seek(0)
-        loaded = np.load(fh, allow_pickle=False)
-        if not isinstance(loaded, np.lib.npyio.NpzFile):
-            raise _error(source, "not an NPZ archive (it holds a single .npy array)")
-        with loaded:
-            keys = set(loaded.files)
+        with zipfile.ZipFile(fh) as archive:
+            members = set(archive.namelist())
+            if not members:
+                raise _error(source, "not an NPZ archive (it holds no .npy member)")
+            declared: dict[str, _Declared] = {}
             for name in (*_REQUIRED_ATTRS, *_STR_ATTRS, *_OPTIONAL_FLOAT_ATTRS):
-                if name in keys:
-                    attrs[name] = loaded[name]
+                if f"{name}.npy" not in members:
+                    continue
+                item, _ = _npy_header(source, archive, f"{name}.npy")
+                if item.file_bytes > _MAX_ATTRIBUTE_BYTES or item.dtype is None:
+                    raise _error(
+                        source,
+                        f"attribute {name} is an array of shape {item.shape} and dtype {item.dtype_text}, "
+                        "expected a single value",
+                    )
+                attrs[name] = _read_member(source, archive, name)
             for name in _DATASET_FIELDS:
-                if name in keys:
-                    data[name] = np.asarray(loaded[name])
+                if f"{name}.npy" in members:
+                    declared[name] = _npy_header(source, archive, f"{name}.npy")[0]
+            _check_declared(source, declared)
+            for name in declared:
+                data[name] = np.asarray(_read_member(source, archive, name))
     return attrs, data
+
+
+def _read_member(source: str, archive: zipfile.ZipFile, name: str) -> _AnyArray:
+    with archive.open(f"{name}.npy") as member:
+        arr = np.lib.format.read_array(member, allow_pickle=False)
+    return np.asarray(arr)
 
 
 _repair = repair_nonfinite  # read_recording's keyword shadows the function's name
@@ -961,6 +1384,78 @@ def _target(path: str | os.PathLike[str]) -> tuple[Path, str, bool]:
     return target, str(path), suffix in _HDF5_SUFFIXES
 
 
+_HOST_TAG = hashlib.sha256(socket.gethostname().encode()).hexdigest()[:8]
+"""Which machine (or container) a temporary file's writer ran on: its pid means nothing elsewhere."""
+
+_TEMPORARY_NAME = re.compile(r"^\..+\.([0-9a-f]{8})-([0-9]+)-[0-9a-f]{12}\.tmp$")
+_OLD_TEMPORARY_NAME = re.compile(r"^\..+\.(?:h5|hdf5|npz)\.[0-9a-f]{12}\.tmp$", re.IGNORECASE)
+
+STALE_TEMPORARY_AGE_S = 600.0
+"""How long a temporary file must have gone unmodified before it may be removed, s.
+Containers that share a hostname but not their process ids see different processes
+under the same pid: a writer alive in another one looks dead here, so its file is only
+taken once it has stopped changing for this long."""
+
+OLD_TEMPORARY_AGE_S = 86400.0
+"""How long a temporary file named as echoloc named them before it tagged them with the
+host and pid (``.<name>.<12 hex digits>.tmp``) must have gone unmodified before it may
+be removed, s. Without a pid nothing tells a live writer from a dead one; a day without
+a single write is the evidence, and those files of killed runs (hundreds of MB) would
+otherwise stay for ever."""
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError, OSError):
+        return True  # another user's, or cannot tell: keep its file
+    return True
+
+
+def _stale(name: str, age_s: float) -> bool:
+    """Whether a file of this name, unmodified for ``age_s``, is a dead writer's temporary."""
+    match = _TEMPORARY_NAME.match(name)
+    if match is not None:
+        return (
+            match.group(1) == _HOST_TAG
+            and age_s >= STALE_TEMPORARY_AGE_S
+            and not _process_alive(int(match.group(2)))
+        )
+    return _OLD_TEMPORARY_NAME.match(name) is not None and age_s >= OLD_TEMPORARY_AGE_S
+
+
+def remove_stale_temporaries(directory: str | os.PathLike[str]) -> list[Path]:
+    """Remove the temporary files that killed writers left in ``directory``; return them.
+
+    A write goes to ``.<name>.<host>-<pid>-<random>.tmp`` and is renamed over its target
+    when complete (:func:`_atomic_write`); a writer killed by SIGKILL or a power cut
+    leaves that file behind, as large as the recording. Every write into a folder first
+    removes those whose writer ran on this host (by the tag of its name), is gone (no
+    process of that pid) and has not modified it for :data:`STALE_TEMPORARY_AGE_S`; and
+    those of the older naming unmodified for :data:`OLD_TEMPORARY_AGE_S`. Nothing else is
+    touched: not a live writer's file, not one written on another machine sharing the
+    folder, not a file of another name. A pid reused since only keeps a stale file until
+    that process ends.
+    """
+    removed: list[Path] = []
+    try:
+        entries = list(os.scandir(directory))
+    except OSError:
+        return removed
+    now = time.time()
+    for entry in entries:
+        if not (_TEMPORARY_NAME.match(entry.name) or _OLD_TEMPORARY_NAME.match(entry.name)):
+            continue
+        with contextlib.suppress(OSError):
+            info = entry.stat(follow_symlinks=False)
+            if stat.S_ISREG(info.st_mode) and _stale(entry.name, now - info.st_mtime):
+                os.unlink(entry.path)
+                removed.append(Path(entry.path))
+    return removed
+
+
 def _atomic_write(target: Path, source: str, write: Callable[[Path], None]) -> Path:
     """Run ``write`` on a new temporary file next to ``target``, then rename it over ``target``.
 
@@ -973,7 +1468,8 @@ def _atomic_write(target: Path, source: str, write: Callable[[Path], None]) -> P
         raise _error(source, problem)
     if target.is_dir():
         raise _error(source, "is a directory")
-    tmp = parent / f".{target.name}.{secrets.token_hex(6)}.tmp"
+    remove_stale_temporaries(parent)
+    tmp = parent / f".{target.name}.{_HOST_TAG}-{os.getpid()}-{secrets.token_hex(6)}.tmp"
     try:
         with _write_errors(source), open(tmp, "xb"):  # created with the user's umask, like open()
             pass

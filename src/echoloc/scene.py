@@ -28,6 +28,7 @@ from scipy.spatial.transform import Rotation
 from echoloc.air import speed_of_sound_m_s
 from echoloc.errors import SceneError, WaveformError
 from echoloc.receiver import AdcSpec, GainSpec, SignalKind, check_signal_kind, output_samples
+from echoloc.recording import SAMPLE_RATE_RANGE_HZ
 from echoloc.reflectors import Reflector
 from echoloc.transducer import PRESETS, apply_response, impulse_response
 from echoloc.waveform import Carrier, Waveform, waveform_by_name
@@ -332,6 +333,21 @@ def _triangle(phase: NDArray[np.float64]) -> NDArray[np.float64]:
 
 Firing = Literal["sequential", "simultaneous"]
 
+MAX_FRAME_VALUES = 1 << 24
+"""The most values a frame may hold at the ADC, n_rx x n_samples x (ADC rate / sample
+rate), 16.8 M (134 MB as float64): the simulator holds a few copies of a frame at once."""
+
+SNR_DB_RANGE = (-200.0, 400.0)
+"""The signal-to-noise ratios a scene may ask for, dB: beyond them the noise's amplitude
+under- or overflows float64 (snr_db = -2^63 divided by zero)."""
+
+AIR_TEMPERATURE_RANGE_C = (-100.0, 200.0)
+"""The air temperatures a scene may give, °C: wider than any air a sensor works in (the
+humidity and absorption formulas hold over less); 1e307 °C overflowed them."""
+
+FRAME_RATE_HZ_RANGE = (1e-6, 1e6)
+"""The frame rates a scene may ask for, Hz (frame times must stay finite and distinct)."""
+
 
 @dataclass(frozen=True, eq=False)
 class Scene:
@@ -393,14 +409,37 @@ class Scene:
         object.__setattr__(self, "reflector_positions_m", positions)
         object.__setattr__(self, "reflector_strengths", strengths)
         object.__setattr__(self, "objects", tuple(self.objects))
-        if not (math.isfinite(self.sample_rate_hz) and self.sample_rate_hz > 0):
-            raise SceneError(f"sample_rate_hz must be > 0, got {self.sample_rate_hz}")
+        low_hz, high_hz = SAMPLE_RATE_RANGE_HZ
+        if not low_hz <= self.sample_rate_hz <= high_hz:  # NaN fails too
+            raise SceneError(
+                f"acquisition.sample_rate_hz must lie in {low_hz:g}..{high_hz:g} Hz, "
+                f"got {self.sample_rate_hz:g}"
+            )
         if self.n_samples < 1:
             raise SceneError(f"n_samples must be >= 1, got {self.n_samples}")
+        if self.n_samples > MAX_FRAME_VALUES:
+            raise SceneError(
+                f"acquisition.n_samples must be at most {MAX_FRAME_VALUES}, got {self.n_samples}"
+            )
         if not (math.isfinite(self.frame_rate_hz) and self.frame_rate_hz > 0):
             raise SceneError(f"frame_rate_hz must be > 0, got {self.frame_rate_hz}")
+        low, high = FRAME_RATE_HZ_RANGE
+        if not low <= self.frame_rate_hz <= high:
+            raise SceneError(
+                f"acquisition.frame_rate_hz must lie in {low:g}..{high:g} Hz, got {self.frame_rate_hz:g}"
+            )
+        if self.snr_db is not None:
+            _finite("noise.snr_db", self.snr_db)
+            low, high = SNR_DB_RANGE
+            if not low <= self.snr_db <= high:
+                raise SceneError(f"noise.snr_db must lie in {low:g}..{high:g} dB, got {self.snr_db:g}")
         if not self.temperature_c > -273.15:
             raise SceneError(f"air.temperature_c must be above absolute zero, got {self.temperature_c}")
+        low, high = AIR_TEMPERATURE_RANGE_C
+        if not low <= self.temperature_c <= high:
+            raise SceneError(
+                f"air.temperature_c must lie in {low:g}..{high:g} °C, got {self.temperature_c:g}"
+            )
         if not 0 <= self.relative_humidity <= 1:
             raise SceneError(
                 f"air.relative_humidity must be a fraction in 0..1, got {self.relative_humidity}"
@@ -456,6 +495,10 @@ class Scene:
         if self.receiver.noise == "band" and self.transducer is None:
             raise SceneError("receiver.noise = 'band' needs a transducer model ([transducers] model)")
         adc_rate = self.adc_rate_hz
+        if not adc_rate <= SAMPLE_RATE_RANGE_HZ[1]:
+            raise SceneError(
+                f"receiver.adc_rate_hz must be at most {SAMPLE_RATE_RANGE_HZ[1]:g} Hz, got {adc_rate:g}"
+            )
         if adc_rate < self.sample_rate_hz:
             raise SceneError(
                 f"receiver.adc_rate_hz ({adc_rate:g}) must be >= acquisition.sample_rate_hz "
@@ -466,6 +509,20 @@ class Scene:
             raise SceneError(
                 f"receiver.adc_rate_hz ({adc_rate:g}) must be a whole multiple of acquisition.sample_rate_hz "
                 f"({self.sample_rate_hz:g}): the ADC's samples are decimated by an integer factor"
+            )
+        n_rx = len(self.array.receivers_m)
+        frame_values = n_rx * self.n_samples * round(ratio)
+        if frame_values > MAX_FRAME_VALUES:
+            raise SceneError(
+                f"acquisition.n_samples: a frame of {n_rx} receivers x {self.n_samples} samples "
+                f"x {round(ratio)} (ADC decimation) is {frame_values} values, more than the "
+                f"{MAX_FRAME_VALUES} a frame may hold"
+            )
+        frame_s = self.n_samples / self.sample_rate_hz
+        if self.receiver.baseband_filter_s > frame_s:
+            raise SceneError(
+                f"receiver.baseband_filter_s ({self.receiver.baseband_filter_s:g} s) must be at most "
+                f"a frame's duration ({frame_s:g} s)"
             )
         if self.output_rate_hz > self.sample_rate_hz:
             raise SceneError(

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from echoloc.errors import EchoLocError, SceneError
+from echoloc.errors import EchoLocError, SceneError, read_text_input
 from echoloc.receiver import AdcSpec, GainSpec
 from echoloc.reflectors import Edge, Plane, PointReflector, Reflector, Sphere, corner
 from echoloc.scene import (
@@ -104,6 +104,16 @@ _REFLECTOR_KEYS: dict[str, set[str]] = {
 }
 _TOP_LEVEL = {*_SECTIONS, "reflectors", "seed", "max_order"}
 _MISSING = object()
+
+MAX_SCENE_FILE_BYTES = 4 << 20
+"""The largest scene file read, bytes (a scene of 20 000 reflectors takes about 2 MB)."""
+
+MAX_EXTENT_M = 10_000.0
+"""The largest length or coordinate a scene may give, m: airborne ultrasound fades within
+tens of metres, and a sphere of radius 1e30 m made the simulator allocate without end."""
+
+MAX_RANDOM_REFLECTORS = 10_000
+"""The most random reflectors a frame may draw."""
 
 
 @dataclass(frozen=True)
@@ -327,9 +337,28 @@ def _reflector(table: _Table) -> tuple[Reflector, ...]:
     )
 
 
+def _check_extents(table: _Table) -> None:
+    """Every length and coordinate (a key ending in ``_m``) within :data:`MAX_EXTENT_M`."""
+    for name, value in table.data.items():
+        if not name.endswith("_m"):
+            continue
+        flat = value if isinstance(value, list) else [value]
+        flat = [v for item in flat for v in (item if isinstance(item, list) else [item])]
+        numbers = [abs(v) for v in flat if isinstance(v, int | float) and not isinstance(v, bool)]
+        if any(not math.isfinite(v) or v > MAX_EXTENT_M for v in numbers):
+            raise SceneError(f"{table.key(name)} must lie within {MAX_EXTENT_M:g} m, got {value!r}")
+
+
 def _scene_from_dict(data: Mapping[str, Any], source: str) -> Scene:
     top = _Table("", data)
     top.check(_TOP_LEVEL)
+    for name in ("array", "random_reflectors", "noise"):
+        if isinstance(data.get(name), dict):
+            _check_extents(_Table(name, data[name]))
+    if isinstance(data.get("reflectors"), list):
+        for i, entry in enumerate(data["reflectors"]):
+            if isinstance(entry, dict):
+                _check_extents(_Table(f"reflectors[{i}]", entry))
     sections = {name: top.sub(name, allowed) for name, allowed in _SECTIONS.items()}
     kwargs: dict[str, Any] = {"array": _array(sections["array"])}
     firing = sections["array"].choice("firing", ("sequential", "simultaneous"), "sequential")
@@ -413,6 +442,10 @@ def _scene_from_dict(data: Mapping[str, Any], source: str) -> Scene:
             and all(isinstance(c, int) and not isinstance(c, bool) for c in count)
         ):
             raise SceneError(f"random_reflectors.count must be [min, max] whole numbers, got {count!r}")
+        if count[1] > MAX_RANDOM_REFLECTORS:
+            raise SceneError(
+                f"random_reflectors.count must be at most {MAX_RANDOM_REFLECTORS}, got {count!r}"
+            )
         box = RandomReflectors()
         kwargs["random"] = RandomReflectors(
             count=(count[0], count[1]),
@@ -456,12 +489,12 @@ def load_scene(path: str | Path) -> Scene:
     path = Path(path)
     if not path.exists() and path.parent == Path(".") and str(path).removesuffix(".toml") in preset_names():
         path = preset_path(str(path))
+    text = read_text_input(path, what="scene file", max_bytes=MAX_SCENE_FILE_BYTES, error=SceneError)
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise SceneError(f"{path}: no such scene file") from None
-    except (OSError, UnicodeDecodeError) as error:
-        raise SceneError(f"{path}: cannot read scene file ({error})") from None
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise SceneError(f"{path}: not valid TOML ({error})") from None
+    except (ValueError, RecursionError) as error:  # a 5000-digit integer; arrays nested 3000 deep
+        reason = "nested too deeply" if isinstance(error, RecursionError) else str(error)
+        raise SceneError(f"{path}: not valid TOML ({reason})") from None
     return scene_from_dict(data, source=str(path))

@@ -73,6 +73,19 @@ FloatArray = NDArray[np.float64]
 BATCH_FRAMES = 64
 """Frames made at once: large enough to amortise numpy's overhead, small enough for cache."""
 
+BATCH_BYTES = 256 << 20
+"""The most a batch's frames may take at the ADC (float64): frames of millions of samples
+go fewer at a time (a batch of 64 such frames would take gigabytes). A scene of ordinary
+frames keeps batches of :data:`BATCH_FRAMES`, so its random draws are as before."""
+
+
+def batch_frames(scene: Scene) -> int:
+    """Frames per batch for ``scene``: :data:`BATCH_FRAMES`, fewer for very long frames."""
+    decimation = max(1, round(scene.adc_rate_hz / scene.sample_rate_hz))
+    frame_bytes = 8 * len(scene.array.receivers_m) * scene.n_samples * decimation
+    return max(1, min(BATCH_FRAMES, BATCH_BYTES // frame_bytes))
+
+
 _RATE_STEP_S = 1e-3
 """Time step of the finite difference that gives each path's rate of change (Doppler)."""
 
@@ -537,13 +550,14 @@ def _field_of_view_deg(scene: Scene) -> float | None:
 
 
 def simulate_batches(scene: Scene, n_frames: int) -> Iterator[FrameBatch]:
-    """Frames of ``scene`` in batches of :data:`BATCH_FRAMES`, reproducible from ``scene.seed``."""
+    """Frames of ``scene`` in batches of :func:`batch_frames`, reproducible from ``scene.seed``."""
     if n_frames < 1:
         raise SceneError(f"the number of frames must be >= 1, got {n_frames}")
     plan = _plan(scene)
     rng = np.random.default_rng(scene.seed)
-    for start in range(0, n_frames, BATCH_FRAMES):
-        yield _batch(scene, plan, start, min(BATCH_FRAMES, n_frames - start), rng)
+    size = batch_frames(scene)
+    for start in range(0, n_frames, size):
+        yield _batch(scene, plan, start, min(size, n_frames - start), rng)
 
 
 def simulate(scene: Scene, n_frames: int = 1, *, progress: Callable[[int], None] | None = None) -> Recording:

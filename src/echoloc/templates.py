@@ -27,7 +27,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from echoloc.errors import EchoLocError, RecordingError
+from echoloc.errors import EchoLocError, RecordingError, open_input
 from echoloc.recording import Recording
 
 FORMAT_NAME = "echoloc-template"
@@ -178,17 +178,38 @@ def write_template(template: Template, path: str | os.PathLike[str]) -> Path:
     return target
 
 
+MAX_TEMPLATE_BYTES = 64 << 20
+"""The most a template file may hold, on disk and unpacked, bytes: a template is one
+pulse of at most :data:`echoloc.waveform.MAX_WAVEFORM_SAMPLES` samples (8 MiB as float64)."""
+
+
 def read_template(path: str | os.PathLike[str]) -> Template:
-    """Read a template written by :func:`write_template`, checking every field."""
+    """Read a template written by :func:`write_template`, checking every field.
+
+    Only a regular file of at most :data:`MAX_TEMPLATE_BYTES` is read, and only when its
+    members unpack to at most that much together (a small zip can unpack to gigabytes).
+    """
     source = Path(path)
-    try:
-        with np.load(source, allow_pickle=False) as data:
-            fields = {key: data[key] for key in data.files}
-    except FileNotFoundError:
-        raise RecordingError(f"{source}: no such template file") from None
-    except (OSError, ValueError, zipfile.BadZipFile):
-        # numpy's own message may suggest allow_pickle=True: never for a file of unknown origin.
-        raise RecordingError(f"{source}: not a template file (an .npz written by echoloc template)") from None
+    with open_input(source, what="template file", max_bytes=MAX_TEMPLATE_BYTES, error=RecordingError) as fh:
+        try:
+            data = np.load(fh, allow_pickle=False)
+            if not isinstance(data, np.lib.npyio.NpzFile) or data.zip is None:
+                raise ValueError("a single array, not an .npz")
+            with data:
+                unpacked = sum(int(info.file_size) for info in data.zip.infolist())
+                if unpacked > MAX_TEMPLATE_BYTES:
+                    raise RecordingError(
+                        f"{source}: template file unpacks to {unpacked} bytes, more than the "
+                        f"{MAX_TEMPLATE_BYTES} it may hold"
+                    )
+                fields = {key: data[key] for key in data.files}
+        except RecordingError:
+            raise
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+            # numpy's own message may suggest allow_pickle=True: never for a file of unknown origin.
+            raise RecordingError(
+                f"{source}: not a template file (an .npz written by echoloc template)"
+            ) from None
     if str(fields.get("format", "")) != FORMAT_NAME or int(fields.get("version", 0)) != FORMAT_VERSION:
         raise RecordingError(f"{source}: not an {FORMAT_NAME} version {FORMAT_VERSION} file")
     missing = [key for key in ("samples", "sample_rate_hz", "arrival_s") if key not in fields]

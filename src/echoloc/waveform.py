@@ -25,6 +25,7 @@ matched-filter envelope, -3 dB main-lobe width and the range resolution it impli
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -87,6 +88,22 @@ def aperiodic_autocorrelation(code: ArrayLike) -> NDArray[np.float64]:
     return np.asarray(np.correlate(c, c, mode="full"))
 
 
+MAX_WAVEFORM_SAMPLES = 1 << 20
+"""The most samples a pulse may have (5 s at 200 kHz; real pulses last a few ms): checked
+before the pulse is built, since a large cycles_per_bit or duration would otherwise
+allocate gigabytes before anything refused it."""
+
+
+def _pulse_samples(count: float, what: str) -> int:
+    """``count`` rounded, refused beyond :data:`MAX_WAVEFORM_SAMPLES` before anything is allocated."""
+    if not (math.isfinite(count) and count <= MAX_WAVEFORM_SAMPLES):
+        raise WaveformError(
+            f"{what} would have {count:.3g} samples, more than the {MAX_WAVEFORM_SAMPLES} a pulse may have "
+            "(fewer cycles_per_bit, a shorter duration, or a lower sample rate)"
+        )
+    return round(count)
+
+
 def modulate(
     code: ArrayLike,
     *,
@@ -114,7 +131,7 @@ def modulate(
     if int(cycles_per_bit) != cycles_per_bit or cycles_per_bit < 1:
         raise WaveformError(f"cycles_per_bit must be a positive whole number, got {cycles_per_bit}")
     chip_s = cycles_per_bit / carrier_hz
-    n_samples = round(bits.size * chip_s * sample_rate_hz)
+    n_samples = _pulse_samples(bits.size * chip_s * sample_rate_hz, "the coded pulse")
     t = np.arange(n_samples) / sample_rate_hz
     # Cycles elapsed at each sample, rounded to guard samples that fall on an edge.
     cycles = np.round(t * carrier_hz, 9)
@@ -411,7 +428,7 @@ def chirp_waveform(
             )
     if method not in ("linear", "hyperbolic"):
         raise WaveformError(f"chirp method must be 'linear' or 'hyperbolic', got {method!r}")
-    n = round(duration_s * sample_rate_hz)
+    n = _pulse_samples(duration_s * sample_rate_hz, "the chirp")
     if n < 2:
         raise WaveformError(f"chirp of {duration_s:g} s is shorter than 2 samples at {sample_rate_hz:g} Hz")
     t = np.arange(n) / sample_rate_hz
