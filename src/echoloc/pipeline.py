@@ -8,6 +8,7 @@ observable window, receivers to use). :func:`run` then maps frames to results.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import warnings
 from collections.abc import Iterable, Iterator, Sequence
@@ -20,8 +21,21 @@ from numpy.typing import NDArray
 
 from echoloc.air import speed_of_sound_m_s
 from echoloc.calibrate import Calibration, apply_calibration
+from echoloc.channel_health import (
+    ASSESS_FRAMES,
+    ChannelHealth,
+    ChannelWatch,
+    assess_channels,
+    clipped_samples,
+    correct_frames,
+    healthy,
+    reread_clipped,
+    touches_clipping,
+    warn_health,
+)
 from echoloc.conditioning import Conditioning, blinded, condition_frame, effective_options
 from echoloc.echoes import (
+    ChannelEchoes,
     EchoOptions,
     FrameEchoes,
     MatchedFilter,
@@ -46,7 +60,15 @@ from echoloc.estimators import (
     prepare_estimator,
     resolve_estimator,
 )
-from echoloc.locate import FrameLocator, FrameObjects, LocateOptions, LocateWarning, combine_frames
+from echoloc.locate import (
+    FrameLocator,
+    FrameObjects,
+    LocatedObject,
+    LocateOptions,
+    LocateWarning,
+    combine_frames,
+    model_paths_m,
+)
 from echoloc.recording import Recording, dead_receivers
 from echoloc.templates import Template
 
@@ -77,32 +99,64 @@ class Chain:
     usable_receivers: NDArray[np.bool_]
     calibration: Calibration | None = None
     conditioning: Conditioning = field(default_factory=Conditioning)
+    channel_watch: ChannelWatch | None = None
 
-    @cached_property
-    def locators(self) -> tuple[FrameLocator, ...]:
-        """A :class:`echoloc.locate.FrameLocator` per transmitter: the set-up its frames share,
-        looked up once for the whole recording or stream."""
-        recording = self.recording
-        return tuple(
-            FrameLocator(transmitter_m, recording.receivers_m, self.locate_options, self.usable_receivers)
-            for transmitter_m in recording.transmitters_m
+    @property
+    def health(self) -> ChannelHealth:
+        """The receivers' health (:mod:`echoloc.channel_health`) as assessed so far."""
+        watch = self.channel_watch
+        return healthy(self.recording.n_receivers) if watch is None else watch.health
+
+    @property
+    def working_receivers(self) -> NDArray[np.bool_]:
+        """Receivers localisation uses: the usable ones less those a live session's channel
+        check left out since (a recording's are left out of ``usable_receivers`` already)."""
+        return np.asarray(self.usable_receivers, dtype=bool) & ~self.health.excluded_mask(
+            len(self.usable_receivers)
         )
 
     @cached_property
+    def _by_receivers(self) -> dict[tuple[object, ...], Any]:
+        """Locators and one-call arguments per set of working receivers (a live session's
+        channel check can leave one out after its first frames)."""
+        return {}
+
+    @property
+    def locators(self) -> tuple[FrameLocator, ...]:
+        """A :class:`echoloc.locate.FrameLocator` per transmitter: the set-up its frames share,
+        looked up once for the whole recording or stream (and its working receivers)."""
+        working = self.working_receivers
+        key = ("locators", working.tobytes())
+        found: tuple[FrameLocator, ...] | None = self._by_receivers.get(key)
+        if found is None:
+            recording = self.recording
+            found = tuple(
+                FrameLocator(transmitter_m, recording.receivers_m, self.locate_options, working)
+                for transmitter_m in recording.transmitters_m
+            )
+            self._by_receivers[key] = found
+        return found
+
+    @property
     def one_call(self) -> tuple[MatchedEstimator, FrameLocator, tuple[Any, ...]] | None:
         """What :func:`samples_results_batch` takes to find frames' echoes and objects in one
         compiled call: the matched estimator, the locator and its kernel's arguments. None
         where that path does not apply and the stages run one after the other: another
         estimator, a calibration (it corrects the echoes between the stages), several
-        transmitters, or a locator without a compiled path."""
-        if self.calibration is not None or len(self.recording.transmitters_m) != 1:
+        transmitters, a clipped channel re-read (:func:`echoloc.channel_health.reread_clipped`
+        works between the stages), or a locator without a compiled path."""
+        if self.calibration is not None or len(self.recording.transmitters_m) != 1 or self.health.reread:
             return None
         estimator = self.estimator
         if not isinstance(estimator, MatchedEstimator):
             return None
-        locator = self.locators[0]
-        arguments = locator.kernel_arguments(self.speed_of_sound_m_s)
-        return None if arguments is None else (estimator, locator, arguments)
+        key = ("one_call", self.working_receivers.tobytes())
+        if key not in self._by_receivers:
+            locator = self.locators[0]
+            arguments = locator.kernel_arguments(self.speed_of_sound_m_s)
+            self._by_receivers[key] = None if arguments is None else (estimator, locator, arguments)
+        found: tuple[MatchedEstimator, FrameLocator, tuple[Any, ...]] | None = self._by_receivers[key]
+        return found
 
 
 def prepare(
@@ -114,6 +168,7 @@ def prepare(
     speed_of_sound_m_s: float | None = None,
     calibration: Calibration | None = None,
     conditioning: Conditioning | None = None,
+    check_channels: bool = True,
 ) -> Chain:
     """Precompute the chain for ``recording``; options not given take recording-based defaults.
 
@@ -121,7 +176,12 @@ def prepare(
     taken off every echo (an explicit ``speed_of_sound_m_s`` still wins).
     ``conditioning`` (:mod:`echoloc.conditioning`; default: subtract the background
     and undo the receiver gain when the recording has them) is applied to every
-    frame; a blind zone in seconds raises ``blanking_s`` to it.
+    frame; a blind zone in seconds raises ``blanking_s`` to it. ``check_channels``
+    (default): degraded receiver channels are found, warned about (a
+    :class:`echoloc.channel_health.ChannelWarning` naming the recording and the
+    receiver), corrected or left out of localisation (:func:`channel_watch`); with the
+    matched filter, a clipped channel is kept and its echoes near clipped samples re-read
+    (:func:`echoloc.channel_health.reread_clipped`).
     """
     conditioning = conditioning or Conditioning()
     estimator = resolve_estimator(estimator, recording)
@@ -195,19 +255,70 @@ def prepare(
             locate_options = replace(locate_options, path_sigma_m=calibration.path_sigma_m)
     # Dead receivers (the reader warns about them) are left out of localisation.
     usable = np.ones(recording.n_receivers, dtype=bool)
-    usable[dead_receivers(recording)] = False
-    return Chain(recording, run_estimator, echo_options, locate_options, c, usable, calibration, conditioning)
+    dead = dead_receivers(recording)
+    usable[dead] = False
+    watch = None
+    if check_channels:
+        watch = channel_watch(
+            recording,
+            locate_options.min_receivers,
+            dead,
+            reread_clipped=isinstance(run_estimator, MatchedEstimator),
+        )
+        usable &= ~watch.health.excluded_mask(recording.n_receivers)
+    return Chain(
+        recording, run_estimator, echo_options, locate_options, c, usable, calibration, conditioning, watch
+    )
+
+
+def channel_watch(
+    recording: Recording, min_receivers: int, dead: Sequence[int] = (), *, reread_clipped: bool = False
+) -> ChannelWatch:
+    """The channel check of a chain (:mod:`echoloc.channel_health`), warning about what it finds.
+
+    A recording with frames is assessed now, on up to :data:`ASSESS_FRAMES` of them spread
+    over it (its ``dead`` receivers, which the reader warned about, are not warned about
+    again); a session header (no frames) is assessed on its first frames as they come.
+    Rail samples in a run that starts with the frame (a saturated ring-down) within a
+    quarter pulse of each other are not clipping. ``reread_clipped``: clipped channels are
+    kept and re-read rather than left out (the chain's estimator is the matched filter).
+    """
+    n_rx = recording.n_receivers
+    pulse = 0 if recording.waveform is None else len(recording.waveform)
+    ring_down = max(1, pulse // 4)
+    watch = functools.partial(
+        ChannelWatch,
+        recording.source,
+        recording.signal_kind,
+        n_rx,
+        min_receivers=min_receivers,
+        ring_down_samples=ring_down,
+        reread_clipped=reread_clipped,
+    )
+    if recording.n_frames == 0:  # a session header: assessed on its first frames as they come
+        return watch()
+    picks = np.unique(np.linspace(0, recording.n_frames - 1, min(recording.n_frames, ASSESS_FRAMES)).round())
+    health = assess_channels(
+        np.asarray(recording.frames)[picks.astype(int)],
+        recording.signal_kind,
+        min_receivers=min_receivers,
+        ring_down_samples=ring_down,
+        reread_clipped=reread_clipped,
+    )
+    known = ChannelHealth(tuple(("dead",) if rx in dead else () for rx in range(n_rx)))
+    warn_health(health, recording.source, known, stacklevel=4)
+    return watch(health=health, settled=True)
 
 
 def check_locatable(chain: Chain) -> None:
     """Raise when too few receivers work to locate anything."""
-    working = int(chain.usable_receivers.sum())
+    working = int(chain.working_receivers.sum())
     if working < chain.locate_options.min_receivers:
         raise EchoLocError(
             f"{chain.recording.source}: only {working} working receiver(s), "
             f"at least {chain.locate_options.min_receivers} are needed to locate"
         )
-    positions = np.asarray(chain.recording.receivers_m, dtype=float)[chain.usable_receivers]
+    positions = np.asarray(chain.recording.receivers_m, dtype=float)[chain.working_receivers]
     transmitters = np.asarray(chain.recording.transmitters_m, dtype=float)
     if np.all(positions == positions[0]) and np.all(transmitters == transmitters[0]):
         raise EchoLocError(
@@ -331,11 +442,39 @@ def samples_echoes_batch(
 ) -> list[FrameEchoes]:
     """:func:`samples_echoes` of several frames, in one call of the estimator where it takes
     batches (:func:`echoloc.estimators.estimate_frames`): the same echoes, more frames a second."""
-    channels_of_frames = estimate_frames(chain.estimator, _conditioned(chain, samples, indices))
-    return [
+    raw, frames = _raw_and_conditioned(chain, samples, indices)
+    return _echoes_of_conditioned(chain, raw, frames, indices, times_s)[0]
+
+
+def _echoes_of_conditioned(
+    chain: Chain,
+    raw: NDArray[Any] | None,
+    frames: NDArray[Any],
+    indices: Sequence[int],
+    times_s: Sequence[float],
+) -> tuple[list[FrameEchoes], NDArray[np.bool_] | None]:
+    """:func:`samples_echoes_batch` of frames conditioned (``frames``) from ``raw`` (None: the
+    frames differ in shape, nothing is re-read), and the samples of channels it re-read that
+    are clipped (:func:`echoloc.channel_health.clipped_samples`; None: none). Clipped
+    channels the channel check keeps are re-read near their clipped samples
+    (:func:`echoloc.channel_health.reread_clipped`)."""
+    channels_of_frames: Sequence[Sequence[Any]] = estimate_frames(chain.estimator, frames)
+    health = chain.health
+    estimator = chain.estimator
+    clipped = None
+    if health.reread and raw is not None and isinstance(estimator, MatchedEstimator):
+        clipped = clipped_samples(raw, health)
+        if clipped.shape == np.shape(frames) and clipped.any():
+            channels_of_frames = reread_clipped(
+                frames, clipped, channels_of_frames, estimator.mf, estimator.options
+            )
+        else:
+            clipped = None
+    found = [
         _frame_echoes(chain, index, time_s, channels)
         for channels, index, time_s in zip(channels_of_frames, indices, times_s, strict=True)
     ]
+    return found, clipped
 
 
 def learn_chain_echo_shape(
@@ -352,7 +491,7 @@ def learn_chain_echo_shape(
             f"'peaks', got {arrival!r}"
         )
     indices = list(frames)
-    conditioned = _conditioned(chain, [recording.frames[i] for i in indices], indices)
+    conditioned = _raw_and_conditioned(chain, [recording.frames[i] for i in indices], indices)[1]
     if arrival == "truth":
         arrivals = arrivals_from_truth(recording, indices, chain.speed_of_sound_m_s)
     else:
@@ -371,14 +510,35 @@ def _conditioned(
     samples: Sequence[NDArray[np.floating] | NDArray[np.complexfloating]],
     indices: Sequence[int],
 ) -> NDArray[Any]:
-    """The frames' samples conditioned (:func:`echoloc.conditioning.condition_frame`), stacked
-    (n_frames, n_rx, n_samples)."""
+    """The frames' samples conditioned, stacked (:func:`_raw_and_conditioned`)."""
+    return _raw_and_conditioned(chain, samples, indices)[1]
+
+
+def _raw_and_conditioned(
+    chain: Chain,
+    samples: Sequence[NDArray[np.floating] | NDArray[np.complexfloating]],
+    indices: Sequence[int],
+) -> tuple[NDArray[Any] | None, NDArray[Any]]:
+    """The frames' samples as they came, stacked (None without a channel check, or when they
+    differ in shape), and conditioned (:func:`echoloc.conditioning.condition_frame`),
+    stacked (n_frames, n_rx, n_samples)."""
     recording = chain.recording
+    watch = chain.channel_watch
+    raw = None
+    if watch is not None and len(samples):
+        # Degraded channels (echoloc.channel_health): a live session's first frames are
+        # assessed as they come; DC offsets and non-finite samples are corrected.
+        try:
+            raw = np.stack([np.asarray(frame) for frame in samples])
+        except ValueError:
+            pass  # frames of different shapes: refused below, frame by frame
+        else:
+            samples = list(correct_frames(raw, watch.observe(raw)))
     conditioned = [
         condition_frame(frame, recording, chain.conditioning, index)
         for frame, index in zip(samples, indices, strict=True)
     ]
-    return np.asarray(conditioned[0])[None] if len(conditioned) == 1 else np.stack(conditioned)
+    return raw, np.asarray(conditioned[0])[None] if len(conditioned) == 1 else np.stack(conditioned)
 
 
 def _frame_echoes(chain: Chain, index: int, time_s: float, channels: Sequence[Any]) -> FrameEchoes:
@@ -413,18 +573,91 @@ def samples_results_batch(
     tied weights, finish as the stages do. Frames of another channel count than the
     recording's receivers are refused there (the kernel trusts its shapes).
     """
-    one_call = chain.one_call
+    raw, frames = _raw_and_conditioned(chain, samples, indices)
+    one_call = chain.one_call  # after the channel check has seen these frames
     if one_call is not None:
-        frames = _conditioned(chain, samples, indices)
         n_rx = len(one_call[1].receivers_m)
         if frames.shape[1] != n_rx:
             raise EchoLocError(f"frames of {frames.shape[1]} channels for a chain of {n_rx} receivers")
         return _one_call_results(chain, one_call, frames, indices, times_s)
-    found = samples_echoes_batch(chain, samples, indices, times_s)
-    return [
-        (echoes, transmitter_objects(chain, echoes, transmitter))
-        for echoes, transmitter in zip(found, transmitters, strict=True)
-    ]
+    found, clipped = _echoes_of_conditioned(chain, raw, frames, indices, times_s)
+    results = []
+    for f, (echoes, transmitter) in enumerate(zip(found, transmitters, strict=True)):
+        objects = transmitter_objects(chain, echoes, transmitter)
+        if clipped is not None and clipped[f].any():
+            objects = _excusing_clipped(chain, echoes, objects, transmitter, clipped[f])
+        results.append((echoes, objects))
+    return results
+
+
+def _excusing_clipped(
+    chain: Chain, echoes: FrameEchoes, objects: FrameObjects, transmitter: int, clipped: NDArray[np.bool_]
+) -> FrameObjects:
+    """``objects`` and those a re-read clipped channel's lost echoes hid.
+
+    Where a strong clipped echo overlaps weaker ones, the clipped channel can lose an echo
+    (its correlation shows one peak for two): that object then lacks one channel and the
+    association, which needs every channel's echo, drops it. So the echoes no object uses
+    are associated again with that channel excused, and each object found is kept when its
+    predicted echo on the excused channel touches clipped samples
+    (:func:`echoloc.channel_health.touches_clipping`), where the channel may have lost it;
+    elsewhere the channel would have shown its echo, and the object is a ghost. ``clipped``
+    (n_rx, n_samples): the frame's clipped samples of the re-read channels.
+    """
+    estimator = chain.estimator
+    if not isinstance(estimator, MatchedEstimator):
+        return objects
+    recording = chain.recording
+    used: list[set[int]] = [set() for _ in echoes.channels]
+    for found in objects.objects:
+        for rx, index in zip(found.receivers, found.echo_indices, strict=True):
+            used[rx].add(index)
+    added: list[LocatedObject] = []
+    for rx in np.flatnonzero(clipped.any(axis=1)).tolist():
+        working = chain.working_receivers.copy()
+        if rx >= len(working) or not working[rx]:
+            continue
+        working[rx] = False
+        kept = [
+            np.array([c != rx and i not in used[c] for i in range(len(ch.tof_s))], dtype=bool)
+            for c, ch in enumerate(echoes.channels)
+        ]
+        if any(not k.any() for c, k in enumerate(kept) if working[c]):
+            continue  # a working channel has no echo left: nothing more to find
+        left = replace(
+            echoes,
+            channels=tuple(
+                ChannelEchoes(ch.tof_s[k], ch.amplitude[k], ch.snr_db[k])
+                for ch, k in zip(echoes.channels, kept, strict=True)
+            ),
+        )
+        key = ("excusing", transmitter, working.tobytes())
+        locator = chain._by_receivers.get(key)
+        if locator is None:
+            locator = chain._by_receivers[key] = FrameLocator(
+                recording.transmitters_m[transmitter], recording.receivers_m, chain.locate_options, working
+            )
+        hidden = locator(left).objects
+        if not hidden:
+            continue
+        positions = np.array([o.position_m for o in hidden])
+        paths_m = model_paths_m(recording.transmitters_m[transmitter], recording.receivers_m, positions)[
+            :, rx
+        ]
+        lost = touches_clipping(clipped[rx], paths_m / echoes.speed_of_sound_m_s, estimator.mf)
+        for found, keep in zip(hidden, lost.tolist(), strict=True):
+            if keep:
+                # Indices into the channels' own echoes, not the ones left.
+                indices = tuple(
+                    int(np.flatnonzero(kept[c])[i])
+                    for c, i in zip(found.receivers, found.echo_indices, strict=True)
+                )
+                added.append(replace(found, echo_indices=indices))
+                for c, i in zip(found.receivers, indices, strict=True):
+                    used[c].add(i)
+    if not added:
+        return objects
+    return replace(objects, objects=objects.objects + tuple(added))
 
 
 def _one_call_results(
@@ -479,6 +712,6 @@ def combine_latest(
         recording.transmitters_m,
         recording.receivers_m,
         chain.locate_options,
-        chain.usable_receivers,
+        chain.working_receivers,
     )
     return kept, objects
