@@ -841,6 +841,17 @@ def test_subprocess_long_error_message_stays_on_one_line(tmp_path: Path) -> None
     assert_bad_input(result, name)
 
 
+def test_a_hostile_value_quoted_in_an_error_does_not_bury_the_file(tmp_path: Path, good_h5: Path) -> None:
+    """A 5000-character value in a calibration file: the refusal stays one short line that
+    still names the file and the key (the fuzz campaign found messages of 5000+ characters)."""
+    calibration = tmp_path / "cal.json"
+    calibration.write_text(json.dumps({"format": "echoloc-calibration", "version": "x" * 5000}))
+    result = run_process("locate", good_h5, "--calibration", calibration, cwd=tmp_path)
+    assert_bad_input(result, "cal.json")
+    assert "version" in result.err_lines[-1]
+    assert len(result.err_lines[-1]) < 450
+
+
 def test_export_writes_what_locate_finds_as_mcap_and_ply(
     capsys: pytest.CaptureFixture[str], good_h5: Path, in_tmp: Path
 ) -> None:

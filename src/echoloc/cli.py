@@ -2444,7 +2444,20 @@ def _show_warning(
 
 def _warn(message: str) -> None:
     """One warning line on stderr, as every command writes them."""
-    stderr.print(f"echoloc: warning: {message}", markup=False, highlight=False)
+    stderr.print(f"echoloc: warning: {_one_line(message)}", markup=False, highlight=False)
+
+
+MAX_MESSAGE_CHARS = 400
+
+
+def _one_line(message: str) -> str:
+    """``message`` on one line of at most :data:`MAX_MESSAGE_CHARS`: a hostile value quoted in
+    it (a 5000-character string) must not bury the file and key named at its start."""
+    text = " ".join(message.split())
+    if len(text) <= MAX_MESSAGE_CHARS:
+        return text
+    keep = MAX_MESSAGE_CHARS // 2 - 10
+    return f"{text[:keep]} [... {len(text) - 2 * keep} characters ...] {text[-keep:]}"
 
 
 _BARE_GROUP: Any = getattr(click.exceptions, "NoArgsIsHelpError", ())
@@ -2465,7 +2478,7 @@ def main(argv: list[str] | None = None) -> None:
         with _interrupt_cleanly():
             cli.main(args=argv, prog_name="echoloc", standalone_mode=False)
     except EchoLocError as error:
-        stderr.print(f"echoloc: error: {error}", markup=False, highlight=False)
+        stderr.print(f"echoloc: error: {_one_line(str(error))}", markup=False, highlight=False)
         sys.exit(2)
     except click.exceptions.Abort:
         stderr.print("echoloc: aborted", markup=False)
