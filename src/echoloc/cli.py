@@ -1757,8 +1757,8 @@ def design_command(
 
 
 def _listen_options(func: Callable[..., None]) -> Callable[..., None]:
-    """--listen, --udp, --geometry and --queue, shared by stream and record."""
-    from echoloc.transport import DEFAULT_HOST, DEFAULT_PORT
+    """--listen, --udp, --geometry, --queue and the rest, shared by stream and record."""
+    from echoloc.transport import DEFAULT_HOST, DEFAULT_IDLE_TIMEOUT_S, DEFAULT_PORT
 
     decorators = [
         click.option(
@@ -1802,6 +1802,14 @@ def _listen_options(func: Callable[..., None]) -> Callable[..., None]:
         ),
         click.option(
             "--duration", "duration_s", type=float, default=None, help="Stop after this many seconds."
+        ),
+        click.option(
+            "--idle-timeout",
+            "idle_timeout_s",
+            type=float,
+            default=DEFAULT_IDLE_TIMEOUT_S,
+            show_default=True,
+            help="Close a TCP connection that sends nothing for this many seconds.",
         ),
     ]
     for decorator in reversed(decorators):
@@ -1915,14 +1923,47 @@ def _events(listener: Any, once: bool, max_frames: int | None, duration_s: float
 
 
 def _open_listener(
-    listen_text: str, udp: bool, geometry_path: Path | None, queue_frames: int, block: bool
+    listen_text: str,
+    udp: bool,
+    geometry_path: Path | None,
+    queue_frames: int,
+    block: bool,
+    idle_timeout_s: float,
+    accept_session: Callable[[Recording], object] | None = None,
 ) -> Any:
+    """The listener of `stream` and `record`; ``accept_session`` refuses (by raising) a session
+    they cannot use, before it reaches them (the sender is told, the stream goes on)."""
     from echoloc.stream import FrameQueue
     from echoloc.transport import Listener, parse_endpoint
 
     endpoint = parse_endpoint(listen_text, "udp" if udp else "tcp")
+    _finite("--idle-timeout", idle_timeout_s, positive=True)
     geometry = None if geometry_path is None else read_recording(geometry_path)
-    return Listener(endpoint, FrameQueue(queue_frames, block=block), geometry=geometry)
+    return Listener(
+        endpoint,
+        FrameQueue(queue_frames, block=block),
+        geometry=geometry,
+        idle_timeout_s=idle_timeout_s,
+        accept_session=accept_session,
+    )
+
+
+def _flush_listener_errors(listener: Any) -> None:
+    """The warnings a stopped listener still holds (counts of those rate-limited), to stderr."""
+    for message in listener.errors():
+        _warn(message)
+
+
+def _no_session_error(output: str, listener: Any) -> EchoLocError:
+    """Why nothing was streamed or recorded: no session arrived, or every one was refused (only
+    sessions count: a connection closed idle or refused as one too many is not a session)."""
+    refused = listener.sessions_refused
+    if refused:
+        return EchoLocError(
+            f"{output}no session accepted on {listener.address}: {refused} "
+            f"session{'' if refused == 1 else 's'} refused, the last: {listener.last_session_refusal}"
+        )
+    return EchoLocError(f"{output}no session arrived on {listener.address}")
 
 
 @cli.command(name="send")
@@ -1991,6 +2032,7 @@ def send_command(
 @click.option(
     "--record", "record_path", type=click.Path(path_type=Path), default=None, help="Also record to HDF5."
 )
+@click.option("--force", is_flag=True, help="Let --record replace an existing file.")
 @click.option("--view", is_flag=True, help="Serve the live view (Foxglove WebSocket) on 127.0.0.1.")
 @click.option(
     "--view-port", type=click.IntRange(0, 65535), default=8765, show_default=True, help="Live view's port."
@@ -2035,8 +2077,10 @@ def stream_command(
     once: bool,
     max_frames: int | None,
     duration_s: float | None,
+    idle_timeout_s: float,
     as_json: bool,
     record_path: Path | None,
+    force: bool,
     view: bool,
     view_port: int,
     deadline_ms: float,
@@ -2083,9 +2127,13 @@ def stream_command(
         return chain
 
     if record_path is not None:
-        Recorder.check_path(record_path)
+        Recorder.check_path(record_path, force=force)
     _finite("--duration", duration_s, positive=True)
-    listener = _open_listener(listen_text, udp, geometry_path, queue_frames, block)
+    # A session is prepared as it arrives, in the listener: one the chain cannot use is refused
+    # to its sender, and the stream goes on serving.
+    listener = _open_listener(
+        listen_text, udp, geometry_path, queue_frames, block, idle_timeout_s, accept_session=make_chain
+    )
     warm_kernels(estimator, workers)
     session = _LiveStream(listener, make_chain, deadline_ms / 1e3, as_json, record_path)
     interrupted = False
@@ -2114,9 +2162,12 @@ def stream_command(
                 interrupted = True
     finally:
         listener.stop()
+        _flush_listener_errors(listener)
         session.close(interrupted)
     if session.record_error is not None:
         raise session.record_error
+    if session.processor is None and listener.sessions_refused:
+        raise _no_session_error("", listener)
 
 
 _IDENTITY_POSE = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
@@ -2170,7 +2221,8 @@ class _LiveStream:
 
         if isinstance(item, SessionEvent):
             header = item.header
-            chain = self.make_chain(header)
+            # Prepared by the listener as the session arrived (accept_session); --geometry's is not.
+            chain = item.prepared if isinstance(item.prepared, Chain) else self.make_chain(header)
             if self.processor is None:
                 self.processor = StreamProcessor(chain, deadline_s=self.deadline_s)
             else:
@@ -2250,7 +2302,9 @@ class _LiveStream:
             except BaseException as error:
                 self.record_error = error
         if self.processor is None:
-            line = ", ".join(f"{k} {v}" for k, v in self.listener.counters().items()) + "; no session arrived"
+            counters = self.listener.counters()
+            none = "no session accepted" if self.listener.sessions_refused else "no session arrived"
+            line = ", ".join(f"{k} {v}" for k, v in counters.items()) + f"; {none}"
         else:
             # The listener has stopped: what it received and the queue did not drop is either
             # processed or was left (queued, or in a batch an interrupt cut short).
@@ -2299,6 +2353,7 @@ def _stream_table(objects: FrameObjects, stats: Any) -> Table:
 @click.option(
     "--batch-seconds", "batch_s", type=float, default=0.5, show_default=True, help="...or after this long."
 )
+@click.option("--force", is_flag=True, help="Replace OUT.h5 if it exists.")
 @click.option("-v", "--verbose", is_flag=True, help="One line on stderr per batch written.")
 def record_command(
     output: Path,
@@ -2310,15 +2365,19 @@ def record_command(
     once: bool,
     max_frames: int | None,
     duration_s: float | None,
+    idle_timeout_s: float,
     batch_frames: int,
     batch_s: float,
+    force: bool,
     verbose: bool,
 ) -> None:
     """Record frames arriving over the network to OUT.h5, in batches flushed as they are written.
 
     A recorder killed at any moment (even SIGKILL, or a power cut) leaves OUT.h5
-    readable, with every frame but at most those of the last batch.
+    readable, with every frame but at most those of the last batch. An existing OUT.h5
+    is replaced only with --force.
     """
+    from echoloc.stream import rare_counts
     from echoloc.transport import Recorder, SessionEvent
 
     def progress(frames: int) -> None:
@@ -2327,10 +2386,10 @@ def record_command(
                 f"echoloc: record: {frames} frames written to {output}", markup=False, highlight=False
             )
 
-    Recorder.check_path(output)
+    Recorder.check_path(output, force=force)
     _finite("--duration", duration_s, positive=True)
     _finite("--batch-seconds", batch_s, positive=True)
-    listener = _open_listener(listen_text, udp, geometry_path, queue_frames, block)
+    listener = _open_listener(listen_text, udp, geometry_path, queue_frames, block, idle_timeout_s)
     recorder: Recorder | None = None
     interrupted = False
     try:
@@ -2357,11 +2416,13 @@ def record_command(
                 interrupted = True
     finally:
         listener.stop()
+        _flush_listener_errors(listener)
         counters = listener.counters()
         if recorder is not None:
             recorder.close()
     if recorder is None:
-        raise EchoLocError(f"{output}: no session arrived on {listener.address}, nothing recorded")
+        error = _no_session_error(f"{output}: ", listener)
+        raise EchoLocError(f"{error}; nothing recorded")
     dropped = counters["dropped"] + recorder.dropped
     # Received and neither recorded nor dropped: still queued when recording stopped, or of a
     # second session.
@@ -2372,7 +2433,8 @@ def record_command(
         f"echoloc: record: {recorder.frames} frames in {recorder.batches} "
         f"batch{'' if recorder.batches == 1 else 'es'} to {output}; "
         f"received {counters['received']}, lost {counters['lost']}, dropped {dropped}{left}, "
-        f"malformed {counters['malformed']}, rejected {counters['rejected']}{end}",
+        f"malformed {counters['malformed']}, rejected {counters['rejected']}"
+        f"{rare_counts(refused=counters['refused'], restarts=counters['restarts'])}{end}",
         markup=False,
         highlight=False,
     )

@@ -7,7 +7,9 @@ Every message is a fixed 52-byte little-endian header followed by a payload:
   contract's own names, so the receiver can prepare its chain;
 - a **frame** message (kind 2) carries one frame, n_channels x n_samples samples,
   channel after channel, with its sequence number, start time and transmitter;
-- an **end** message (kind 3) says the sender is done (no payload).
+- an **end** message (kind 3) says the sender is done (no payload);
+- a **refusal** message (kind 4) goes the other way, from a TCP receiver to its
+  sender, saying in one line why it refused the session or the connection.
 
 The header ends with a CRC-32 of the bytes before it, so a receiver that lost its
 place in a TCP byte stream finds the next message by its magic and CRC, and a
@@ -41,9 +43,13 @@ assert HEADER_BYTES == 52
 KIND_SESSION = 1
 KIND_FRAME = 2
 KIND_END = 3
-KINDS = {KIND_SESSION: "session", KIND_FRAME: "frame", KIND_END: "end"}
+KIND_REFUSAL = 4
+KINDS = {KIND_SESSION: "session", KIND_FRAME: "frame", KIND_END: "end", KIND_REFUSAL: "refusal"}
 
 FLAG_PAYLOAD_CRC = 0x0001
+#: A session whose ``sequence`` is the number of the next frame the sender will send (so a
+#: receiver sees a sender that started again); without it a session's ``sequence`` means nothing.
+FLAG_NEXT_SEQUENCE = 0x0002
 
 #: Sample formats: code -> (name, NumPy dtype of one sample on the wire).
 SAMPLE_FORMATS: dict[int, tuple[str, np.dtype[Any]]] = {
@@ -60,6 +66,17 @@ SIGNAL_KINDS = {code: name for name, code in SIGNAL_KIND_CODES.items()}
 MAX_UDP_BYTES = 65_507
 #: Largest payload accepted on TCP (a bound on what a bad peer can make us allocate).
 MAX_PAYLOAD_BYTES = 64 * 1024 * 1024
+#: Largest session payload a receiver decodes (its JSON; room for a background of a few channels
+#: of thousands of samples). Decoding JSON can cost many times its size in memory (every ``[]``
+#: becomes a list object), so the bound is kept well below what a frame may be.
+MAX_SESSION_BYTES = 2 * 1024 * 1024
+#: Largest frame a session may announce, in memory (float64, complex128 for iq): channels x
+#: samples x 8 (16) bytes. 2 MiB: 4 channels x 65 536 samples, 32 x 8192. Preparing a chain
+#: takes memory and time that grow with the frame (its templates, spectra and tables), and a
+#: session is prepared before any frame comes: the bound keeps what one session can cost small.
+MAX_FRAME_BYTES = 2 * 1024 * 1024
+#: Longest refusal message (its one line of UTF-8).
+MAX_REFUSAL_BYTES = 1024
 
 
 class ProtocolError(EchoLocError):
@@ -73,7 +90,7 @@ class MessageHeader:
     Attributes
     ----------
     kind
-        1 session, 2 frame, 3 end.
+        1 session, 2 frame, 3 end, 4 refusal.
     header_bytes, payload_bytes
         Length of the header (52 in version 1; later versions may add fields before
         the CRC) and of the payload that follows it.
@@ -87,6 +104,8 @@ class MessageHeader:
         Index into the session's transmitters fired in this frame.
     payload_crc32
         CRC-32 of the payload, or None when the sender did not compute one.
+    announces_sequence
+        A session whose ``sequence`` is the next frame's (:data:`FLAG_NEXT_SEQUENCE`).
     """
 
     kind: int
@@ -101,6 +120,7 @@ class MessageHeader:
     signal_kind: str
     transmitter: int = 0
     payload_crc32: int | None = None
+    announces_sequence: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -117,6 +137,8 @@ class WireFrame:
 
 def _pack(header: MessageHeader) -> bytes:
     flags = 0 if header.payload_crc32 is None else FLAG_PAYLOAD_CRC
+    if header.announces_sequence:
+        flags |= FLAG_NEXT_SEQUENCE
     body = HEADER.pack(
         MAGIC,
         VERSION,
@@ -137,8 +159,13 @@ def _pack(header: MessageHeader) -> bytes:
     return body + HEADER_CRC.pack(zlib.crc32(body))
 
 
-def decode_header(data: bytes | bytearray | memoryview) -> MessageHeader:
+def decode_header(
+    data: bytes | bytearray | memoryview, *, max_payload_bytes: int = MAX_PAYLOAD_BYTES
+) -> MessageHeader:
     """Decode and check the header at the start of ``data`` (at least 52 bytes).
+
+    ``max_payload_bytes``: the longest payload taken (a receiver's bound on what one
+    message may make it hold).
 
     Raises
     ------
@@ -180,15 +207,16 @@ def decode_header(data: bytes | bytearray | memoryview) -> MessageHeader:
         payload_crc,
     ) = fields
     if kind not in KINDS:
-        raise ProtocolError(f"unknown message kind {kind} (1 session, 2 frame, 3 end)")
+        raise ProtocolError(f"unknown message kind {kind} (1 session, 2 frame, 3 end, 4 refusal)")
     if sample_format not in SAMPLE_FORMATS and kind == KIND_FRAME:
         raise ProtocolError(
             f"unknown sample format {sample_format} (1 int16, 2 float32, 3 float64, 4 complex64)"
         )
     if signal_code not in SIGNAL_KINDS:
         raise ProtocolError(f"unknown signal kind {signal_code} (0 rf, 1 envelope, 2 iq)")
-    if payload_bytes > MAX_PAYLOAD_BYTES:
-        raise ProtocolError(f"payload of {payload_bytes} bytes is over the limit of {MAX_PAYLOAD_BYTES}")
+    limit = MAX_REFUSAL_BYTES if kind == KIND_REFUSAL else min(max_payload_bytes, MAX_PAYLOAD_BYTES)
+    if payload_bytes > limit:
+        raise ProtocolError(f"{KINDS[kind]} payload of {payload_bytes} bytes is over the limit of {limit}")
     if kind == KIND_FRAME:
         if not (math.isfinite(sample_rate_hz) and sample_rate_hz > 0):
             raise ProtocolError(f"frame {sequence}: sample_rate_hz is {sample_rate_hz}, expected > 0")
@@ -211,6 +239,7 @@ def decode_header(data: bytes | bytearray | memoryview) -> MessageHeader:
         signal_kind=SIGNAL_KINDS[signal_code],
         transmitter=transmitter,
         payload_crc32=payload_crc if flags & FLAG_PAYLOAD_CRC else None,
+        announces_sequence=kind == KIND_SESSION and bool(flags & FLAG_NEXT_SEQUENCE),
     )
 
 
@@ -387,11 +416,15 @@ def session_record(header: Recording) -> dict[str, Any]:
     return record
 
 
-def encode_session(header: Recording, *, sample_format: str = "float32") -> bytes:
+def encode_session(
+    header: Recording, *, sample_format: str = "float32", next_sequence: int | None = None
+) -> bytes:
     """A session message for ``header`` (a recording or header; only per-recording fields travel).
 
     The header's n_channels, n_samples, sample rate, signal kind and sample format
-    announce the frames that follow.
+    announce the frames that follow. ``next_sequence``: the sequence number of the
+    next frame to be sent, announced with :data:`FLAG_NEXT_SEQUENCE` (a UDP receiver
+    tells a sender that started again from one that repeats its session by it).
     """
     record = session_record(header)
     payload = json.dumps(record, separators=(",", ":"), allow_nan=False).encode()
@@ -400,7 +433,7 @@ def encode_session(header: Recording, *, sample_format: str = "float32") -> byte
         kind=KIND_SESSION,
         header_bytes=HEADER_BYTES,
         payload_bytes=len(payload),
-        sequence=0,
+        sequence=0 if next_sequence is None else next_sequence,
         frame_time_s=math.nan,
         sample_rate_hz=float(header.sample_rate_hz),
         n_channels=n_rx,
@@ -408,33 +441,100 @@ def encode_session(header: Recording, *, sample_format: str = "float32") -> byte
         sample_format=SAMPLE_FORMAT_CODES[sample_format],
         signal_kind=header.signal_kind,
         payload_crc32=zlib.crc32(payload),
+        announces_sequence=next_sequence is not None,
     )
     return _pack(msg) + payload
+
+
+def frame_bytes(n_channels: int, n_samples: int, signal_kind: str) -> int:
+    """Bytes of one frame in memory as a receiver holds it: float64 samples, complex128 for iq."""
+    return n_channels * n_samples * (16 if signal_kind == "iq" else 8)
 
 
 def _from_json(value: Any) -> NDArray[Any]:
     if isinstance(value, dict):
         if set(value) != {"real", "imag"}:
-            raise ProtocolError(f"session: an array object must have real and imag, got {sorted(value)}")
+            raise ProtocolError(f"an array object must have real and imag, got {sorted(value)[:4]}")
         return np.asarray(value["real"], dtype=np.float64) + 1j * np.asarray(value["imag"], dtype=np.float64)
     arr = np.asarray(value)
     if arr.dtype.kind not in "iuf":
-        raise ProtocolError(f"session: expected an array of numbers, got {str(value)[:40]}")
+        raise ProtocolError(f"expected an array of numbers, got {str(value)[:40]}")
     return arr.astype(np.int64) if arr.dtype.kind in "iu" and arr.ndim == 0 else arr.astype(np.float64)
 
 
-def decode_session(header: MessageHeader, payload: bytes | bytearray | memoryview, source: str) -> Recording:
+def _refuse_constant(name: str) -> Any:
+    raise ProtocolError(f"{name} is not a number JSON allows")
+
+
+def decode_session(
+    header: MessageHeader,
+    payload: bytes | bytearray | memoryview,
+    source: str,
+    *,
+    max_frame_bytes: int = MAX_FRAME_BYTES,
+    max_session_bytes: int = MAX_SESSION_BYTES,
+) -> Recording:
     """The header :class:`Recording` a session message carries, validated (no frames).
 
-    ``source`` (e.g. ``"tcp://127.0.0.1:7447"``) names it in messages.
+    ``source`` (e.g. ``"tcp://127.0.0.1:7447"``) names it in messages. A session is
+    bounded before its payload is read: its frames (``n_channels`` x ``n_samples``,
+    in memory, :func:`frame_bytes`) at most ``max_frame_bytes``, its JSON at most
+    ``max_session_bytes``.
+
+    Raises
+    ------
+    ProtocolError
+        For every session that cannot be used, whatever is wrong with it (one line that
+        names ``source`` and the field): a peer's bytes make nothing else escape.
     """
+    try:
+        return _decode_session(header, payload, source, max_frame_bytes, max_session_bytes)
+    except ProtocolError:
+        raise
+    except EchoLocError as error:  # the recording contract's checks: they name source and field
+        raise ProtocolError(" ".join(str(error).split())) from None
+    except RecursionError:
+        raise ProtocolError(f"{source}: session JSON is nested too deeply") from None
+    except MemoryError:
+        raise ProtocolError(f"{source}: session too large to decode") from None
+    except (ValueError, TypeError, ArithmeticError, LookupError) as error:
+        # numpy on ragged or odd arrays, a 5000-digit integer, ...
+        text = " ".join(str(error).split())[:200]
+        raise ProtocolError(f"{source}: session payload is not a valid session ({text})") from None
+
+
+def _decode_session(
+    header: MessageHeader,
+    payload: bytes | bytearray | memoryview,
+    source: str,
+    max_frame_bytes: int,
+    max_session_bytes: int,
+) -> Recording:
     if header.kind != KIND_SESSION:
         raise ProtocolError(f"expected a session message, got a {KINDS[header.kind]} message")
+    size = frame_bytes(header.n_channels, header.n_samples, header.signal_kind)
+    if size > max_frame_bytes:
+        raise ProtocolError(
+            f"{source}: session announces frames of {header.n_channels} channels x {header.n_samples} "
+            f"samples, {size / 2**20:.1f} MiB each, over the limit of {max_frame_bytes / 2**20:g} MiB"
+        )
+    if header.n_channels == 0 or header.n_samples == 0:
+        raise ProtocolError(
+            f"{source}: session announces frames of {header.n_channels} channels x {header.n_samples} "
+            "samples (at least 1 x 1)"
+        )
+    if header.payload_bytes > max_session_bytes:
+        raise ProtocolError(
+            f"{source}: session payload of {header.payload_bytes} bytes is over the limit of "
+            f"{max_session_bytes}"
+        )
     _check_payload(header, payload)
     try:
-        record = json.loads(bytes(payload).decode("utf-8"))
+        record = json.loads(bytes(payload).decode("utf-8"), parse_constant=_refuse_constant)
     except (UnicodeDecodeError, json.JSONDecodeError) as error:
         raise ProtocolError(f"{source}: session payload is not UTF-8 JSON ({error})") from None
+    except ProtocolError as error:
+        raise ProtocolError(f"{source}: session payload: {error}") from None
     if not isinstance(record, dict):
         raise ProtocolError(
             f"{source}: session payload is a JSON {type(record).__name__}, expected an object"
@@ -453,7 +553,15 @@ def decode_session(header: MessageHeader, payload: bytes | bytearray | memoryvie
     }
     for name, value in record.items():
         if name in array_names:
-            data[name] = _from_json(value)
+            try:
+                data[name] = _from_json(value)
+            except ProtocolError as error:
+                raise ProtocolError(f"{source}: session field {name}: {error}") from None
+            except (ValueError, TypeError, OverflowError) as error:
+                text = " ".join(str(error).split())[:120]
+                raise ProtocolError(
+                    f"{source}: session field {name} is not an array of numbers ({text})"
+                ) from None
         elif isinstance(value, str | int | float):
             attrs[name] = value
         # Anything else is a field of a later contract: ignored, as FORMATS.md asks.
@@ -486,22 +594,56 @@ def encode_end(sequence: int = 0) -> bytes:
     )
 
 
+def encode_refusal(reason: str) -> bytes:
+    """The refusal message a TCP receiver sends its sender before it closes the connection:
+    ``reason``, one line of UTF-8 (cut to :data:`MAX_REFUSAL_BYTES`)."""
+    text = " ".join(reason.split()).encode("utf-8")[:MAX_REFUSAL_BYTES]
+    payload = text.decode("utf-8", "ignore").encode("utf-8")  # not cut inside a character
+    return (
+        _pack(
+            MessageHeader(
+                kind=KIND_REFUSAL,
+                header_bytes=HEADER_BYTES,
+                payload_bytes=len(payload),
+                sequence=0,
+                frame_time_s=math.nan,
+                sample_rate_hz=0.0,
+                n_channels=0,
+                n_samples=0,
+                sample_format=0,
+                signal_kind="rf",
+                payload_crc32=zlib.crc32(payload),
+            )
+        )
+        + payload
+    )
+
+
+def decode_refusal(header: MessageHeader, payload: bytes | bytearray | memoryview) -> str:
+    """The reason a refusal message gives (one line; undecodable bytes replaced)."""
+    if header.kind != KIND_REFUSAL:
+        raise ProtocolError(f"expected a refusal message, got a {KINDS[header.kind]} message")
+    _check_payload(header, payload)
+    return " ".join(bytes(payload).decode("utf-8", "replace").split())
+
+
 # ----------------------------------------------------------------------------- byte streams
 
 
 def split_messages(
-    buffer: bytearray,
+    buffer: bytearray, *, max_payload_bytes: int = MAX_PAYLOAD_BYTES
 ) -> tuple[list[tuple[MessageHeader, bytes]], int, list[ProtocolError]]:
     """Complete messages at the front of a TCP byte ``buffer``; consumes them from it.
 
     Returns the messages (header and payload), the number of bytes skipped to
     resynchronise after garbage, and the errors met (one per bad header). An
-    incomplete message is left in ``buffer`` for the next read.
+    incomplete message is left in ``buffer`` for the next read: at most a header and
+    ``max_payload_bytes`` (a header announcing more is refused as malformed).
     """
     messages: list[tuple[MessageHeader, bytes]] = []
     errors: list[ProtocolError] = []
     with memoryview(buffer) as view:  # released before the consumed bytes are deleted
-        pos, skipped = _split_into(buffer, view, messages, errors)
+        pos, skipped = _split_into(buffer, view, messages, errors, max_payload_bytes)
     del buffer[:pos]
     return messages, skipped, errors
 
@@ -511,6 +653,7 @@ def _split_into(
     view: memoryview,
     messages: list[tuple[MessageHeader, bytes]],
     errors: list[ProtocolError],
+    max_payload_bytes: int,
 ) -> tuple[int, int]:
     """:func:`split_messages`' scan: messages and errors appended, (bytes consumed, bytes
     skipped). Headers and payloads are copied once, out of ``view`` (slicing the bytearray
@@ -532,7 +675,7 @@ def _split_into(
             break
         try:
             header_bytes = max(HEADER_BYTES, _peek_header_bytes(buffer, pos))
-            header = decode_header(bytes(view[pos : pos + header_bytes]))
+            header = decode_header(bytes(view[pos : pos + header_bytes]), max_payload_bytes=max_payload_bytes)
         except ProtocolError as error:
             if "header_bytes" in str(error) and _peek_header_bytes(buffer, pos) > len(buffer) - pos:
                 break  # a longer header of a later version still arriving

@@ -29,7 +29,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -117,6 +117,12 @@ class StreamStats:
         Frames received but not processed when the stream stopped: still queued, or in a
         batch that an interrupt cut short (``echoloc stream`` counts them as it ends, so that
         received = processed + dropped + unprocessed; 0 while it runs).
+    refused
+        Sessions refused (malformed, over the size limits, or a chain that cannot use
+        them), and connections the receiver closed (too many, idle).
+    restarts
+        Times a sender's frame numbering started afresh mid-session (a UDP sender that
+        started again).
     latency_p50_s, latency_p99_s, latency_max_s
         From arrival to result, s (NaN before the first frame).
     """
@@ -130,6 +136,8 @@ class StreamStats:
     malformed: int = 0
     rejected: int = 0
     unprocessed: int = 0
+    refused: int = 0
+    restarts: int = 0
     latency_p50_s: float = math.nan
     latency_p99_s: float = math.nan
     latency_max_s: float = math.nan
@@ -150,6 +158,8 @@ class StreamStats:
             "malformed": self.malformed,
             "rejected": self.rejected,
             "unprocessed": self.unprocessed,
+            "refused": self.refused,
+            "restarts": self.restarts,
             "latency_p50_ms": ms(self.latency_p50_s),
             "latency_p99_ms": ms(self.latency_p99_s),
             "latency_max_ms": ms(self.latency_max_s),
@@ -166,10 +176,17 @@ class StreamStats:
         return (
             f"received {self.received}, processed {self.processed}, lost {self.lost}, "
             f"dropped {self.dropped}{unprocessed}, late {self.late}, out of order {self.out_of_order}, "
-            f"malformed {self.malformed}, rejected {self.rejected}; latency p50 "
+            f"malformed {self.malformed}, rejected {self.rejected}"
+            f"{rare_counts(refused=self.refused, restarts=self.restarts)}; latency p50 "
             f"{fmt(r['latency_p50_ms'])} ms, p99 {fmt(r['latency_p99_ms'])} ms, "
             f"max {fmt(r['latency_max_ms'])} ms"
         )
+
+
+def rare_counts(**counts: int) -> str:
+    """``", refused 2, restarts 1"``: the counters given, each only when it is not 0 (most streams
+    never see them), for the summary lines of `echoloc stream` and `echoloc record`."""
+    return "".join(f", {name} {count}" for name, count in counts.items() if count)
 
 
 class LatencyHistogram:
@@ -189,7 +206,7 @@ class LatencyHistogram:
     def __init__(self) -> None:
         self._log_growth = math.log(self.GROWTH)
         self._n = math.ceil(math.log(self.HIGH_S / self.LOW_S) / self._log_growth) + 1
-        # A list: incrementing a numpy array's element made add 0.85 µs a frame, 0.64 with a list.
+        # A list: incrementing one element of a list costs less than of a NumPy array.
         self._counts = [0] * self._n
         self.count = 0
         self.min_s = math.nan
@@ -225,79 +242,154 @@ class LatencyHistogram:
 
 
 class SequenceTracker:
-    """Frame numbers from 32-bit wrapping sequence numbers, with gaps and disorder counted.
+    """Frame numbers from 32-bit wrapping sequence numbers, with gaps, disorder and restarts counted.
 
     The first sequence number seen becomes frame number ``sequence`` (so a file sent
-    from its frame 0 keeps its frame numbers). A jump forward of less than 2**31 is
-    taken as frames lost; anything else as an old frame arriving late (out of order
-    or duplicated), which is refused: results go out in frame order.
+    from its frame 0 keeps its frame numbers). As RTP receivers do (RFC 3550, A.1):
+
+    - a jump forward of less than ``max_dropout`` counts the frames between as lost;
+    - a frame at most ``max_misorder`` behind the newest is an old frame arriving late
+      (reordered or duplicated): refused, counted out of order (results go out in frame
+      order);
+    - any other jump is believed only when the next frame follows it. Until then the frame
+      is refused and counted out of order, so one forged or corrupted sequence number costs
+      one frame, never 2^31 lost ones. Once it is confirmed:
+
+      - a jump forward (less than 2^31 ahead) is an outage: the numbering goes on, and the
+        frames of the gap, with the one that waited for confirmation, are counted lost (a
+        30 s outage at 100 Hz is 3000 frames lost, never none);
+      - a jump back is a new numbering (a sender that started again): it starts afresh
+        there, counted in ``restarts``.
+
+      A sender that starts again numbers from lower down, or announces its next sequence
+      number in its session (:meth:`follows`, :meth:`restart`).
     """
 
-    def __init__(self) -> None:
+    def __init__(self, *, max_dropout: int = 3000, max_misorder: int = 100) -> None:
+        if not (0 < max_dropout < 1 << 31 and 0 < max_misorder < 1 << 31):
+            raise EchoLocError(
+                f"max_dropout and max_misorder must be in 1..2^31-1, got {max_dropout}, {max_misorder}"
+            )
+        self.max_dropout = max_dropout
+        self.max_misorder = max_misorder
         self.next: int | None = None
         self.lost = 0
         self.out_of_order = 0
+        self.restarts = 0
+        self._probation: int | None = None  # the sequence number that would confirm a new numbering
 
     def observe(self, sequence: int) -> int | None:
-        """The frame number of ``sequence``, or None for a frame arriving out of order."""
+        """The frame number of ``sequence``, or None for a frame refused (late, or off the numbering)."""
         sequence &= 0xFFFFFFFF
         if self.next is None:
             self.next = sequence + 1
+            self._probation = None
             return sequence
         gap = (sequence - self.next) & 0xFFFFFFFF
-        if gap >= 1 << 31:
+        if gap < self.max_dropout:
+            self._probation = None
+            self.lost += gap
+            number = self.next + gap
+            self.next = number + 1
+            return number
+        if gap >= (1 << 32) - self.max_misorder:
             self.out_of_order += 1
             return None
-        self.lost += gap
-        number = self.next + gap
-        self.next = number + 1
-        return number
+        if sequence == self._probation:  # two in a row off the old numbering: confirmed
+            self._probation = None
+            if gap - 1 < 1 << 31:  # forward, from the frame that waited: an outage
+                self.out_of_order -= 1  # that frame was refused: lost with those of the gap
+                self.lost += gap
+                number = self.next + gap
+                self.next = number + 1
+                return number
+            self.restarts += 1  # back: the sender started again
+            self.next = sequence + 1
+            return sequence
+        self._probation = (sequence + 1) & 0xFFFFFFFF
+        self.out_of_order += 1
+        return None
 
-    def restart(self) -> None:
-        """A new session (or a new connection): the next sequence number starts afresh."""
-        self.next = None
+    def restart(self, next_sequence: int | None = None, *, counted: bool = False) -> None:
+        """A new session (or a new connection): numbering starts afresh, at ``next_sequence``
+        when it is known, else at the next sequence number seen. ``counted``: a restart of the
+        same sender (counted in ``restarts``)."""
+        self.next = None if next_sequence is None else next_sequence & 0xFFFFFFFF
+        self._probation = None
+        self.restarts += counted
+
+    def follows(self, next_sequence: int) -> bool:
+        """Does a sender's ``next_sequence`` (announced in its session) fit this numbering: not
+        behind the next frame expected (at most 2^31 ahead: an outage, its frames counted lost
+        as they come)? A sender that started again announces a number already seen."""
+        if self.next is None:
+            return True
+        return (next_sequence - self.next) & 0xFFFFFFFF < 1 << 31
 
 
 STREAM_BATCH_FRAMES = 16
 """Most frames `echoloc stream` takes off its queue at once, when a backlog has built up: in one
-call the matched filter needs a quarter less time a frame, so a backlog clears sooner; a
-frame waits at most for the 15 before it (~8 ms with five objects on this machine)."""
+call the matched filter needs less time a frame, so a backlog clears sooner; a frame waits at
+most for the 15 before it."""
+
+
+DEFAULT_QUEUE_BYTES = 64 * 2**20
+"""What the frames held in a :class:`FrameQueue` may take at most by default, bytes: the
+queue is bounded in bytes as well as in frames, so frames of a large session cannot make
+it grow past this (64 frames of 4 x 2400 float64 samples take 4.9 MB)."""
+
+
+def _nbytes(item: object) -> int:
+    return int(getattr(item.samples, "nbytes", 0)) if isinstance(item, StreamFrame) else 0
 
 
 class FrameQueue:
     """A bounded, thread-safe queue of frames and control items between a socket and the processor.
 
-    ``put`` on a full queue drops the oldest *frame* (never a control item such as a
-    new session) and counts it in ``dropped``; with ``block=True`` it waits for room
-    instead, which on TCP pushes back on the sender. ``get`` waits up to a timeout.
+    Bounded in frames (``max_frames``) and in the bytes of their samples (``max_bytes``).
+    ``put`` on a full queue drops the oldest *frames* (never a control item such as a
+    new session) until the new one fits, and counts them in ``dropped``; with
+    ``block=True`` it waits for room instead, which on TCP pushes back on the sender.
+    A frame larger than ``max_bytes`` alone is still taken into an empty queue. ``get``
+    waits up to a timeout.
     """
 
-    def __init__(self, max_frames: int, *, block: bool = False) -> None:
+    def __init__(self, max_frames: int, *, block: bool = False, max_bytes: int = DEFAULT_QUEUE_BYTES) -> None:
         if max_frames < 1:
             raise EchoLocError(f"the queue must hold at least 1 frame, got {max_frames}")
+        if max_bytes < 1:
+            raise EchoLocError(f"the queue must hold at least 1 byte, got {max_bytes}")
         self.max_frames = max_frames
+        self.max_bytes = max_bytes
         self.block = block
         self.dropped = 0
         self._items: deque[object] = deque()
         self._frames = 0
+        self._bytes = 0
         self._cond = threading.Condition()
         self._closed = False
 
+    def _full(self, size: int) -> bool:
+        return self._frames > 0 and (self._frames >= self.max_frames or self._bytes + size > self.max_bytes)
+
     def put(self, item: object) -> None:
-        """Add ``item``; a :class:`StreamFrame` counts against the bound, anything else does not."""
+        """Add ``item``; a :class:`StreamFrame` counts against the bounds, anything else does not."""
         is_frame = isinstance(item, StreamFrame)
+        size = _nbytes(item)
         with self._cond:
             if is_frame:
-                while self.block and self._frames >= self.max_frames and not self._closed:
+                while self.block and self._full(size) and not self._closed:
                     self._cond.wait(0.1)
-                if self._frames >= self.max_frames:
+                while self._full(size):
                     for k, old in enumerate(self._items):
                         if isinstance(old, StreamFrame):
                             del self._items[k]
+                            self._bytes -= _nbytes(old)
                             break
                     self._frames -= 1
                     self.dropped += 1
                 self._frames += 1
+                self._bytes += size
             self._items.append(item)
             self._cond.notify_all()
 
@@ -311,6 +403,7 @@ class FrameQueue:
             item = self._items.popleft()
             if isinstance(item, StreamFrame):
                 self._frames -= 1
+                self._bytes -= _nbytes(item)
             self._cond.notify_all()
             return item
 
@@ -325,8 +418,10 @@ class FrameQueue:
             return batch
         with self._cond:
             while len(batch) < max_frames and self._items and isinstance(self._items[0], StreamFrame):
-                batch.append(self._items.popleft())
+                frame = self._items.popleft()
+                batch.append(frame)
                 self._frames -= 1
+                self._bytes -= _nbytes(frame)
             self._cond.notify_all()
         return batch
 
@@ -335,6 +430,12 @@ class FrameQueue:
         with self._cond:
             self._closed = True
             self._cond.notify_all()
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the samples of the frames held."""
+        with self._cond:
+            return self._bytes
 
     def __len__(self) -> int:
         with self._cond:
@@ -381,20 +482,27 @@ class StreamProcessor:
 
     def warm_up(self) -> None:
         """Run the chain once on a made-up frame (:meth:`warm_up_frame`), so the first real
-        frame does not pay for compiling the kernels or filling caches. State and counters
-        are left untouched."""
+        frame does not pay for compiling the kernels or filling caches. The processor's state
+        and counters are left untouched, and so is the chain's channel check: the made-up
+        frame runs on a copy of the chain without it (sharing its caches), so it is never
+        taken for one of the stream's frames."""
+        chain = replace(self.chain, channel_watch=None)
+        # The locators the copy builds are the chain's: its receivers are all working, as the
+        # chain's are until its channel check says otherwise (the key says which are).
+        vars(chain)["_by_receivers"] = self.chain._by_receivers
+        frame = self.warm_up_frame()
         if self._combine:
-            combine_latest(self.chain, {}, samples_echoes(self.chain, self.warm_up_frame(), 0, 0.0), 0)
+            combine_latest(chain, {}, samples_echoes(chain, frame, 0, 0.0), 0)
         else:
-            samples_results_batch(self.chain, [self.warm_up_frame()], [0], [0.0], [0])
+            samples_results_batch(chain, [frame], [0], [0.0], [0])
 
     def warm_up_frame(self) -> Samples:
         """A frame that takes every path of the chain: noise, and for rf with a waveform the echoes
         of a reflector on the transmitter's axis mid-window, each followed 1.5 samples later by a
         weaker one: echoes that overlap so closely that the matched filter hands them to CLEAN.
 
-        A frame of noise alone left CLEAN's and the association's kernels to load on the first
-        crowded frame of a stream: a latency spike of ~0.2 s (seconds in a fresh environment).
+        A frame of noise alone leaves CLEAN's and the association's kernels to load on the first
+        crowded frame of a stream: a latency spike where the stream can least afford one.
         """
         recording = self.chain.recording
         rng = np.random.default_rng(0)
@@ -507,8 +615,8 @@ def warm_kernels(estimator: str = "matched", workers: int = 1) -> None:
 
     The compiled kernels do not depend on the geometry: running a chain on the
     default scene's header once loads them, so the first frames of a stream do not
-    wait for them (half a second from the on-disk cache, seconds on the very first
-    run); with ``workers`` above 1 the threaded ones, and their threads start. An
+    wait for them (loading, or on the very first run compiling, them takes far longer
+    than a frame); with ``workers`` above 1 the threaded ones, and their threads start. An
     estimator that the default scene does not suit is left cold.
     """
     options = EchoOptions(workers=workers)
