@@ -57,8 +57,8 @@ def main(argv: list[str]) -> None:
     if job == "demo":
         _run(BIN / "echoloc", "demo", *rest)
     elif job == "test":
-        _run(PYTHON, "-m", "ruff", "check", "src", "tests", "benchmarks", "dev.py")
-        _run(PYTHON, "-m", "ruff", "format", "--check", "src", "tests", "benchmarks", "dev.py")
+        _run(PYTHON, "-m", "ruff", "check", "src", "tests", "benchmarks", "fuzz", "dev.py")
+        _run(PYTHON, "-m", "ruff", "format", "--check", "src", "tests", "benchmarks", "fuzz", "dev.py")
         _run(PYTHON, "-m", "mypy")
         _run(PYTHON, "-m", "pytest", *rest)
     elif job == "bench":
