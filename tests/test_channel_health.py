@@ -53,7 +53,7 @@ def test_a_clipped_sine_has_the_known_fraction_at_the_rail() -> None:
     frames = sine + 0.001 * rng.normal(size=(1, 3, n))
     frames[0, 0] = np.clip(frames[0, 0], -rail, rail)
     expected = (1 - 2 / np.pi * np.arcsin(rail)) / 2 * n
-    top = _rail_count(frames[:, 0], rail, 1.0, gap=1)
+    top = _rail_count(frames[:, 0], rail, gap=1)
     assert abs(top - expected) < 0.01 * n
     health = assess_channels(frames, min_receivers=2)
     assert health.problems[0] == ("clipped",)
@@ -74,7 +74,7 @@ def test_quantised_noise_and_echoes_are_not_a_flat_top(noise_lsb: float) -> None
     echo = envelope * np.sin(2 * np.pi * t / 4 + 0.4)
     frames[:, 1, 1000:1400] += 0.9 * echo
     quantised = np.round(frames / q) * q
-    assert _rail_count(quantised[:, 0], float(quantised[:, 0].max()), 1.0, gap=1) >= 8
+    assert _rail_count(quantised[:, 0], float(quantised[:, 0].max()), gap=1) >= 8
     assert assess_channels(quantised).healthy
     frames[:, 2, 1000:1400] += 4 * echo
     saturated = np.clip(np.round(frames / q) * q, -1.0, 1.0 - q)
