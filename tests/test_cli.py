@@ -21,6 +21,7 @@ import re
 import shutil
 import subprocess
 import sys
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -850,6 +851,27 @@ def test_a_hostile_value_quoted_in_an_error_does_not_bury_the_file(tmp_path: Pat
     assert_bad_input(result, "cal.json")
     assert "version" in result.err_lines[-1]
     assert len(result.err_lines[-1]) < 450
+
+
+def test_a_numpy_warning_names_the_input_it_came_from(
+    capsys: pytest.CaptureFixture[str], good_h5: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """numpy's floating-point warnings know no file ("invalid value encountered in cast",
+    seen by the fuzz campaign): the line names the command's input."""
+    checked = cli.check_locatable
+
+    def check_with_a_cast(chain: Any) -> None:
+        np.array([np.nan]).astype(np.int64)  # numpy warns: invalid value encountered in cast
+        checked(chain)
+
+    monkeypatch.setattr(cli, "check_locatable", check_with_a_cast)
+    with warnings.catch_warnings():
+        warnings.simplefilter("default")
+        result = run(capsys, "locate", good_h5, "--json")
+    assert result.code == 0, result
+    cast = [line for line in result.err_lines if "invalid value encountered in cast" in line]
+    assert cast
+    assert cast[0].startswith(f"echoloc: warning: {good_h5}: ")
 
 
 def test_export_writes_what_locate_finds_as_mcap_and_ply(

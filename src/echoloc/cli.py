@@ -2501,7 +2501,27 @@ def _show_warning(
     file: Any = None,
     line: str | None = None,
 ) -> None:
-    _warn(str(message))
+    text = str(message)
+    if issubclass(category, RuntimeWarning) and not any(name in text for name in _INPUT_FILES):
+        # numpy's floating-point warnings ("invalid value encountered in cast") know no file:
+        # they come from processing the command's input, so name it.
+        text = (
+            f"{', '.join(_INPUT_FILES)}: {text} (numpy, in {Path(filename).name}:{lineno})"
+            if _INPUT_FILES
+            else text
+        )
+    _warn(text)
+
+
+_INPUT_FILES: list[str] = []
+"""The files given on the command line that exist (for warnings that know no file)."""
+
+
+def _is_file(argument: str) -> bool:
+    try:
+        return not argument.startswith("-") and Path(argument).is_file()
+    except (OSError, ValueError):  # a name too long, a NUL byte
+        return False
 
 
 def _warn(message: str) -> None:
@@ -2534,6 +2554,7 @@ cli.add_command(import_group, name="import")
 def main(argv: list[str] | None = None) -> None:
     """Run the CLI; bad input becomes one line on stderr and exit code 2."""
     warnings.showwarning = _show_warning
+    _INPUT_FILES[:] = [arg for arg in (sys.argv[1:] if argv is None else argv) if _is_file(arg)][:2]
     try:
         # SIGTERM ends every command as Ctrl-C does, so a half-written output's temporary
         # file is removed and what was written before stays (not only in `stream`).
