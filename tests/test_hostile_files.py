@@ -4,6 +4,7 @@ value is one EchoLocError (exit 2) naming the file and the key, nothing is left 
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import os
 import signal
@@ -439,8 +440,9 @@ def calibration_text(speed: str) -> str:
         (calibration_text("true"), "speed_of_sound_m_s must be a positive number, got True"),
         ("[" * 3000 + "]" * 3000, "nested too deeply"),
         (calibration_text("343").replace('"version": 1', '"version": true'), "version"),
+        (calibration_text("343").replace("}", ', "path_sigma_m": 1e300}'), "path_sigma_m must be"),
     ],
-    ids=["5000 digits", "10**400", "true", "nested 3000 deep", "version true"],
+    ids=["5000 digits", "10**400", "true", "nested 3000 deep", "version true", "path sigma 1e300"],
 )
 def test_hostile_calibration_is_an_echoloc_error(tmp_path: Path, content: str, named: str) -> None:
     path = tmp_path / "cal.json"
@@ -448,6 +450,18 @@ def test_hostile_calibration_is_an_echoloc_error(tmp_path: Path, content: str, n
     with pytest.raises(EchoLocError, match=named) as info:
         read_calibration(path)
     assert str(info.value).startswith(f"{path}: ")
+
+
+def test_positions_beyond_reach_are_the_recording_s_error(tmp_path: Path) -> None:
+    """Receivers at 1e300 m (a hostile session found them) overflowed the geometry's
+    squares downstream; a recording or session refuses coordinates beyond 10 km."""
+    from echoloc.recording import validate_header
+
+    header = as_header(small_recording())
+    far = np.array(header.receivers_m, dtype=float)
+    far[0, 1] = -1e300
+    with pytest.raises(RecordingError, match=r"receivers.* beyond 10000 m"):
+        validate_header(dataclasses.replace(header, receivers_m=far))
 
 
 def test_echoes_used_true_is_refused(tmp_path: Path) -> None:

@@ -205,6 +205,11 @@ CALIBRATION_KEYS = frozenset(
 """The fields :func:`write_calibration` writes and :func:`read_calibration` knows."""
 
 
+MAX_PATH_SIGMA_M = 1.0
+"""The largest path uncertainty a calibration may give, m: beyond a metre it locates
+nothing, and 1e300 m overflowed the locator's gates."""
+
+
 class CalibrationWarning(UserWarning):
     """A calibration file was read, with something in it skipped."""
 
@@ -281,8 +286,10 @@ def read_calibration(path: str | os.PathLike[str], n_receivers: int | None = Non
     if not (_finite_number(residual) and residual >= 0):
         raise EchoLocError(f"{source}: residual_rms_s must be a finite number >= 0, got {residual!r}")
     path_sigma = record.get("path_sigma_m")
-    if path_sigma is not None and not (_finite_number(path_sigma) and path_sigma > 0):
-        raise EchoLocError(f"{source}: path_sigma_m must be a finite number > 0, got {path_sigma!r}")
+    if path_sigma is not None and not (_finite_number(path_sigma) and 0 < path_sigma <= MAX_PATH_SIGMA_M):
+        raise EchoLocError(
+            f"{source}: path_sigma_m must be a number > 0 and <= {MAX_PATH_SIGMA_M:g} m, got {path_sigma!r}"
+        )
     speed_fitted = record.get("speed_of_sound_fitted", True)
     if not isinstance(speed_fitted, bool):
         raise EchoLocError(f"{source}: speed_of_sound_fitted must be true or false, got {speed_fitted!r}")

@@ -266,8 +266,14 @@ def _check_finite(source: str, name: str, arr: _AnyArray) -> None:
         )
 
 
+MAX_EXTENT_M = 10_000.0
+"""The largest coordinate or length a recording or scene may give, m: airborne ultrasound
+fades within tens of metres, and coordinates of 1e300 m overflow the geometry's squares."""
+
+
 def _check_geometry(source: str, name: str, value: object, n: int | None) -> _AnyArray:
-    """Positions or axes: finite float array of shape (n, 3) (n >= 1 when not given)."""
+    """Positions or axes: finite float array of shape (n, 3) (n >= 1 when not given), each
+    coordinate within :data:`MAX_EXTENT_M`."""
     arr = _check_array(source, name, value)
     _check_real_float(source, name, arr)
     if n is None:
@@ -276,6 +282,8 @@ def _check_geometry(source: str, name: str, value: object, n: int | None) -> _An
     else:
         _check_shape(source, name, arr, (n, 3))
     _check_finite(source, name, arr)
+    if arr.size and float(np.max(np.abs(arr))) > MAX_EXTENT_M:
+        raise _error(source, f"{name} has a coordinate beyond {MAX_EXTENT_M:g} m (metres expected)")
     return arr
 
 

@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 
 from echoloc.errors import EchoLocError, SceneError, read_text_input
 from echoloc.receiver import AdcSpec, GainSpec
+from echoloc.recording import MAX_EXTENT_M
 from echoloc.reflectors import Edge, Plane, PointReflector, Reflector, Sphere, corner
 from echoloc.scene import (
     REPORT_ARRAY,
@@ -108,9 +109,6 @@ _MISSING = object()
 MAX_SCENE_FILE_BYTES = 4 << 20
 """The largest scene file read, bytes (a scene of 20 000 reflectors takes about 2 MB)."""
 
-MAX_EXTENT_M = 10_000.0
-"""The largest length or coordinate a scene may give, m: airborne ultrasound fades within
-tens of metres, and a sphere of radius 1e30 m made the simulator allocate without end."""
 
 MAX_RANDOM_REFLECTORS = 10_000
 """The most random reflectors a frame may draw."""
