@@ -10,6 +10,7 @@ of linear acoustics (exchanging source and receiver leaves the transfer unchange
 from __future__ import annotations
 
 import dataclasses
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -394,3 +395,24 @@ def test_zero_frames_raises() -> None:
     """At least one frame."""
     with pytest.raises(SceneError, match="number of frames"):
         simulate(default_scene(), n_frames=0)
+
+
+def test_the_absorption_table_of_a_long_frame_stays_small_and_exact_at_its_rows() -> None:
+    """A frame of seconds made a table row per half metre of path, each the whole
+    oversampled pulse: gigabytes (the fuzz campaign's 1 M-sample scene). Past 64 rows the
+    rows widen; at every row the pulse is still attenuated by exactly alpha * path (ISO
+    9613-1), and a short frame keeps its half-metre rows."""
+    from echoloc.air import absorption_db_per_m
+    from echoloc.synthesis import MAX_ABSORPTION_BINS, pulse_table
+
+    t = np.arange(200) / 200e3
+    pulse = np.sin(2 * np.pi * 50e3 * t) * np.hanning(200)
+    alpha = functools.partial(absorption_db_per_m, temperature_c=20.0, relative_humidity=0.5)
+    short = pulse_table(pulse, 200e3, absorption_db_per_m=alpha, max_path_m=10.0)
+    assert short.bin_m == 0.5
+    long = pulse_table(pulse, 200e3, absorption_db_per_m=alpha, max_path_m=1700.0)
+    assert long.fine.shape[0] <= MAX_ABSORPTION_BINS + 2
+    assert long.bin_m == pytest.approx(1700.0 / MAX_ABSORPTION_BINS)
+    # Row 1 against row 0: the carrier's absorption over one (wider) bin, in dB.
+    ratio_db = 20 * np.log10(np.max(np.abs(long.fine[1])) / np.max(np.abs(long.fine[0])))
+    assert ratio_db == pytest.approx(-float(alpha(np.array([50e3]))[0]) * long.bin_m, rel=0.05)

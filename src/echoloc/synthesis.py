@@ -57,6 +57,12 @@ class PulseTable:
         return self.pulse_samples + 2 * self.guard
 
 
+MAX_ABSORPTION_BINS = 64
+"""The most path-length rows of an absorption table. Each row holds the whole oversampled
+pulse, so a frame of seconds at half-metre rows took gigabytes; past 32 m of path (frames
+over 93 ms) the rows are spread wider instead, blending absorptions a few dB apart."""
+
+
 def pulse_table(
     pulse: NDArray[np.float64],
     sample_rate_hz: float,
@@ -76,7 +82,8 @@ def pulse_table(
     ``guard`` samples of the interpolant's tails are kept on either side of the pulse
     (its ringing beyond them is below 1e-4 of the peak for smooth pulses). With
     ``absorption_db_per_m`` (a function of frequency in Hz, e.g. ISO 9613-1) one row is
-    made per ``bin_m`` of path length up to ``max_path_m``.
+    made per ``bin_m`` of path length up to ``max_path_m`` (wider bins where that would make
+    more than :data:`MAX_ABSORPTION_BINS` rows).
     """
     if oversample is None:
         oversample = int(np.clip(np.ceil(25.6e6 / sample_rate_hz), 2, 128))
@@ -90,6 +97,9 @@ def pulse_table(
         # The Nyquist bin is shared by +fs/2 and -fs/2: halve it so the interpolant stays real and symmetric.
         spectrum[-1] *= 0.5
     freqs_hz = scipy.fft.rfftfreq(n_fft, 1.0 / sample_rate_hz)
+    # A long frame coarsens the bins rather than multiplying them (each row is the whole
+    # fine interpolant): at most MAX_ABSORPTION_BINS, blended linearly as before.
+    bin_m = max(bin_m, max(max_path_m, 0.0) / MAX_ABSORPTION_BINS)
     n_bins = 1 if absorption_db_per_m is None else int(np.ceil(max(max_path_m, 0.0) / bin_m)) + 2
     path_bins_m = np.arange(n_bins, dtype=float) * bin_m
     rows = spectrum[None, :] * np.ones((len(path_bins_m), 1))
