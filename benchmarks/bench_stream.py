@@ -107,10 +107,13 @@ def soak(minutes: float, speed: float, reflectors: int, n_frames: int, window_s:
     finally:
         sender.terminate()
         sender.wait(10)
+        queued = len(listener.queue)  # frames that arrived but were still waiting at the stop
         listener.stop()
         shutil.rmtree(tmp, ignore_errors=True)
     assert processor is not None
     stats = processor.stats(**listener.counters())
+    waiting = queued  # a session cannot be queued mid-stream: only frames wait
+    unaccounted = stats.received - stats.processed - stats.dropped - waiting
     steady = rss[1:] or rss
     steady_p99 = p99[1:] or p99
     elapsed = time.monotonic() - start
@@ -123,6 +126,9 @@ def soak(minutes: float, speed: float, reflectors: int, n_frames: int, window_s:
         f"(drift {max(steady) - min(steady):.1f} MiB). Latency p99 per window: "
         f"{min(steady_p99):.1f} .. {max(steady_p99):.1f} ms.",
         f"Totals: {stats.summary()}; {stats.processed / elapsed:.0f} frames/s processed on average.",
+        f"Every frame accounted for: received {stats.received} = processed {stats.processed} + dropped "
+        f"{stats.dropped} + still queued at the stop {waiting}"
+        + (" (exactly)." if unaccounted == 0 else f"; {unaccounted} unaccounted."),
     ]
     return rows + summary
 
