@@ -731,3 +731,18 @@ def test_deeply_nested_sensor_head_is_an_echoloc_error(tmp_path: Path) -> None:
     path.write_text("x = " + "[" * 3000 + "]" * 3000)
     with pytest.raises(EchoLocError, match="nested too deeply"):
         read_head(path)
+
+
+def test_an_npy_header_that_numpy_cannot_tokenize_is_the_file_s_error(tmp_path: Path) -> None:
+    """A copied block left a member's header dict unclosed: numpy's parser raised
+    tokenize.TokenError ('EOF in multi-line statement'), an internal error (fuzz run)."""
+    good = write_recording(small_recording(), tmp_path / "good.npz")
+    text = b"{'descr': '<f8', 'fortran_order': False, 'shape': (3, "
+    header = text + b" " * (64 - 10 - len(text) - 1) + b"\n"
+    broken_member = b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header + bytes(24)
+    bad = tmp_path / "bad.npz"
+    with zipfile.ZipFile(good) as source, zipfile.ZipFile(bad, "w") as target:
+        for name in source.namelist():
+            target.writestr(name, broken_member if name == "frames.npy" else source.read(name))
+    with pytest.raises(RecordingError, match=r"bad\.npz.*frames\.npy has no readable \.npy header"):
+        read_recording(bad)

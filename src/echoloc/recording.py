@@ -30,6 +30,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import tokenize
 import warnings
 import zipfile
 from collections.abc import Callable, Iterable, Iterator
@@ -1148,15 +1149,21 @@ def _load_hdf5(source: str, path: Path) -> tuple[dict[str, object], dict[str, _A
 def _npy_header(source: str, archive: zipfile.ZipFile, member: str) -> tuple[_Declared, int]:
     """A member's declared shape and dtype, from its ``.npy`` header alone, and the header's length."""
     info = archive.getinfo(member)
-    with archive.open(info) as fh:
-        version = np.lib.format.read_magic(fh)
-        if version == (1, 0):
-            shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
-        elif version == (2, 0):
-            shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
-        else:
-            raise _error(source, f"{member} is a .npy of version {version}, expected 1.0 or 2.0")
-        header_bytes = fh.tell()
+    try:
+        with archive.open(info) as fh:
+            version = np.lib.format.read_magic(fh)
+            if version == (1, 0):
+                shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
+            elif version == (2, 0):
+                shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
+            else:
+                raise _error(source, f"{member} is a .npy of version {version}, expected 1.0 or 2.0")
+            header_bytes = fh.tell()
+    except (ValueError, TypeError, SyntaxError, EOFError, tokenize.TokenError, zipfile.BadZipFile) as error:
+        # numpy parses the header's dict with tokenize and ast: a corrupt one raises any of these.
+        raise _error(
+            source, f"{member} has no readable .npy header ({type(error).__name__}: {error})"
+        ) from None
     plain = dtype.kind in "biufcUS" and dtype.fields is None and dtype.subdtype is None
     declared = _Declared(
         shape=tuple(int(n) for n in shape),
