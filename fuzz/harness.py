@@ -77,6 +77,18 @@ class Outcome:
         return found
 
 
+def rss_bytes(pid: int) -> int:
+    """The resident memory of process ``pid`` now (Linux /proc), bytes; 0 once it is gone."""
+    try:
+        with open(f"/proc/{pid}/status") as status:
+            for line in status:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
+
+
 class Worker:
     """A child process (``fuzz/worker.py``) running echoloc commands; replaced when a case
     hangs past ``hang_s`` or its resident memory passes ``memory_limit_bytes``."""
@@ -108,14 +120,7 @@ class Worker:
 
     def _rss_bytes(self) -> int:
         assert self._process is not None
-        try:
-            with open(f"/proc/{self._process.pid}/status") as status:
-                for line in status:
-                    if line.startswith("VmRSS:"):
-                        return int(line.split()[1]) * 1024
-        except OSError:
-            pass
-        return 0
+        return rss_bytes(self._process.pid)
 
     def _wait_line(self, timeout_s: float) -> str | None:
         """The worker's next answer, or None when it took longer than ``timeout_s`` or died."""

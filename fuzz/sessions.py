@@ -206,16 +206,6 @@ class StreamUnderTest:
         with self._lock:
             return all(round(t, 6) in self.times for t in times)
 
-    def rss_bytes(self) -> int:
-        try:
-            with open(f"/proc/{self.process.pid}/status") as status:
-                for line in status:
-                    if line.startswith("VmRSS:"):
-                        return int(line.split()[1]) * 1024
-        except OSError:
-            pass
-        return 0
-
     def stderr_lines(self) -> int:
         return len(self.stderr_path.read_text(errors="replace").splitlines())
 
@@ -335,7 +325,7 @@ def run_sessions(
                         break
                     time.sleep(0.005)
             alive = stream.process.poll() is None
-            rss = stream.rss_bytes()
+            rss = harness.rss_bytes(stream.process.pid)
             outcome = harness.Outcome(
                 exit=0 if served else (None if alive else stream.process.returncode),
                 stderr="" if served else problem,

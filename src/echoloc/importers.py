@@ -40,7 +40,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from echoloc.errors import EchoLocError, open_input, read_text_input
-from echoloc.recording import MAX_RECORDING_BYTES, SIGNAL_KINDS, Recording, validate_recording
+from echoloc.recording import (
+    MAX_RECORDING_BYTES,
+    SIGNAL_KINDS,
+    Recording,
+    read_npy_header,
+    validate_recording,
+)
 
 Position = tuple[float, float, float]
 
@@ -714,13 +720,7 @@ def read_spiel(folder: Path, head: SensorHead | None = None, n_samples: int | No
 
 def _npy_declared_bytes(fh: BinaryIO) -> int:
     """The bytes of data a ``.npy`` header declares (shape times item size), from the header alone."""
-    version = np.lib.format.read_magic(fh)
-    if version == (1, 0):
-        shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
-    elif version == (2, 0):
-        shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
-    else:
-        raise ValueError(f"a .npy of version {version}, expected 1.0 or 2.0")
+    shape, dtype = read_npy_header(fh)
     return math.prod(shape) * dtype.itemsize
 
 

@@ -1146,24 +1146,34 @@ def _load_hdf5(source: str, path: Path) -> tuple[dict[str, object], dict[str, _A
         process.wait()
 
 
+def read_npy_header(fh: IO[bytes]) -> tuple[tuple[int, ...], np.dtype[Any]]:
+    """The shape and dtype a ``.npy`` stream declares, from its header alone (the stream is
+    left at the data); ValueError for anything that is not a readable version 1 or 2 header.
+
+    numpy parses the header's dict with tokenize and ast, so a corrupt one raises
+    TokenError, SyntaxError or TypeError too: all of them become ValueError here."""
+    try:
+        version = np.lib.format.read_magic(fh)
+        if version == (1, 0):
+            shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
+        elif version == (2, 0):
+            shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
+        else:
+            raise ValueError(f"a .npy of version {version}, expected 1.0 or 2.0")
+    except (TypeError, SyntaxError, EOFError, tokenize.TokenError) as error:
+        raise ValueError(f"{type(error).__name__}: {error}") from None
+    return tuple(int(n) for n in shape), dtype
+
+
 def _npy_header(source: str, archive: zipfile.ZipFile, member: str) -> tuple[_Declared, int]:
     """A member's declared shape and dtype, from its ``.npy`` header alone, and the header's length."""
     info = archive.getinfo(member)
     try:
         with archive.open(info) as fh:
-            version = np.lib.format.read_magic(fh)
-            if version == (1, 0):
-                shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
-            elif version == (2, 0):
-                shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
-            else:
-                raise _error(source, f"{member} is a .npy of version {version}, expected 1.0 or 2.0")
+            shape, dtype = read_npy_header(fh)
             header_bytes = fh.tell()
-    except (ValueError, TypeError, SyntaxError, EOFError, tokenize.TokenError, zipfile.BadZipFile) as error:
-        # numpy parses the header's dict with tokenize and ast: a corrupt one raises any of these.
-        raise _error(
-            source, f"{member} has no readable .npy header ({type(error).__name__}: {error})"
-        ) from None
+    except (ValueError, zipfile.BadZipFile) as error:
+        raise _error(source, f"{member} has no readable .npy header ({error})") from None
     plain = dtype.kind in "biufcUS" and dtype.fields is None and dtype.subdtype is None
     declared = _Declared(
         shape=tuple(int(n) for n in shape),
