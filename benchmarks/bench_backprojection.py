@@ -8,14 +8,14 @@ What is timed, per frame, side by side in one run (alternating rounds, median of
 the rounds' means):
 
 - ``search``: every voxel whose image value (4th-largest channel SNR) reaches the
-  14 dB threshold, coarse to fine (:func:`echoloc.backprojection.search`) against
-  the full 5 mm grid (:func:`echoloc.backprojection.brute_force_image`);
+  14 dB threshold, coarse to fine (:func:`echoloc.localise.backprojection.search`) against
+  the full 5 mm grid (:func:`echoloc.localise.backprojection.brute_force_image`);
 - ``objects``: the whole back-projection step of a frame, image -> peaks -> paths ->
-  Gauss-Newton -> objects (:func:`echoloc.backprojection.locate_channels`), with
+  Gauss-Newton -> objects (:func:`echoloc.localise.backprojection.locate_channels`), with
   either search; both must return the same objects;
 - ``signals``: what both need first and is not back-projection: conditioning, the
   matched filter and the CLEAN-restored envelopes (it runs the echo finder of
-  :mod:`echoloc.echoes`), timed once for reference.
+  :mod:`echoloc.tof.echoes`), timed once for reference.
 
 The brute force runs on ``--brute-frames`` frames only (it takes about a second per
 frame); coarse-to-fine is timed on the same frames and on all of them.
@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from echoloc.backprojection import (
+from echoloc.localise.backprojection import (
     BackprojectionOptions,
     Backprojector,
     brute_force_image,
@@ -46,9 +46,9 @@ from echoloc.backprojection import (
     prepare_backprojection,
     search,
 )
-from echoloc.locate import LocatedObject
-from echoloc.scenefile import scene_from_dict
-from echoloc.simulate import simulate
+from echoloc.localise.locate import LocatedObject
+from echoloc.sim.scenefile import scene_from_dict
+from echoloc.sim.simulate import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).resolve().parent / "results" / "backprojection.md"

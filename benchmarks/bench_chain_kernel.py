@@ -4,7 +4,7 @@ Since 2026-12-05 :func:`echoloc.pipeline.samples_results_batch` finds a frame's 
 objects in one call (:func:`echoloc._chain_kernels.echoes_and_objects`) wherever the chain
 allows (:attr:`echoloc.pipeline.Chain.one_call`). Before, the echoes came back to Python as
 ChannelEchoes, were flattened again, and the association was a second call. This benchmark
-streams `echoloc bench`'s frames through :class:`echoloc.stream.StreamProcessor` both ways, a
+streams `echoloc bench`'s frames through :class:`echoloc.realtime.stream.StreamProcessor` both ways, a
 frame a call and 16 a call (a backlog), pinned to one core, in alternating rounds (medians
 reported), and checks that both ways give the same records. Then it times every frame alone,
 one call each (five times, averaged), to split the frames whose channels all stay on the
@@ -27,11 +27,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from echoloc.benchmark import _stream_pass, bench_scene, pinned_cores
-from echoloc.echoes import EchoOptions, _correlated_channels
-from echoloc.output import echoes_record, objects_record
+from echoloc.io.output import echoes_record, objects_record
 from echoloc.pipeline import Chain, prepare
-from echoloc.simulate import simulate
-from echoloc.stream import STREAM_BATCH_FRAMES, StreamFrame, StreamProcessor, recording_frames
+from echoloc.realtime.stream import STREAM_BATCH_FRAMES, StreamFrame, StreamProcessor, recording_frames
+from echoloc.sim.simulate import simulate
+from echoloc.tof.echoes import EchoOptions, _correlated_channels
 
 
 def frame_order_study(
@@ -41,8 +41,8 @@ def frame_order_study(
     marks, four ways: one frame's arguments again and again; as many copies of that frame;
     each frame repeated 20 times (their mean); cycling through the frames."""
     from echoloc import _chain_kernels as kernels
-    from echoloc.echoes import echo_kernel_arguments
     from echoloc.pipeline import _conditioned
+    from echoloc.tof.echoes import echo_kernel_arguments
 
     assert chain.one_call is not None
     estimator, _, locate_arguments = chain.one_call

@@ -1,4 +1,4 @@
-"""What the degraded-channel check (echoloc.channel_health) costs a healthy frame.
+"""What the degraded-channel check (echoloc.tof.channel_health) costs a healthy frame.
 
 The chain runs the same frames with the check on and off, interleaved pass by pass so that
 a shared machine's load falls on both alike; the report gives each pass's ms a frame and
@@ -16,11 +16,11 @@ import time
 
 import numpy as np
 
+from echoloc.io.recording import as_header
 from echoloc.pipeline import prepare, run
-from echoloc.recording import as_header
-from echoloc.scene import default_scene
-from echoloc.simulate import simulate
-from echoloc.stream import StreamProcessor, recording_frames
+from echoloc.realtime.stream import StreamProcessor, recording_frames
+from echoloc.sim.scene import default_scene
+from echoloc.sim.simulate import simulate
 
 
 def _file_ms(chain: object, frames: list[int]) -> float:

@@ -31,7 +31,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from echoloc.benchmark import baseline_echoes
-from echoloc.echoes import (
+from echoloc.io.recording import Recording
+from echoloc.localise.locate import model_paths_m
+from echoloc.pipeline import Chain, prepare
+from echoloc.sim.scene import RandomReflectors, Scene, default_scene
+from echoloc.sim.simulate import simulate
+from echoloc.tof.echoes import (
     MATCHED_DECIMATION,
     EchoOptions,
     MatchedFilter,
@@ -41,11 +46,6 @@ from echoloc.echoes import (
     matched_filter_batch,
     matched_filter_echoes,
 )
-from echoloc.locate import model_paths_m
-from echoloc.pipeline import Chain, prepare
-from echoloc.recording import Recording
-from echoloc.scene import RandomReflectors, Scene, default_scene
-from echoloc.simulate import simulate
 
 
 def scipy_chain(chain: Chain, frames: NDArray[np.float64]) -> list[list[NDArray[np.float64]]]:

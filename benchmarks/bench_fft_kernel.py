@@ -2,15 +2,15 @@
 
 Until 2026-12-05 a frame's echoes took four calls from Python: scipy.fft's rfft, the compiled
 fold, scipy.fft's inverse FFT, then the compiled batch path
-(:func:`echoloc._echoes_kernels.batch_channels`), with the padding, dispatch and checks of each
-in between. Since then :func:`echoloc.echoes.matched_filter_batch` makes one call
-(:func:`echoloc._echoes_kernels.correlate_and_fit`), its FFTs scipy.fft's own in compiled code
+(:func:`echoloc.tof._echoes_kernels.batch_channels`), with the padding, dispatch and checks of each
+in between. Since then :func:`echoloc.tof.echoes.matched_filter_batch` makes one call
+(:func:`echoloc.tof._echoes_kernels.correlate_and_fit`), its FFTs scipy.fft's own in compiled code
 (rocket-fft). This benchmark times both ways on the frames of `echoloc bench`, a frame a call on
 one core, in alternating rounds (medians reported), and checks that they find the same echoes:
 
 1. the echoes stage alone;
 2. the whole frame (echoes + locate) as `echoloc stream` runs it. Frames with a channel for
-   CLEAN go through :class:`echoloc.stream.StreamProcessor` both ways.
+   CLEAN go through :class:`echoloc.realtime.stream.StreamProcessor` both ways.
 
     python benchmarks/bench_fft_kernel.py [--frames 200] [--rounds 7]
 """
@@ -27,16 +27,16 @@ import scipy.fft
 from numpy.typing import NDArray
 
 from echoloc.benchmark import bench_scene, pinned_cores
-from echoloc.echoes import (
+from echoloc.pipeline import prepare
+from echoloc.realtime.stream import StreamProcessor, recording_frames
+from echoloc.sim.simulate import simulate
+from echoloc.tof.echoes import (
     EchoOptions,
     FrameEchoes,
     MatchedFilter,
     _batch_channels,
     _correlated_channels,
 )
-from echoloc.pipeline import prepare
-from echoloc.simulate import simulate
-from echoloc.stream import StreamProcessor, recording_frames
 
 
 def scipy_echoes(mf: MatchedFilter, options: EchoOptions) -> Callable[[NDArray[np.float64]], list[Any]]:

@@ -3,7 +3,7 @@
 Issue 7 asks for <= 0.25 ms a frame on one core (a frame a call). Profiles put about a quarter of
 a frame in the Python interpreter, which made the Python between the calls look like the way
 there. This benchmark measures that bound directly: `echoloc bench`'s frames (5 random
-reflectors) go through :class:`echoloc.stream.StreamProcessor` a frame a call, pinned to one
+reflectors) go through :class:`echoloc.realtime.stream.StreamProcessor` a frame a call, pinned to one
 core, in the pass `echoloc bench` times (:func:`echoloc.benchmark._stream_pass`), alternating:
 
 - plain: the chain as `echoloc stream` runs it;
@@ -46,22 +46,22 @@ from typing import Any
 import numpy as np
 
 from echoloc.benchmark import _stream_pass, bench_scene, pinned_cores
-from echoloc.echoes import EchoOptions
 from echoloc.pipeline import prepare
-from echoloc.simulate import simulate
-from echoloc.stream import StreamProcessor, recording_frames
+from echoloc.realtime.stream import StreamProcessor, recording_frames
+from echoloc.sim.simulate import simulate
+from echoloc.tof.echoes import EchoOptions
 
 #: (module, function, label): every call the streamed chain makes from Python into compiled code.
 COMPILED_CALLS = (
     ("scipy.fft", "rfft", "FFT"),
     ("scipy.fft", "ifft", "inverse FFT"),
-    ("echoloc._echoes_kernels", "weigh_and_fold", "fold"),
-    ("echoloc._echoes_kernels", "batch_channels", "echo fits"),
-    ("echoloc._echoes_kernels", "correlate_and_fit", "correlation and echo fits"),
+    ("echoloc.tof._echoes_kernels", "weigh_and_fold", "fold"),
+    ("echoloc.tof._echoes_kernels", "batch_channels", "echo fits"),
+    ("echoloc.tof._echoes_kernels", "correlate_and_fit", "correlation and echo fits"),
     ("echoloc._chain_kernels", "echoes_and_objects", "echoes and association, one call"),
-    ("echoloc._echoes_kernels", "clean_run_rows", "CLEAN"),
-    ("echoloc._echoes_kernels", "clean_run", "CLEAN"),
-    ("echoloc._locate_kernels", "associate_frame", "association"),
+    ("echoloc.tof._echoes_kernels", "clean_run_rows", "CLEAN"),
+    ("echoloc.tof._echoes_kernels", "clean_run", "CLEAN"),
+    ("echoloc.localise._locate_kernels", "associate_frame", "association"),
 )
 
 ISSUE_TARGET_US = 250.0

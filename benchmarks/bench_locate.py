@@ -29,10 +29,10 @@ import numpy as np
 
 from bench_pipeline import baseline_locate
 from echoloc import pipeline
-from echoloc.echoes import FrameEchoes
-from echoloc.evaluate import evaluate
-from echoloc.scenefile import scene_from_dict
-from echoloc.simulate import simulate
+from echoloc.localise.evaluate import evaluate
+from echoloc.sim.scenefile import scene_from_dict
+from echoloc.sim.simulate import simulate
+from echoloc.tof.echoes import FrameEchoes
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).resolve().parent / "results" / "locate.md"

@@ -2,9 +2,9 @@
 
 Echoes and objects of the room scene (examples/mapping/room.toml) are computed first
 and not timed; what is timed is the map update alone: every channel's inverse sensor
-model and the frame's combination, by :class:`echoloc.mapping.MapAccumulator`
+model and the frame's combination, by :class:`echoloc.maps.mapping.MapAccumulator`
 (compiled loops) and by the same model written in numpy
-(:func:`echoloc._mapping_kernels.channel_update_reference`), in alternating rounds of
+(:func:`echoloc.maps._mapping_kernels.channel_update_reference`), in alternating rounds of
 one run (the machine is shared). Grids: the issue's 200 x 200 x 100 cells of 1 cm
 (x and z 2 m, y 1 m: 4 M cells) and floor plans at 1 and 2 cm.
 
@@ -25,10 +25,10 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from echoloc import _mapping_kernels as kernels
 from echoloc import pipeline
-from echoloc.echoes import FrameEchoes
-from echoloc.mapping import (
+from echoloc.io.recording import Recording
+from echoloc.maps import _mapping_kernels as kernels
+from echoloc.maps.mapping import (
     GridSpec,
     MapAccumulator,
     SensorModel,
@@ -36,9 +36,9 @@ from echoloc.mapping import (
     channel_window,
     half_power_angle_deg,
 )
-from echoloc.recording import Recording
-from echoloc.scenefile import load_scene
-from echoloc.simulate import simulate
+from echoloc.sim.scenefile import load_scene
+from echoloc.sim.simulate import simulate
+from echoloc.tof.echoes import FrameEchoes
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results" / "mapping_speed.md"

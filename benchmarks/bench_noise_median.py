@@ -2,8 +2,8 @@
 
 Every channel of every frame takes its noise power from the median of its correlation's power
 at every second lag (600 values for 2400 samples). Since 2026-12-05 that median is found by
-radix selection on the values' IEEE-754 bits (:func:`echoloc._echoes_kernels._noise_median`)
-instead of the branch-free quickselect (:func:`echoloc._echoes_kernels._median_in`), which it
+radix selection on the values' IEEE-754 bits (:func:`echoloc.tof._echoes_kernels._noise_median`)
+instead of the branch-free quickselect (:func:`echoloc.tof._echoes_kernels._median_in`), which it
 still falls back to. This times both in compiled loops over the same rows, alternating rounds
 (medians reported), on noise powers with echo peaks like a channel's, and checks that they
 agree with numpy's median.
@@ -22,8 +22,8 @@ import numpy as np
 from numba import njit
 from numba.typed import List
 
-from echoloc._echoes_kernels import _EXPONENT_BUCKETS, _MANTISSA_BUCKETS, _median_in, _noise_median
 from echoloc.benchmark import pinned_cores
+from echoloc.tof._echoes_kernels import _EXPONENT_BUCKETS, _MANTISSA_BUCKETS, _median_in, _noise_median
 
 
 @njit(cache=True)

@@ -27,11 +27,11 @@ from dataclasses import replace
 import numpy as np
 
 from echoloc.benchmark import baseline_echoes, baseline_locate
-from echoloc.echoes import MATCHED_DECIMATION, MatchedFilter, matched_filter_batch
-from echoloc.evaluate import evaluate
+from echoloc.localise.evaluate import evaluate
 from echoloc.pipeline import Chain, frame_echoes, frame_objects, prepare
-from echoloc.scene import RandomReflectors, default_scene
-from echoloc.simulate import simulate
+from echoloc.sim.scene import RandomReflectors, default_scene
+from echoloc.sim.simulate import simulate
+from echoloc.tof.echoes import MATCHED_DECIMATION, MatchedFilter, matched_filter_batch
 
 
 def _time(job: Callable[[], object]) -> float:

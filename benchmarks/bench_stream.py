@@ -8,9 +8,9 @@ Two parts, each optional:
    core, side by side with the straightforward scipy chain.
 2. ``--soak-minutes M``: a live stream for M minutes. ``echoloc send`` (its own
    process) replays the recording over TCP on loopback at ``--speed`` times real
-   time, looping; this process receives it (echoloc.transport.Listener, queue of
+   time, looping; this process receives it (echoloc.realtime.transport.Listener, queue of
    64 frames, oldest dropped when full) and runs the chain on every frame it can
-   (echoloc.stream.StreamProcessor). Every ``--window-s`` it notes the resident
+   (echoloc.realtime.stream.StreamProcessor). Every ``--window-s`` it notes the resident
    memory (VmRSS), the frames received, processed, lost and dropped, and the
    latency p50/p99 of that window (arrival to result). Memory is flat when the
    largest and smallest RSS after the first window differ by little.
@@ -33,11 +33,17 @@ from pathlib import Path
 import numpy as np
 
 from echoloc.benchmark import bench_chains, bench_scene, format_bench
+from echoloc.io.recording import write_recording
 from echoloc.pipeline import prepare
-from echoloc.recording import write_recording
-from echoloc.simulate import simulate
-from echoloc.stream import STREAM_BATCH_FRAMES, FrameQueue, LatencyHistogram, StreamFrame, StreamProcessor
-from echoloc.transport import Endpoint, Listener, SessionEvent
+from echoloc.realtime.stream import (
+    STREAM_BATCH_FRAMES,
+    FrameQueue,
+    LatencyHistogram,
+    StreamFrame,
+    StreamProcessor,
+)
+from echoloc.realtime.transport import Endpoint, Listener, SessionEvent
+from echoloc.sim.simulate import simulate
 
 
 def rss_mib() -> float:

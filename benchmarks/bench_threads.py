@@ -21,9 +21,9 @@ from dataclasses import replace
 import numpy as np
 
 from echoloc.benchmark import bench_scene
-from echoloc.echoes import MATCHED_DECIMATION, MatchedFilter, matched_filter_batch, matched_filter_echoes
 from echoloc.pipeline import prepare
-from echoloc.simulate import simulate
+from echoloc.sim.simulate import simulate
+from echoloc.tof.echoes import MATCHED_DECIMATION, MatchedFilter, matched_filter_batch, matched_filter_echoes
 
 
 def _median_us_per_frame(job: Callable[[], object], n_frames: int, calls: int = 7) -> float:

@@ -9,7 +9,7 @@ positions, as many frames at each as the real data has, with its sphere placed s
 its nearest point to the transmitter is the real truth position; an empty-scene
 recording of the preset (new noise) is each frame's background, as the real data's
 ``background`` is. Both are then measured by the same functions
-(:mod:`echoloc.envelope_stats`):
+(:mod:`echoloc.tof.envelope_stats`):
 
 - FWHM of the echo in ``frames - background``, samples at 22 kHz;
 - SNR, ``20 log10(peak / noise)``, dB, with each channel's noise the robust standard
@@ -41,7 +41,12 @@ import matplotlib.pyplot as plt
 import numpy as np
 from numpy.typing import NDArray
 
-from echoloc.envelope_stats import (
+from echoloc.io.recording import read_recording
+from echoloc.sim.reflectors import Sphere
+from echoloc.sim.scene import Scene
+from echoloc.sim.scenefile import load_scene
+from echoloc.sim.simulate import simulate
+from echoloc.tof.envelope_stats import (
     EchoFigures,
     FrameStart,
     arrival_samples,
@@ -50,11 +55,6 @@ from echoloc.envelope_stats import (
     robust_sigma,
     within_group_spread,
 )
-from echoloc.recording import read_recording
-from echoloc.reflectors import Sphere
-from echoloc.scene import Scene
-from echoloc.scenefile import load_scene
-from echoloc.simulate import simulate
 
 REAL = Path("/work/shared/data/ch101-spiel/dev.h5")
 CHANNELS = ("ch0 (tx/rx)", "ch1", "ch2", "ch3")
@@ -309,7 +309,7 @@ Localization", ICRA 2023, doi:10.1109/ICRA48891.2023.10161199 (Apache-2.0).
 Simulated: the shipped preset `echoloc/scenes/ch101.toml` (`echoloc simulate ch101`),
 its 20 mm ball moved to each real target position (nearest point = the real truth), as
 many frames there as the real data has, and an empty-scene recording with new noise as
-each frame's background. Both are measured by the same code (`echoloc.envelope_stats`);
+each frame's background. Both are measured by the same code (`echoloc.tof.envelope_stats`);
 see the docstring of `benchmarks/compare_ch101.py` for each figure's definition.
 
 ![real vs simulated](ch101_sim_vs_real.png)

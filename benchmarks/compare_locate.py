@@ -28,16 +28,17 @@ from typing import Any
 
 import numpy as np
 
-from echoloc import locate, pipeline
+from echoloc import pipeline
 from echoloc.benchmark import bench_scene
-from echoloc.scenefile import scene_from_dict
-from echoloc.simulate import simulate
+from echoloc.localise import locate
+from echoloc.sim.scenefile import scene_from_dict
+from echoloc.sim.simulate import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _base_locate(ref: str) -> ModuleType:
-    """``echoloc.locate`` as of ``ref``, as the module ``echoloc_base_<sha>.locate``."""
+    """``echoloc.localise.locate`` as of ``ref``, as the module ``echoloc_base_<sha>.locate``."""
     sha = subprocess.run(
         ["git", "rev-parse", ref], cwd=ROOT, check=True, capture_output=True, text=True
     ).stdout.strip()
@@ -47,14 +48,16 @@ def _base_locate(ref: str) -> ModuleType:
     package.mkdir(parents=True, exist_ok=True)
     (package / "__init__.py").write_text("")
     for module in ("locate", "_locate_kernels"):
-        text = subprocess.run(
-            ["git", "show", f"{sha}:src/echoloc/{module}.py"],
-            cwd=ROOT,
-            check=True,
-            capture_output=True,
-            text=True,
-        ).stdout
-        text = text.replace("from echoloc import _locate_kernels", f"from {name} import _locate_kernels")
+        for folder in ("src/echoloc/localise", "src/echoloc"):  # the layout since, and before, 0.2
+            shown = subprocess.run(
+                ["git", "show", f"{sha}:{folder}/{module}.py"], cwd=ROOT, capture_output=True, text=True
+            )
+            if shown.returncode == 0:
+                break
+        shown.check_returncode()
+        text = shown.stdout
+        for old in ("from echoloc.localise import _locate_kernels", "from echoloc import _locate_kernels"):
+            text = text.replace(old, f"from {name} import _locate_kernels")
         path = package / f"{module}.py"
         if not path.exists() or path.read_text() != text:
             path.write_text(text)

@@ -35,9 +35,9 @@ from typing import Any
 
 _KERNEL_MODULES = (
     "echoloc._chain_kernels",
-    "echoloc._echoes_kernels",
-    "echoloc._locate_kernels",
-    "echoloc._mapping_kernels",
+    "echoloc.tof._echoes_kernels",
+    "echoloc.localise._locate_kernels",
+    "echoloc.maps._mapping_kernels",
 )
 
 
@@ -164,10 +164,10 @@ def report(data: Path, frame_us: float, top: int) -> list[str]:
 def profile(seconds: float, reflectors: int, n_frames: int, top: int) -> list[str]:
     """Run the stream under perf; the report's lines."""
     from echoloc.benchmark import bench_scene, pinned_cores
-    from echoloc.echoes import EchoOptions
     from echoloc.pipeline import prepare
-    from echoloc.simulate import simulate
-    from echoloc.stream import StreamProcessor, recording_frames
+    from echoloc.realtime.stream import StreamProcessor, recording_frames
+    from echoloc.sim.simulate import simulate
+    from echoloc.tof.echoes import EchoOptions
 
     with pinned_cores(1):  # one core, as `echoloc bench` times the chain
         recording = simulate(bench_scene(reflectors), n_frames)

@@ -56,9 +56,9 @@ def echoloc_figures(data: Path, calibrate_on: str, test_on: str) -> dict[str, ob
 
 def library_ms_per_frame(data: Path, calibration: dict[str, object], frames: list[int]) -> float:
     """The chain's own time a frame (recording in memory, warm), ms: the median of five passes."""
-    from echoloc.calibrate import read_calibration
+    from echoloc.io.recording import read_recording
+    from echoloc.localise.calibrate import read_calibration
     from echoloc.pipeline import prepare, run
-    from echoloc.recording import read_recording
 
     recording = read_recording(data)
     with tempfile.TemporaryDirectory() as folder:
@@ -110,7 +110,7 @@ def main() -> None:
     args = parser.parse_args()
     import h5py
 
-    evaluate_module = importlib.import_module("echoloc.evaluate")
+    evaluate_module = importlib.import_module("echoloc.localise.evaluate")
     with h5py.File(args.data, "r") as file:
         truth_all = file["truth_positions"][:]
     every = range(len(truth_all))

@@ -7,11 +7,11 @@ at random in the cubic metre in front of the report's array, σ_path 0.5 mm, SNR
 - association ("peaks to points"): :func:`echoloc.pipeline.prepare` and
   :func:`echoloc.pipeline.run` (echoes per channel, then their combination);
 - back-projection ("points to peaks") on CLEAN-restored envelopes, 5 mm grid over
-  x, y in +-0.5 m, z 0.2-1.2 m: :func:`echoloc.backprojection.run_backprojection`;
+  x, y in +-0.5 m, z 0.2-1.2 m: :func:`echoloc.localise.backprojection.run_backprojection`;
 - back-projection on the raw matched-filter envelopes (``restore=False``), on the
   first ``--raw-frames`` frames only: what the code's sidelobes do to it.
 
-Scored with :func:`echoloc.evaluate.evaluate` (match radius 20 mm): recall, false
+Scored with :func:`echoloc.localise.evaluate.evaluate` (match radius 20 mm): recall, false
 objects, RMSE and bias per axis, mean reported std. Time per frame is the whole
 chain from samples to objects, one approach after the other (not interleaved: see
 ``bench_backprojection.py`` for side-by-side timing).
@@ -31,17 +31,17 @@ from pathlib import Path
 import numpy as np
 
 from echoloc import pipeline
-from echoloc.backprojection import (
+from echoloc.localise.backprojection import (
     BackprojectionOptions,
     frame_image,
     prepare_backprojection,
     run_backprojection,
 )
-from echoloc.evaluate import Evaluation, evaluate
-from echoloc.imaging_plots import save_image_png
-from echoloc.locate import FrameObjects
-from echoloc.scenefile import scene_from_dict
-from echoloc.simulate import simulate
+from echoloc.localise.evaluate import Evaluation, evaluate
+from echoloc.localise.locate import FrameObjects
+from echoloc.plots.imaging import save_image_png
+from echoloc.sim.scenefile import scene_from_dict
+from echoloc.sim.simulate import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).resolve().parent / "results"

@@ -3,7 +3,7 @@
 1. **Room** (examples/mapping/room.toml): four walls, a box and a pole, double
    reflections on; the head drives diagonally and spins at 30 deg/s for one turn
    (1200 frames). The floor plan at 2 cm (and 1 cm) is scored against the true
-   surfaces (:func:`echoloc.mapping.map_accuracy`):
+   surfaces (:func:`echoloc.maps.mapping.map_accuracy`):
 
    - *coverage*: of the surface the sensor saw, the fraction with an occupied cell
      within one cell. "Seen" = within a cell of a true reflection point (the
@@ -33,8 +33,8 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from echoloc import pipeline
-from echoloc.map_plots import draw_floor_plan, plot_grid
-from echoloc.mapping import (
+from echoloc.io.recording import Recording
+from echoloc.maps.mapping import (
     GridSpec,
     OccupancyGrid,
     build_map,
@@ -43,11 +43,11 @@ from echoloc.mapping import (
     seen_surface_points_m,
     seen_truth_points_m,
 )
-from echoloc.recording import Recording
-from echoloc.reflectors import Edge, surface_points_m
-from echoloc.scene import Scene, SensorMotion
-from echoloc.scenefile import load_scene
-from echoloc.simulate import simulate
+from echoloc.plots.maps import draw_floor_plan, plot_grid
+from echoloc.sim.reflectors import Edge, surface_points_m
+from echoloc.sim.scene import Scene, SensorMotion
+from echoloc.sim.scenefile import load_scene
+from echoloc.sim.simulate import simulate
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"

@@ -5,12 +5,12 @@ In simulation, with the report's set-up (``examples/report/*.toml``: Polaroid-li
 
 1. the report's tables 4.1 (one ball at 0.577 m), 4.2 (0.3-1.0 m) and 4.3 (two and
    three balls), before and after a calibration on separate shots;
-2. RMSE against per-sample SNR beside the Cramér-Rao bound (:mod:`echoloc.crlb`), rf
+2. RMSE against per-sample SNR beside the Cramér-Rao bound (:mod:`echoloc.physics.crlb`), rf
    at 200 kHz and envelope samples at 20 kHz;
 3. the threshold estimator's bias against the echo's amplitude;
 4. two equal echoes closer than the code's resolution.
 
-Every estimator in :data:`echoloc.estimators.ESTIMATORS` is enrolled at run time; one
+Every estimator in :data:`echoloc.tof.estimators.ESTIMATORS` is enrolled at run time; one
 whose ``signal_kinds`` lack a study's kind, which cannot be prepared for its recording,
 or which misses a clean echo (it needs a waveform of its own) is skipped with a note.
 
@@ -38,8 +38,10 @@ import numpy as np
 from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
-from echoloc.calibrate import Calibration, fit_calibration
-from echoloc.crlb import (
+from echoloc.errors import EchoLocError
+from echoloc.io.recording import Recording
+from echoloc.localise.calibrate import Calibration, fit_calibration
+from echoloc.physics.crlb import (
     amplitude_for_snr,
     coherent_tof_bound,
     envelope_derivative,
@@ -48,7 +50,13 @@ from echoloc.crlb import (
     peak_amplitude,
     unknown_phase_tof_bound,
 )
-from echoloc.echoes import (
+from echoloc.physics.transducer import PRESETS, group_delay_s
+from echoloc.sim.receiver import analytic_signal, template_for_kind, to_signal_kind
+from echoloc.sim.reflectors import PointReflector, Reflector, Sphere, echo_paths, states_at
+from echoloc.sim.scene import Array, ReceiverSpec, Scene
+from echoloc.sim.scenefile import load_scene
+from echoloc.sim.simulate import simulate
+from echoloc.tof.echoes import (
     MATCHED_DECIMATION,
     ChannelEchoes,
     EchoOptions,
@@ -56,15 +64,7 @@ from echoloc.echoes import (
     MatchedFilter,
     matched_filter_echoes,
 )
-from echoloc.errors import EchoLocError
-from echoloc.estimators import ESTIMATORS, Estimator, EstimatorInfo
-from echoloc.receiver import analytic_signal, template_for_kind, to_signal_kind
-from echoloc.recording import Recording
-from echoloc.reflectors import PointReflector, Reflector, Sphere, echo_paths, states_at
-from echoloc.scene import Array, ReceiverSpec, Scene
-from echoloc.scenefile import load_scene
-from echoloc.simulate import simulate
-from echoloc.transducer import PRESETS, group_delay_s
+from echoloc.tof.estimators import ESTIMATORS, Estimator, EstimatorInfo
 
 ROOT = Path(__file__).resolve().parent.parent
 REPORT = ROOT / "examples" / "report"
@@ -513,7 +513,7 @@ def envelope_bound(sweep: SweepSet, snr: float, offsets: int = 16) -> float:
     The envelope of a phase-coded pulse is not band-limited at 20 kHz, so Σ ε̇(nT - τ)²
     depends on τ: the variance bound is averaged over ``offsets`` delays in one sample
     (the sweep's echoes fall at random ones). ε̇ is the analytic derivative of |u|
-    from the band-limited complex envelope u (:func:`echoloc.crlb.envelope_derivative`).
+    from the band-limited complex envelope u (:func:`echoloc.physics.crlb.envelope_derivative`).
     """
     fs = sweep.scene.sample_rate_hz
     sigma = 1.0

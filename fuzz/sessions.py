@@ -28,7 +28,8 @@ from typing import Any
 import numpy as np
 
 import harness
-from echoloc.protocol import (
+from echoloc.io.recording import Recording, read_recording
+from echoloc.realtime.protocol import (
     HEADER,
     KIND_END,
     KIND_FRAME,
@@ -38,8 +39,7 @@ from echoloc.protocol import (
     encode_end,
     encode_frame,
 )
-from echoloc.recording import Recording, read_recording
-from echoloc.transport import Endpoint, send_recording
+from echoloc.realtime.transport import Endpoint, send_recording
 
 N_VALID_FRAMES = 3
 IDLE_TIMEOUT_S = 2.0
@@ -292,7 +292,7 @@ def run_sessions(
 ) -> None:
     """``count`` hostile sessions, alternately over TCP and UDP, each followed by a valid sender."""
     recording = read_recording(seeds.recordings[0])
-    from echoloc.protocol import session_record
+    from echoloc.realtime.protocol import session_record
 
     record = session_record(recording)
     owner = [session_message(record, recording), *valid_frames(recording)[:1]]

@@ -59,7 +59,7 @@ def _peak_rss_kib() -> int:
 
 def run_case(argv: list[str]) -> dict[str, object]:
     """Run ``echoloc ARGV`` as the console script does; the outcome as a JSON-ready dict."""
-    from echoloc.cli import main
+    from echoloc.cli.commands import main
 
     _reset_peak_rss()
     children_before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
@@ -91,7 +91,7 @@ def run_case(argv: list[str]) -> dict[str, object]:
 
 def main() -> None:
     answers = os.fdopen(int(sys.argv[1]), "w", buffering=1)
-    import echoloc.cli  # noqa: F401  (imported before the first request, outside its timing)
+    import echoloc.cli.commands  # noqa: F401  (imported before the first request, outside its timing)
 
     answers.write(json.dumps({"ready": True}) + "\n")
     for line in sys.stdin:

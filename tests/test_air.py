@@ -1,4 +1,4 @@
-"""Tests of echoloc.air: speed of sound in air and spherical spreading.
+"""Tests of echoloc.physics.air: speed of sound in air and spherical spreading.
 
 Sources: NOTES.md ("Speed of sound": c ∝ sqrt(T), +1 K ≈ +0.17 %, humidity adds about
 0.3 % at 20 °C); the tabulated 331.3 m/s for dry air at 0 °C; saturation vapour
@@ -14,14 +14,14 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from echoloc.air import (
+from echoloc.errors import EchoLocError
+from echoloc.physics.air import (
     KELVIN_AT_0C,
     saturation_vapour_pressure_pa,
     speed_of_sound_m_s,
     spreading_gain,
     water_mole_fraction,
 )
-from echoloc.errors import EchoLocError
 
 temperatures_c = st.floats(min_value=-50.0, max_value=60.0, allow_nan=False)
 humidities = st.floats(min_value=0.0, max_value=1.0, allow_nan=False)

@@ -1,4 +1,4 @@
-"""Tests of the acoustics of air in echoloc.air: Cramer's speed of sound, ISO 9613-1
+"""Tests of the acoustics of air in echoloc.physics.air: Cramer's speed of sound, ISO 9613-1
 absorption, density, impedance, reflection and transmission, levels.
 
 Sources (each test names the ones it uses):
@@ -38,7 +38,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from echoloc.air import (
+from echoloc.errors import EchoLocError
+from echoloc.physics.air import (
     absorption_db_per_m,
     absorption_gain,
     air_density_kg_m3,
@@ -54,7 +55,6 @@ from echoloc.air import (
     speed_of_sound_m_s,
     transmission_coefficient,
 )
-from echoloc.errors import EchoLocError
 
 NAN = float("nan")
 cramer_temperatures_c = st.floats(min_value=0.0, max_value=30.0, allow_nan=False)

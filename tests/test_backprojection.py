@@ -10,7 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
 
-from echoloc.backprojection import (
+from echoloc.errors import EchoLocError
+from echoloc.localise.backprojection import (
     QUANTUM,
     BackprojectionOptions,
     Components,
@@ -31,13 +32,12 @@ from echoloc.backprojection import (
     run_backprojection,
     search,
 )
-from echoloc.echoes import MatchedFilter, noise_power
-from echoloc.errors import EchoLocError
-from echoloc.evaluate import evaluate
-from echoloc.locate import exact_solutions
-from echoloc.scenefile import scene_from_dict
-from echoloc.simulate import simulate
-from echoloc.waveform import barker_waveform
+from echoloc.localise.evaluate import evaluate
+from echoloc.localise.locate import exact_solutions
+from echoloc.physics.waveform import barker_waveform
+from echoloc.sim.scenefile import scene_from_dict
+from echoloc.sim.simulate import simulate
+from echoloc.tof.echoes import MatchedFilter, noise_power
 
 FS = 200e3
 C = 343.0

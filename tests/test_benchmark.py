@@ -7,10 +7,10 @@ import pytest
 
 from echoloc.benchmark import baseline_echoes, baseline_locate, bench_chains, bench_scene, format_bench
 from echoloc.errors import EchoLocError
-from echoloc.locate import model_paths_m
+from echoloc.localise.locate import model_paths_m
 from echoloc.pipeline import prepare
-from echoloc.scene import default_scene
-from echoloc.simulate import simulate
+from echoloc.sim.scene import default_scene
+from echoloc.sim.simulate import simulate
 
 
 @pytest.fixture(scope="module")

@@ -10,15 +10,15 @@ import numpy as np
 import pytest
 import scipy.fft
 
-from echoloc.calibrate import Calibration, fit_calibration, read_calibration, write_calibration
-from echoloc.cli import main
-from echoloc.echoes import ChannelEchoes, FrameEchoes
+from echoloc.cli.commands import main
 from echoloc.errors import EchoLocError
-from echoloc.evaluate import evaluate
+from echoloc.io.recording import Recording, write_recording
+from echoloc.localise.calibrate import Calibration, fit_calibration, read_calibration, write_calibration
+from echoloc.localise.evaluate import evaluate
 from echoloc.pipeline import frame_echoes, frame_objects, prepare
-from echoloc.recording import Recording, write_recording
-from echoloc.scene import RandomReflectors, default_scene
-from echoloc.simulate import simulate
+from echoloc.sim.scene import RandomReflectors, default_scene
+from echoloc.sim.simulate import simulate
+from echoloc.tof.echoes import ChannelEchoes, FrameEchoes
 
 DELAYS_S = np.array([3.1e-6, -2.4e-6, 7.25e-6, 0.0])
 TRUE_TEMPERATURE_C = 30.0
@@ -220,7 +220,7 @@ def test_the_speed_fitted_flag_survives_the_file(tmp_path: Path) -> None:
 def test_unknown_fields_are_read_past_with_a_warning(tmp_path: Path) -> None:
     """A field this version does not know (a later echoloc's optional one, or a typo) is
     named in one warning; the fields it knows still read as written."""
-    from echoloc.calibrate import CalibrationWarning
+    from echoloc.localise.calibrate import CalibrationWarning
 
     calibration = Calibration(343.5, (1e-6, -2e-6, 0.0, 3e-6), echoes_used=40, residual_rms_s=1e-7)
     path = write_calibration(calibration, tmp_path / "c.json")

@@ -13,17 +13,17 @@ import dataclasses
 import numpy as np
 import pytest
 
-from echoloc.envelope_stats import (
+from echoloc.errors import SceneError
+from echoloc.sim.reflectors import Sphere
+from echoloc.sim.scene import REPORT_ARRAY, PulseSpec, ReceiverSpec, RingDown, Scene
+from echoloc.sim.scenefile import load_scene, preset_names, preset_path, scene_from_dict
+from echoloc.sim.simulate import moving_average, simulate
+from echoloc.tof.envelope_stats import (
     arrival_samples,
     frame_start_levels,
     measure_echoes,
     within_group_spread,
 )
-from echoloc.errors import SceneError
-from echoloc.reflectors import Sphere
-from echoloc.scene import REPORT_ARRAY, PulseSpec, ReceiverSpec, RingDown, Scene
-from echoloc.scenefile import load_scene, preset_names, preset_path, scene_from_dict
-from echoloc.simulate import moving_average, simulate
 
 # Real CH101 figures (dev.h5, per channel 0..3), from benchmarks/results/ch101_sim_vs_real.md.
 REAL_FWHM_MEDIAN = (4.03, 3.72, 3.79, 3.93)  # samples at 22 kHz

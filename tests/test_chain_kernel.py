@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from echoloc.benchmark import bench_scene
-from echoloc.echoes import _correlated_channels
-from echoloc.output import echoes_record, objects_record
+from echoloc.io.output import echoes_record, objects_record
 from echoloc.pipeline import Chain, prepare, run, samples_results_batch
-from echoloc.simulate import simulate
+from echoloc.sim.simulate import simulate
+from echoloc.tof.echoes import _correlated_channels
 
 
 def _staged(chain: Chain) -> Chain:
@@ -63,7 +63,7 @@ def test_one_call_frames_left_to_clean_come_out_in_order_with_the_stages_answers
     """A batch with frames the kernel leaves to CLEAN (LEFT_TO_CLEAN: CLEAN and the association
     run after it) keeps the frame order and gives the stages' answers, frame by frame."""
     from echoloc import _chain_kernels
-    from echoloc.echoes import echo_kernel_arguments
+    from echoloc.tof.echoes import echo_kernel_arguments
 
     recording = crowded[0]
     chain = prepare(recording)
@@ -92,7 +92,7 @@ def test_the_kernel_s_overflow_and_tie_statuses_finish_as_the_stages_do(crowded,
     as the stages do (with the reference on a real tie). Both are rare on real frames, so the
     kernel's status is forced."""
     from echoloc import _chain_kernels
-    from echoloc.locate import LocateWarning
+    from echoloc.localise.locate import LocateWarning
 
     recording = crowded[0]
     chain = prepare(recording)
@@ -130,7 +130,7 @@ def test_the_one_call_kernel_loads_from_the_cache_in_a_fresh_process(crowded):
         from echoloc import _chain_kernels
         from echoloc.benchmark import bench_scene
         from echoloc.pipeline import prepare, samples_results_batch
-        from echoloc.simulate import simulate
+        from echoloc.sim.simulate import simulate
 
         recording = simulate(bench_scene(5), 1)
         found = samples_results_batch(prepare(recording), [recording.frames[0]], [0], [0.0], [0])

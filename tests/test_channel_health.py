@@ -11,7 +11,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from echoloc.channel_health import (
+from echoloc.io.recording import Recording
+from echoloc.localise.evaluate import evaluate
+from echoloc.localise.locate import model_paths_m
+from echoloc.pipeline import _excusing_clipped, prepare, run, samples_echoes_batch, transmitter_objects
+from echoloc.sim.scenefile import load_scene
+from echoloc.sim.simulate import simulate
+from echoloc.tof.channel_health import (
     ASSESS_FRAMES,
     ChannelHealth,
     ChannelWarning,
@@ -22,14 +28,8 @@ from echoloc.channel_health import (
     correct_frames,
     reread_clipped,
 )
-from echoloc.echoes import EchoOptions, FrameEchoes, MatchedFilter
-from echoloc.estimators import MatchedEstimator
-from echoloc.evaluate import evaluate
-from echoloc.locate import model_paths_m
-from echoloc.pipeline import _excusing_clipped, prepare, run, samples_echoes_batch, transmitter_objects
-from echoloc.recording import Recording
-from echoloc.scenefile import load_scene
-from echoloc.simulate import simulate
+from echoloc.tof.echoes import EchoOptions, FrameEchoes, MatchedFilter
+from echoloc.tof.estimators import MatchedEstimator
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "random-1m3.toml"
 

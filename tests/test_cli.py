@@ -1,6 +1,6 @@
 """End-to-end tests of the ``echoloc`` command line against FORMATS.md.
 
-Most cases run in-process through :func:`echoloc.cli.main` (which always ends with
+Most cases run in-process through :func:`echoloc.cli.commands.main` (which always ends with
 ``sys.exit``) and capture stdout/stderr with ``capsys``; a few run the installed
 console script as a real subprocess, to prove what a user's shell sees: the exit
 code, a clean stdout and no traceback on stderr.
@@ -30,10 +30,10 @@ import h5py
 import numpy as np
 import pytest
 
-from echoloc import cli
-from echoloc.recording import Recording, read_recording, write_recording
-from echoloc.scene import default_scene
-from echoloc.simulate import path_lengths_m, simulate
+from echoloc.cli import commands as cli
+from echoloc.io.recording import Recording, read_recording, write_recording
+from echoloc.sim.scene import default_scene
+from echoloc.sim.simulate import path_lengths_m, simulate
 from raw_files import write_raw
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
@@ -651,7 +651,7 @@ def test_click_usage_errors_exit_2(
     assert "--help" in result.err_lines[0]
 
 
-@pytest.mark.filterwarnings("always::echoloc.recording.RecordingWarning")
+@pytest.mark.filterwarnings("always::echoloc.io.recording.RecordingWarning")
 def test_nan_sample_with_repair_warns_and_succeeds(
     capsys: pytest.CaptureFixture[str], in_tmp: Path, good_h5: Path
 ) -> None:
@@ -666,7 +666,7 @@ def test_nan_sample_with_repair_warns_and_succeeds(
     assert len(json_lines(result.out)) == N_FRAMES
 
 
-@pytest.mark.filterwarnings("always::echoloc.recording.RecordingWarning")
+@pytest.mark.filterwarnings("always::echoloc.io.recording.RecordingWarning")
 def test_dead_channel_warns_and_locates_with_three_receivers(
     capsys: pytest.CaptureFixture[str], dead_h5: Path
 ) -> None:
@@ -687,7 +687,7 @@ def test_dead_channel_warns_and_locates_with_three_receivers(
         assert all(obj["receivers"] == 3 for obj in record["objects"]), record
 
 
-@pytest.mark.filterwarnings("always::echoloc.recording.RecordingWarning")
+@pytest.mark.filterwarnings("always::echoloc.io.recording.RecordingWarning")
 def test_dead_channel_single_ball_found_with_three_receivers(
     capsys: pytest.CaptureFixture[str], in_tmp: Path
 ) -> None:
@@ -767,7 +767,7 @@ def test_human_table_shows_frames_without_objects(capsys: pytest.CaptureFixture[
     assert all("-" in row for row in rows)
 
 
-@pytest.mark.filterwarnings("always::echoloc.recording.RecordingWarning")
+@pytest.mark.filterwarnings("always::echoloc.io.recording.RecordingWarning")
 def test_too_few_working_receivers_is_bad_input(capsys: pytest.CaptureFixture[str], in_tmp: Path) -> None:
     """FORMATS.md exit codes: two dead receivers leave too few to locate in 3-D; that is
     bad input (exit 2, one error line naming the file), not an empty result."""
@@ -1015,8 +1015,8 @@ def test_out_of_range_numbers_are_one_line_naming_the_option(
 
 
 def test_a_huge_threshold_is_refused_by_the_library_too() -> None:
-    from echoloc.echoes import THRESHOLD_DB_LIMIT, EchoOptions
     from echoloc.errors import EchoLocError
+    from echoloc.tof.echoes import THRESHOLD_DB_LIMIT, EchoOptions
 
     EchoOptions(threshold_db=THRESHOLD_DB_LIMIT)
     with pytest.raises(EchoLocError, match="threshold_db"):
@@ -1062,8 +1062,8 @@ def test_a_plot_in_a_format_matplotlib_cannot_draw_is_refused_before_the_work(
     assert list(in_tmp.iterdir()) == [], "the demo's recording is not written for a plot it cannot draw"
 
 
-@pytest.mark.filterwarnings("always::echoloc.recording.RecordingWarning")
-@pytest.mark.filterwarnings("always::echoloc.locate.LocateWarning")
+@pytest.mark.filterwarnings("always::echoloc.io.recording.RecordingWarning")
+@pytest.mark.filterwarnings("always::echoloc.localise.locate.LocateWarning")
 def test_backprojection_degrades_to_three_receivers_and_refuses_none(
     capsys: pytest.CaptureFixture[str], in_tmp: Path, good_h5: Path, dead_h5: Path
 ) -> None:
@@ -1118,7 +1118,7 @@ def test_messages_name_the_real_problem(
     assert_bad_input(run(capsys, "image", "good.h5", "-o", "nodir/i.png"), "nodir/i.png: No such file")
 
 
-@pytest.mark.filterwarnings("always::echoloc.recording.RecordingWarning")
+@pytest.mark.filterwarnings("always::echoloc.io.recording.RecordingWarning")
 def test_a_template_cut_from_a_dead_receiver_names_it(
     capsys: pytest.CaptureFixture[str], in_tmp: Path, dead_h5: Path
 ) -> None:
@@ -1143,8 +1143,8 @@ def test_library_refuses_times_no_float_or_ros_time_holds() -> None:
     """The checks below the CLI's own: a stamp of 1e300 s (its nanoseconds overflow an int) or
     NaN, and a NaN or negative template arrival."""
     from echoloc.errors import EchoLocError
-    from echoloc.export import ros_time
-    from echoloc.templates import arrival_time_s
+    from echoloc.io.export import ros_time
+    from echoloc.tof.templates import arrival_time_s
 
     assert ros_time(1.5) == {"sec": 1, "nanosec": 500_000_000}
     for stamp in (1e300, math.nan, math.inf, 2.0**31):
@@ -1203,7 +1203,7 @@ def test_an_interrupt_a_finaliser_swallowed_is_raised_again(sigint: str) -> None
     import signal
     import time
 
-    from echoloc.cli import _interrupt_cleanly
+    from echoloc.cli.commands import _interrupt_cleanly
 
     class InterruptedFinaliser:
         def __del__(self) -> None:
@@ -1250,7 +1250,7 @@ def test_a_signal_the_parent_ignores_stays_ignored() -> None:
     handler takes SIGTERM and leaves that SIGINT alone, and restores both after."""
     import signal
 
-    from echoloc.cli import _interrupt_cleanly
+    from echoloc.cli.commands import _interrupt_cleanly
 
     before = signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
@@ -1264,7 +1264,7 @@ def test_a_signal_the_parent_ignores_stays_ignored() -> None:
         signal.signal(signal.SIGINT, before)
 
 
-@pytest.mark.filterwarnings("always::echoloc.recording.RecordingWarning")
+@pytest.mark.filterwarnings("always::echoloc.io.recording.RecordingWarning")
 def test_recordings_no_echo_can_be_located_in_are_said_so(
     capsys: pytest.CaptureFixture[str], in_tmp: Path, good_h5: Path
 ) -> None:
@@ -1286,7 +1286,7 @@ def test_recordings_no_echo_can_be_located_in_are_said_so(
     assert "shorter than the" in result.err, result.err
 
 
-@pytest.mark.filterwarnings("always::echoloc.locate.LocateWarning")
+@pytest.mark.filterwarnings("always::echoloc.localise.locate.LocateWarning")
 def test_a_speed_of_sound_in_other_units_is_warned_about(
     capsys: pytest.CaptureFixture[str], good_h5: Path
 ) -> None:

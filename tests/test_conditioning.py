@@ -1,4 +1,4 @@
-"""Frame conditioning (echoloc.conditioning): background, time-varying gain, blind zone; and its wiring.
+"""Frame conditioning (echoloc.tof.conditioning): background, time-varying gain, blind zone; and its wiring.
 
 Sources: FORMATS.md (``background``: a recording of the empty scene, to subtract;
 ``receiver_gain``: ``frames / receiver_gain`` is the signal at the transducer);
@@ -16,8 +16,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from echoloc import cli
-from echoloc.conditioning import (
+from echoloc.cli import commands as cli
+from echoloc.errors import EchoLocError
+from echoloc.io.recording import Recording, write_recording
+from echoloc.pipeline import frame_echoes, prepare
+from echoloc.sim.receiver import AdcSpec, GainSpec
+from echoloc.sim.scene import REPORT_ARRAY, ReceiverSpec, RingDown, Scene
+from echoloc.sim.simulate import simulate
+from echoloc.tof.conditioning import (
     Conditioning,
     blind_zone_s,
     compensate_gain,
@@ -28,14 +34,8 @@ from echoloc.conditioning import (
     parse_blind_zone,
     ring_down_end_s,
 )
-from echoloc.echoes import EchoOptions
-from echoloc.errors import EchoLocError
-from echoloc.estimators import ESTIMATORS
-from echoloc.pipeline import frame_echoes, prepare
-from echoloc.receiver import AdcSpec, GainSpec
-from echoloc.recording import Recording, write_recording
-from echoloc.scene import REPORT_ARRAY, ReceiverSpec, RingDown, Scene
-from echoloc.simulate import simulate
+from echoloc.tof.echoes import EchoOptions
+from echoloc.tof.estimators import ESTIMATORS
 
 FS = 200e3
 

@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from echoloc.crlb import (
+from echoloc.errors import EchoLocError
+from echoloc.physics.crlb import (
     amplitude_for_snr,
     bandlimited_derivative,
     coherent_tof_bound,
@@ -20,9 +21,8 @@ from echoloc.crlb import (
     rms_bandwidth_hz,
     unknown_phase_tof_bound,
 )
-from echoloc.errors import EchoLocError
-from echoloc.receiver import to_signal_kind
-from echoloc.waveform import barker_waveform
+from echoloc.physics.waveform import barker_waveform
+from echoloc.sim.receiver import to_signal_kind
 
 F0_HZ = 50e3
 FS_HZ = 1e6

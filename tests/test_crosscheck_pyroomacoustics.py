@@ -76,9 +76,9 @@ import pytest
 import scipy.fft
 from numpy.typing import NDArray
 
-from echoloc.reflectors import Plane, PointReflector
-from echoloc.scene import Array, RingDown, Scene
-from echoloc.simulate import simulate
+from echoloc.sim.reflectors import Plane, PointReflector
+from echoloc.sim.scene import Array, RingDown, Scene
+from echoloc.sim.simulate import simulate
 
 pra = pytest.importorskip("pyroomacoustics")
 

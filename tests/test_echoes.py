@@ -8,11 +8,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import signal
 
-from echoloc.echoes import ChannelEchoes, EchoOptions, MatchedFilter, noise_power
-from echoloc.estimators import ESTIMATORS
-from echoloc.recording import Recording
-from echoloc.synthesis import synthesize_frames
-from echoloc.waveform import barker_waveform
+from echoloc.io.recording import Recording
+from echoloc.physics.waveform import barker_waveform
+from echoloc.sim.synthesis import synthesize_frames
+from echoloc.tof.echoes import ChannelEchoes, EchoOptions, MatchedFilter, noise_power
+from echoloc.tof.estimators import ESTIMATORS
 
 FS = 200e3
 N_SAMPLES = 2400
@@ -154,7 +154,7 @@ def test_a_kept_autocorrelation_table_is_the_built_one_and_a_copy(monkeypatch: p
     what the table does not depend on (sample rate, arrival) shares it, another pulse or
     oversampling or decimation gets its own, and the store drops the least recently used
     table first and never holds more than its bytes."""
-    from echoloc import echoes
+    from echoloc.tof import echoes
 
     echoes._ACF_TABLES.clear()
     first = MatchedFilter(PULSE, N_SAMPLES, FS)
@@ -273,7 +273,7 @@ def test_full_and_decimated_filters_find_the_same_echoes(delay: float, spacing: 
     """Two noiseless echoes: the registered (decimated) matched filter and one at every sample find
     both at their true delays, to a thousandth of a sample, and their amplitudes within 1 %
     (a lone echo's fit keeps the other echo's sidelobes as the single fits left them)."""
-    from echoloc.echoes import matched_filter_echoes
+    from echoloc.tof.echoes import matched_filter_echoes
 
     frames = frames_with_echoes([delay, delay + spacing], [1.0, 0.6])[0]
     for decimation in (1, 2):
@@ -318,10 +318,10 @@ def test_two_equal_echoes_half_a_chip_apart_are_both_found_at_the_reports_snr() 
     """Issue 8's resolution figure: reflectors 7 mm apart in range (half the 13.7 mm chip),
     equal echoes, per-sample SNR 13, the 50 kHz transducer pair: both echoes within 1 mm
     of range in at least 95 % of 40 noisy trials (200 of 200 with the study's protocol)."""
-    from echoloc.crlb import peak_amplitude
-    from echoloc.reflectors import PointReflector
-    from echoloc.scene import Array, Scene
-    from echoloc.simulate import simulate
+    from echoloc.physics.crlb import peak_amplitude
+    from echoloc.sim.reflectors import PointReflector
+    from echoloc.sim.scene import Array, Scene
+    from echoloc.sim.simulate import simulate
 
     pair = Array(np.array([[-0.02, 0.0, 0.0]]), np.array([[0.02, 0.0, 0.0]]))
     tx, rx = pair.transmitters_m[0], pair.receivers_m[0]

@@ -8,9 +8,14 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from echoloc import echoes as echoes_module
 from echoloc.benchmark import bench_scene
-from echoloc.echoes import (
+from echoloc.errors import EchoLocError
+from echoloc.localise.locate import model_paths_m
+from echoloc.pipeline import prepare
+from echoloc.sim.scene import default_scene
+from echoloc.sim.simulate import simulate
+from echoloc.tof import echoes as echoes_module
+from echoloc.tof.echoes import (
     ChannelEchoes,
     EchoOptions,
     MatchedFilter,
@@ -24,11 +29,6 @@ from echoloc.echoes import (
     matched_filter_batch,
     matched_filter_echoes,
 )
-from echoloc.errors import EchoLocError
-from echoloc.locate import model_paths_m
-from echoloc.pipeline import prepare
-from echoloc.scene import default_scene
-from echoloc.simulate import simulate
 from test_echoes import FS, N_SAMPLES, PULSE, frames_with_echoes
 
 MF = MatchedFilter(PULSE, N_SAMPLES, FS)
@@ -348,7 +348,7 @@ def test_compiled_clean_extraction_matches_on_a_crowded_channel() -> None:
 def test_compiled_median_is_numpy_s_median(n: int) -> None:
     """The batch path's branch-free quickselect gives numpy's median exactly: on noise powers,
     with ties, sorted, reversed and organ-pipe orders (where a naive pivot degrades)."""
-    from echoloc._echoes_kernels import _median
+    from echoloc.tof._echoes_kernels import _median
 
     rng = np.random.default_rng(n)
     noise = rng.exponential(size=n)
@@ -370,7 +370,7 @@ def test_compiled_finish_is_finish_channel(options: EchoOptions) -> None:
     """The batch path's compiled finishing (seconds, output SNR, blanking, threshold, dynamic range,
     ascending delay) gives finish_channel's echoes for every channel it fitted (fitted with the
     default options, so that stricter ones have echoes to drop)."""
-    from echoloc.echoes import _compiled_batch, _finish_batch, finish_channel
+    from echoloc.tof.echoes import _compiled_batch, _finish_batch, finish_channel
 
     frames = scene_frames(7)
     correlation = MF.correlate_single(frames).reshape(-1, N_SAMPLES)
@@ -397,8 +397,8 @@ def test_carrier_turning_fit_reaches_the_same_minimum() -> None:
     same cost and minima: on noiseless data of two echoes 12 samples apart (inside a main lobe),
     started a third of a sample and 20 % off, both parametrisations recover the true delays and
     amplitudes, and the rotated one also from half a carrier cycle (2 samples) off."""
-    from echoloc import _echoes_kernels as kernels
-    from echoloc.echoes import _shape_values
+    from echoloc.tof import _echoes_kernels as kernels
+    from echoloc.tof.echoes import _shape_values
 
     delays, amplitudes = np.array([707.17, 719.4]), np.array([2.7 + 0.4j, -1.9 + 0.6j])
     lo, hi = 690, 737
@@ -462,8 +462,8 @@ def test_stopping_the_complex_fit_on_a_small_gain_leaves_the_minimum() -> None:
     """The complex-amplitude stage stops once a step gains less than 1 % of the cost: on noisy data of
     two echoes 9 samples apart, started a third of a sample and half a carrier cycle off, the
     real-amplitude fit from there reaches the minimum it reaches after a complex stage run to 1e-9."""
-    from echoloc import _echoes_kernels as kernels
-    from echoloc.echoes import _shape_values
+    from echoloc.tof import _echoes_kernels as kernels
+    from echoloc.tof.echoes import _shape_values
 
     delays, amplitudes = np.array([707.17, 716.2]), np.array([1.3, 0.9])
     lo, hi = 690, 734
@@ -495,7 +495,7 @@ def test_stopping_the_complex_fit_on_a_small_gain_leaves_the_minimum() -> None:
 def test_extraction_peak_search_is_the_first_largest_sample() -> None:
     """The extraction's running block maxima give the first sample of largest power at or after the
     blanking, as a full scan does: with ties, zeros and a refreshed stretch."""
-    from echoloc import _echoes_kernels as kernels
+    from echoloc.tof import _echoes_kernels as kernels
 
     rng = np.random.default_rng(11)
     residual = (rng.normal(size=1000) + 1j * rng.normal(size=1000)).round(1)  # many ties
@@ -522,7 +522,7 @@ def test_sampled_median_is_numpy_s_median(n: int) -> None:
     """CLEAN's median bracketed by every 8th value gives numpy's median exactly: on noise powers, with
     ties, sorted, reversed, organ-pipe and constant orders, and where the sampled values mislead the
     bracket (all of them huge or zero: the full quickselect then)."""
-    from echoloc._echoes_kernels import _median_sampled
+    from echoloc.tof._echoes_kernels import _median_sampled
 
     rng = np.random.default_rng(n)
     for _ in range(5):
@@ -545,7 +545,7 @@ def test_sampled_median_is_numpy_s_median(n: int) -> None:
 
 def _noise_median(values: np.ndarray) -> float:
     """The batch path's noise median of ``values``, its counters checked left at zero."""
-    from echoloc import _echoes_kernels as kernels
+    from echoloc.tof import _echoes_kernels as kernels
 
     counts = np.zeros(kernels._EXPONENT_BUCKETS + kernels._MANTISSA_BUCKETS, dtype=np.int32)
     found = kernels._noise_median(
@@ -577,7 +577,7 @@ def test_the_radix_noise_median_on_noise_and_its_hard_cases(n: int) -> None:
     """On a channel's noise powers with echo peaks, sorted, constant (a dead channel: more
     values share a band than it sorts), and with a negative or NaN value (the quickselect then,
     which it equals): numpy's median, and with a NaN the quickselect's answer."""
-    from echoloc._echoes_kernels import _median
+    from echoloc.tof._echoes_kernels import _median
 
     rng = np.random.default_rng(n)
     powers = np.abs(rng.normal(size=n) + 1j * rng.normal(size=n)) ** 2
@@ -617,7 +617,7 @@ def test_lone_echo_step_is_the_general_fit_s(
     rounding decides whether a converged fit's last tiny step is taken, lands within 1e-7 lags
     (the filter keeps every 2nd sample: 2e-7 samples, 1 ps at 200 kHz; a wrong step would be
     off by thousandths of a lag or more)."""
-    from echoloc import _echoes_kernels as kernels
+    from echoloc.tof import _echoes_kernels as kernels
 
     mf = MatchedFilter(PULSE, N_SAMPLES, FS, decimation=2)
     rng = np.random.default_rng(seed)
@@ -650,7 +650,7 @@ def test_lone_echo_step_is_the_general_fit_s(
 
 def _grid_of(mf: MatchedFilter, delay: float) -> tuple[np.ndarray, np.ndarray]:
     """The kernels' grid position (base and rows, weight) of one delay."""
-    from echoloc import _echoes_kernels as kernels
+    from echoloc.tof import _echoes_kernels as kernels
 
     grid_b, grid_w = np.zeros((1, 4), dtype=np.int64), np.zeros(1)
     kernels._prepare(mf.oversample, np.array([delay]), grid_b, grid_w)
@@ -702,9 +702,9 @@ def test_two_threads_with_parallel_kernels_on_numba_s_workqueue_layer_do_not_kil
         """
         import threading
         from echoloc.benchmark import bench_scene
-        from echoloc.echoes import EchoOptions
+        from echoloc.tof.echoes import EchoOptions
         from echoloc.pipeline import prepare, run
-        from echoloc.simulate import simulate
+        from echoloc.sim.simulate import simulate
 
         recording = simulate(bench_scene(5), 64)
         chains = [prepare(recording, echo_options=EchoOptions(workers=2)) for _ in range(2)]

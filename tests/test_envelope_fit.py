@@ -4,7 +4,7 @@ Recordings are simulated as a time-of-flight chip would report them: the report'
 sensor head, Barker-13 × 4 cycles at 50 kHz through the ``electrostatic50``
 transducers, recorded as complex baseband (``iq``) or its magnitude (``envelope``)
 at 20 kHz, 17 mm of path per sample. Per-sample SNR follows the project's
-convention (:func:`echoloc.crlb.per_sample_snr`, :mod:`echoloc.scene`): the echo's
+convention (:func:`echoloc.physics.crlb.per_sample_snr`, :mod:`echoloc.sim.scene`): the echo's
 peak amplitude over the standard deviation of the receiver's rf noise before
 demodulation.
 """
@@ -19,15 +19,19 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from echoloc.crlb import (
+from echoloc.errors import EchoLocError
+from echoloc.io.recording import Recording
+from echoloc.physics.crlb import (
     bandlimited_derivative,
     envelope_derivative,
     envelope_noise_sigma,
     envelope_tof_bound,
     peak_amplitude,
 )
-from echoloc.echoes import ChannelEchoes, EchoOptions, noise_power
-from echoloc.envelope_fit import (
+from echoloc.sim.scene import REPORT_ARRAY, ReceiverSpec, Scene
+from echoloc.sim.simulate import simulate
+from echoloc.tof.echoes import ChannelEchoes, EchoOptions, noise_power
+from echoloc.tof.envelope_fit import (
     BandLimitedShape,
     EnvelopeFitter,
     emg,
@@ -35,11 +39,7 @@ from echoloc.envelope_fit import (
     envelope_fitter,
     fft_upsample,
 )
-from echoloc.errors import EchoLocError
-from echoloc.estimators import ESTIMATORS
-from echoloc.recording import Recording
-from echoloc.scene import REPORT_ARRAY, ReceiverSpec, Scene
-from echoloc.simulate import simulate
+from echoloc.tof.estimators import ESTIMATORS
 from test_envelopes import ENVELOPE_RECORDING_BOUND_S
 
 RATE_HZ = 20e3

@@ -19,25 +19,25 @@ from click.testing import CliRunner
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from echoloc.calibrate import Calibration, read_calibration, write_calibration
-from echoloc.cli import cli, main
-from echoloc.echoes import EchoOptions
-from echoloc.envelope_peaks import (
+from echoloc.cli.commands import cli, main
+from echoloc.io.recording import Recording
+from echoloc.localise.calibrate import Calibration, read_calibration, write_calibration
+from echoloc.tof.echoes import EchoOptions
+from echoloc.tof.envelope_peaks import (
     learn_echo_shape,
     peak_delay_s,
     peak_echoes,
     prepare_peak_detector,
     ring_down_samples,
 )
-from echoloc.estimators import default_estimator
-from echoloc.recording import Recording
-from echoloc.templates import Template
+from echoloc.tof.estimators import default_estimator
+from echoloc.tof.templates import Template
 
 FS = 22_000.0
 N = 62
 WIDTH = 1.6  # samples, the Gaussian's standard deviation (FWHM 3.8 samples, as the CH101's)
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "ch101-spiel" / "dev.h5"
-evaluate_module = importlib.import_module("echoloc.evaluate")
+evaluate_module = importlib.import_module("echoloc.localise.evaluate")
 
 
 def gaussian_echo(peak_samples: float, height: float = 1000.0) -> np.ndarray:
@@ -169,7 +169,7 @@ def test_real_ch101_flow_with_defaults_only(tmp_path: Path) -> None:
         ],
     )
     assert result.exit_code == 0, result.output
-    from echoloc.recording import read_recording
+    from echoloc.io.recording import read_recording
 
     truth = read_recording(DATA).truth_positions_m
     assert truth is not None
@@ -192,8 +192,8 @@ def test_template_learns_the_echo_shape_of_an_envelope_recording(
 ) -> None:
     """`echoloc template` on envelope data without a waveform: the shape learnt from known
     targets peaks where the echoes do, 2.3 samples after their arrival."""
-    from echoloc.recording import write_recording
-    from echoloc.templates import read_template
+    from echoloc.io.recording import write_recording
+    from echoloc.tof.templates import read_template
 
     rng = np.random.default_rng(5)
     receivers = np.array([[0.0, 0.0, 0.0], [0.075, 0.0, 0.0], [-0.0375, 0.065, 0.0]])

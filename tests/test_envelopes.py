@@ -1,4 +1,4 @@
-"""Envelope estimators (echoloc.envelopes): the FIR envelope, CA-CFAR, and the estimators built on them.
+"""Envelope estimators (echoloc.tof.envelopes): the FIR envelope, CA-CFAR, and the estimators built on them.
 
 Sources: the report's ch. 3.3 (NOTES.md, "Time of flight": threshold, energy,
 leading-edge fit, envelope zero with two pulse trains); Oppenheim & Schafer,
@@ -20,8 +20,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from echoloc.echoes import ChannelEchoes, EchoOptions
-from echoloc.envelopes import (
+from echoloc.errors import EchoLocError
+from echoloc.io.recording import Recording
+from echoloc.physics.waveform import barker_waveform, waveform_by_name
+from echoloc.sim.receiver import GainSpec
+from echoloc.sim.scene import REPORT_ARRAY, PulseSpec, ReceiverSpec, Scene
+from echoloc.sim.simulate import simulate
+from echoloc.sim.synthesis import synthesize_frames
+from echoloc.tof.echoes import ChannelEchoes, EchoOptions
+from echoloc.tof.envelopes import (
     EnvelopeOptions,
     ThresholdDetector,
     ca_cfar_threshold,
@@ -32,14 +39,7 @@ from echoloc.envelopes import (
     lowpass_taps,
     training_mean,
 )
-from echoloc.errors import EchoLocError
-from echoloc.estimators import ESTIMATORS
-from echoloc.receiver import GainSpec
-from echoloc.recording import Recording
-from echoloc.scene import REPORT_ARRAY, PulseSpec, ReceiverSpec, Scene
-from echoloc.simulate import simulate
-from echoloc.synthesis import synthesize_frames
-from echoloc.waveform import barker_waveform, waveform_by_name
+from echoloc.tof.estimators import ESTIMATORS
 
 FS = 200e3
 FC = 50e3

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from echoloc.errors import EchoLocError
-from echoloc.evaluate import evaluate, frames_at_positions, match, target_positions
-from echoloc.locate import FrameObjects, LocatedObject
+from echoloc.localise.evaluate import evaluate, frames_at_positions, match, target_positions
+from echoloc.localise.locate import FrameObjects, LocatedObject
 
 
 def _objects(frame: int, positions: list[list[float]], std: float = 1e-3) -> FrameObjects:

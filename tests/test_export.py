@@ -15,7 +15,7 @@ from plyfile import PlyData
 
 from echoloc import pipeline
 from echoloc.errors import EchoLocError
-from echoloc.export import (
+from echoloc.io.export import (
     OBJECTS_TOPIC,
     POINT_FIELDS,
     SENSOR_FRAME_ID,
@@ -25,10 +25,10 @@ from echoloc.export import (
     write_mcap,
     write_ply,
 )
-from echoloc.locate import FrameObjects, LocatedObject
-from echoloc.recording import Recording
-from echoloc.scene import default_scene
-from echoloc.simulate import simulate
+from echoloc.io.recording import Recording
+from echoloc.localise.locate import FrameObjects, LocatedObject
+from echoloc.sim.scene import default_scene
+from echoloc.sim.simulate import simulate
 
 
 @pytest.fixture(scope="module")

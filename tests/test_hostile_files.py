@@ -21,10 +21,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from echoloc import recording as recording_module
-from echoloc.calibrate import read_calibration
 from echoloc.errors import EchoLocError, RecordingError, SceneError
-from echoloc.recording import (
+from echoloc.io import recording as recording_module
+from echoloc.io.recording import (
     FrameBatch,
     Recording,
     as_header,
@@ -33,7 +32,8 @@ from echoloc.recording import (
     write_recording,
     write_recording_stream,
 )
-from echoloc.scenefile import load_scene, scene_from_dict
+from echoloc.localise.calibrate import read_calibration
+from echoloc.sim.scenefile import load_scene, scene_from_dict
 
 REPO = Path(__file__).resolve().parent.parent
 SCENE = REPO / "examples" / "report-three-balls.toml"
@@ -125,7 +125,7 @@ def test_hanging_hdf5_is_refused_by_the_stall_watchdog(stalling_hdf5: Path) -> N
     path = stalling_hdf5
     code = (
         "import sys, time\n"
-        "from echoloc import recording\n"
+        "from echoloc.io import recording\n"
         "start = time.monotonic()\n"
         "try:\n"
         "    recording.read_recording(sys.argv[1])\n"
@@ -211,7 +211,7 @@ def test_reader_child_dies_with_a_killed_parent(stalling_hdf5: Path) -> None:
         [
             sys.executable,
             "-c",
-            "import sys; from echoloc.recording import read_recording; read_recording(sys.argv[1])",
+            "import sys; from echoloc.io.recording import read_recording; read_recording(sys.argv[1])",
             str(path),
         ],
         stdout=subprocess.DEVNULL,
@@ -258,7 +258,7 @@ def test_the_reader_child_path_leaves_out_the_current_directory(
     assert str(tmp_path) not in paths
     assert "" not in paths
     assert str(tmp_path / "relative" / "dir") in paths  # made absolute, not left relative
-    assert str(Path(recording_module.__file__).resolve().parent.parent) in paths  # echoloc's own root
+    assert str(Path(recording_module.__file__).resolve().parents[2]) in paths  # echoloc's own root
     stdlib = os.path.dirname(os.__file__)
     assert paths.index(stdlib) < paths.index(os.path.dirname(os.path.dirname(np.__file__)))
 
@@ -455,7 +455,7 @@ def test_hostile_calibration_is_an_echoloc_error(tmp_path: Path, content: str, n
 def test_positions_beyond_reach_are_the_recording_s_error(tmp_path: Path) -> None:
     """Receivers at 1e300 m (a hostile session found them) overflowed the geometry's
     squares downstream; a recording or session refuses coordinates beyond 10 km."""
-    from echoloc.recording import validate_header
+    from echoloc.io.recording import validate_header
 
     header = as_header(small_recording())
     far = np.array(header.receivers_m, dtype=float)
@@ -491,7 +491,7 @@ def test_devices_fifos_and_oversize_files_are_not_read(tmp_path: Path, monkeypat
 
 
 def test_cli_refuses_device_inputs_with_exit_2(tmp_path: Path, capsys: Any) -> None:
-    from echoloc.cli import main
+    from echoloc.cli.commands import main
 
     with pytest.raises(SystemExit) as info:
         main(["simulate", "/dev/zero", "-o", str(tmp_path / "out.h5")])
@@ -555,7 +555,7 @@ def test_a_killed_writer_leaves_a_temporary_the_next_write_removes(tmp_path: Pat
     script = (
         "import sys, time\n"
         "import numpy as np\n"
-        "from echoloc.recording import FrameBatch, Recording, as_header, write_recording_stream\n"
+        "from echoloc.io.recording import FrameBatch, Recording, as_header, write_recording_stream\n"
         "rec = Recording(sample_rate_hz=200e3, transmitters_m=np.zeros((1, 3)),\n"
         "    receivers_m=np.eye(3), frames=np.zeros((1, 3, 64)), waveform=np.ones(8))\n"
         "def batches():\n"
@@ -608,58 +608,58 @@ def _head_text() -> str:
 
 
 def _template_file(path: Path) -> Path:
-    from echoloc.templates import Template, write_template
+    from echoloc.tof.templates import Template, write_template
 
     return write_template(Template(np.sin(np.arange(400) / 3.0), 200e3, 1e-5, "t"), path)
 
 
 def _user_inputs() -> dict[str, tuple[Any, str, Any, str]]:
     """Each reader of a user-given file: (read, suffix, write valid content, limit's module:name)."""
-    from echoloc import importers
+    from echoloc.io import importers
 
     return {
         "sensor head": (
             importers.read_head,
             ".toml",
             lambda p: p.write_text(_head_text()),
-            "importers:MAX_HEAD_BYTES",
+            "io.importers:MAX_HEAD_BYTES",
         ),
         "samples table": (
             importers.read_table,
             ".csv",
             lambda p: p.write_text("1,2\n" * 40),
-            "importers:MAX_TABLE_BYTES",
+            "io.importers:MAX_TABLE_BYTES",
         ),
         "SPiEL frame": (
             lambda p: importers._spiel_frame(p, 40, None),
             ".csv",
             lambda p: p.write_text("1 2\n" * 40),
-            "importers:MAX_SPIEL_FILE_BYTES",
+            "io.importers:MAX_SPIEL_FILE_BYTES",
         ),
         "samples .npy": (
             importers._load_npy,
             ".npy",
             lambda p: np.save(p, np.zeros(40)),
-            "importers:MAX_RECORDING_BYTES",
+            "io.importers:MAX_RECORDING_BYTES",
         ),
         "trajectory": (
             _read_trajectory,
             ".txt",
             lambda p: p.write_text("".join(f"{t} 0 0 0 0 0 0 1\n" for t in range(10))),
-            "mapping:MAX_TRAJECTORY_BYTES",
+            "maps.mapping:MAX_TRAJECTORY_BYTES",
         ),
-        "template": (_read_template, ".npz", _template_file, "templates:MAX_TEMPLATE_BYTES"),
+        "template": (_read_template, ".npz", _template_file, "tof.templates:MAX_TEMPLATE_BYTES"),
     }
 
 
 def _read_trajectory(path: Path) -> object:
-    from echoloc.mapping import read_trajectory
+    from echoloc.maps.mapping import read_trajectory
 
     return read_trajectory(path)
 
 
 def _read_template(path: Path) -> object:
-    from echoloc.templates import read_template
+    from echoloc.tof.templates import read_template
 
     return read_template(path)
 
@@ -697,7 +697,7 @@ def test_every_reader_refuses_a_file_past_its_size_limit(
 
 
 def test_npy_declaring_more_than_it_holds_is_refused_before_reading(tmp_path: Path) -> None:
-    from echoloc.importers import _load_npy
+    from echoloc.io.importers import _load_npy
 
     path = tmp_path / "samples.npy"
     with open(path, "wb") as fh:
@@ -712,7 +712,7 @@ def test_npy_declaring_more_than_it_holds_is_refused_before_reading(tmp_path: Pa
 def test_template_unpacking_past_its_limit_is_refused(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from echoloc import templates
+    from echoloc.tof import templates
 
     path = tmp_path / "bomb.npz"
     np.savez_compressed(
@@ -725,7 +725,7 @@ def test_template_unpacking_past_its_limit_is_refused(
 
 
 def test_deeply_nested_sensor_head_is_an_echoloc_error(tmp_path: Path) -> None:
-    from echoloc.importers import read_head
+    from echoloc.io.importers import read_head
 
     path = tmp_path / "head.toml"
     path.write_text("x = " + "[" * 3000 + "]" * 3000)

@@ -22,7 +22,8 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from echoloc.errors import EchoLocError, RecordingError
-from echoloc.protocol import (
+from echoloc.io.recording import write_recording
+from echoloc.realtime.protocol import (
     HEADER,
     HEADER_BYTES,
     HEADER_CRC,
@@ -42,11 +43,8 @@ from echoloc.protocol import (
     session_record,
     split_messages,
 )
-from echoloc.recording import write_recording
-from echoloc.scene import default_scene
-from echoloc.simulate import simulate
-from echoloc.stream import FrameQueue, SequenceTracker, StreamFrame, rare_counts
-from echoloc.transport import (
+from echoloc.realtime.stream import FrameQueue, SequenceTracker, StreamFrame, rare_counts
+from echoloc.realtime.transport import (
     MAX_REFUSING_THREADS,
     EndEvent,
     Endpoint,
@@ -56,6 +54,8 @@ from echoloc.transport import (
     _Replies,
     send_recording,
 )
+from echoloc.sim.scene import default_scene
+from echoloc.sim.simulate import simulate
 
 N_FRAMES = 3
 
@@ -276,7 +276,7 @@ def test_whatever_a_session_makes_the_listener_raise_refuses_only_that_session(r
 
 
 def test_a_frame_that_makes_the_decoder_raise_is_counted_and_the_next_is_taken(recording, monkeypatch):
-    import echoloc.transport as transport
+    import echoloc.realtime.transport as transport
 
     real = transport.decode_frame
     raised = []
@@ -299,7 +299,7 @@ def test_a_frame_that_makes_the_decoder_raise_is_counted_and_the_next_is_taken(r
 
 
 def test_send_says_its_session_was_refused_with_exit_2(tmp_path, recording, capsys):
-    from echoloc import cli
+    from echoloc.cli import commands as cli
 
     path = tmp_path / "head.h5"
     write_recording(recording, path)
@@ -500,8 +500,8 @@ def test_the_queue_is_bounded_in_bytes_as_well_as_in_frames():
 
 def test_the_recorder_hand_over_is_bounded_in_bytes(tmp_path, recording):
     """Frames waiting for the writer take at most max_bytes; the rest are counted dropped."""
-    from echoloc.recording import read_recording
-    from echoloc.transport import Recorder
+    from echoloc.io.recording import read_recording
+    from echoloc.realtime.transport import Recorder
 
     release = threading.Event()
 
@@ -762,7 +762,7 @@ def test_a_command_that_refused_every_session_says_what_and_exits_2(tmp_path, go
 
 
 def test_record_refuses_to_replace_a_file_without_force(tmp_path, capsys):
-    from echoloc import cli
+    from echoloc.cli import commands as cli
 
     out = tmp_path / "kept.h5"
     out.write_bytes(b"an earlier recording")
@@ -779,7 +779,7 @@ def test_record_refuses_to_replace_a_file_without_force(tmp_path, capsys):
 
 
 def test_record_with_force_replaces_the_file(tmp_path, recording_path, recording):
-    from echoloc.recording import read_recording
+    from echoloc.io.recording import read_recording
     from test_stream_cli import Proc, echoloc
 
     out = tmp_path / "again.h5"

@@ -1,4 +1,4 @@
-"""Tests of ``echoloc import`` and :mod:`echoloc.importers`.
+"""Tests of ``echoloc import`` and :mod:`echoloc.io.importers`.
 
 The SPiEL fixtures are built from ``/work/shared/data/ch101-spiel/dev.h5``, a
 conversion of the real CH101 data set published with
@@ -28,9 +28,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from echoloc import cli
+from echoloc.cli import commands as cli
 from echoloc.errors import EchoLocError
-from echoloc.importers import (
+from echoloc.io.importers import (
     SPIEL_HEAD,
     TruthSpan,
     natural_sort_key,
@@ -39,7 +39,7 @@ from echoloc.importers import (
     read_spiel,
     truth_positions_m,
 )
-from echoloc.recording import read_recording
+from echoloc.io.recording import read_recording
 
 DEV_H5 = Path("/work/shared/data/ch101-spiel/dev.h5")
 ECHOLOC = Path(sys.executable).parent / "echoloc"

@@ -13,11 +13,11 @@ import pytest
 import websockets
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
-from echoloc.liveview import LiveView, envelope_trace
 from echoloc.pipeline import prepare
-from echoloc.scene import default_scene
-from echoloc.simulate import simulate
-from echoloc.stream import StreamProcessor, recording_frames
+from echoloc.realtime.liveview import LiveView, envelope_trace
+from echoloc.realtime.stream import StreamProcessor, recording_frames
+from echoloc.sim.scene import default_scene
+from echoloc.sim.simulate import simulate
 
 SUBPROTOCOL = "foxglove.sdk.v1"  # what foxglove-sdk >= 0.30 serves (foxglove.websocket.v1 before)
 
@@ -93,7 +93,7 @@ def test_foxglove_client_receives_and_decodes_objects_traces_and_stats(results):
         view.set_session(recording)
 
         def publish():
-            from echoloc.stream import StreamStats
+            from echoloc.realtime.stream import StreamStats
 
             for _ in range(20):  # again and again, in case the first went out before the subscription
                 for result, samples in frames:
@@ -189,8 +189,8 @@ def test_envelope_trace_pools_the_analytic_magnitude():
 def test_a_live_floor_plan_arrives_placed_on_the_sensors_horizontal_plane(results):
     from scipy.spatial.transform import Rotation
 
-    from echoloc.map_export import floor_plan_cells, floor_plan_pose
-    from echoloc.mapping import GridSpec, MapAccumulator
+    from echoloc.maps.map_export import floor_plan_cells, floor_plan_pose
+    from echoloc.maps.mapping import GridSpec, MapAccumulator
 
     recording, processed = results
     spec = GridSpec.floor_plan((-0.5, 0.5), (0.2, 1.0), 0.02)

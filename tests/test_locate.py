@@ -10,8 +10,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from echoloc.echoes import ChannelEchoes, FrameEchoes
-from echoloc.locate import (
+from echoloc.localise.locate import (
     FrameLocator,
     LocateOptions,
     associate,
@@ -24,6 +23,7 @@ from echoloc.locate import (
     paired_closed_form_2d,
     solve_positions,
 )
+from echoloc.tof.echoes import ChannelEchoes, FrameEchoes
 
 D = 0.25
 TX = np.zeros(3)
@@ -537,7 +537,7 @@ def test_channel_indices_of_any_integer_dtype() -> None:
 )
 def test_the_compiled_exact_solution_matches_the_numpy_one(point: tuple, receivers: list) -> None:
     """The seed kernel's exact three-ellipsoid crossing equals exact_solutions (numpy)."""
-    from echoloc import _locate_kernels
+    from echoloc.localise import _locate_kernels
 
     rx = np.array(receivers, dtype=float)
     assume(np.linalg.svd(rx, compute_uv=False)[-1] > 0.03)

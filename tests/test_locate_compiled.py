@@ -9,9 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from echoloc import locate
-from echoloc.echoes import ChannelEchoes, FrameEchoes
-from echoloc.locate import (
+from echoloc.localise import locate
+from echoloc.localise.locate import (
     FrameLocator,
     LocatedObject,
     LocateOptions,
@@ -19,6 +18,7 @@ from echoloc.locate import (
     locate_frame,
     model_paths_m,
 )
+from echoloc.tof.echoes import ChannelEchoes, FrameEchoes
 
 CROSS = np.array([[0.25, 0, 0], [-0.25, 0, 0], [0, 0.25, 0], [0, -0.25, 0]], dtype=float)
 TRANSMITTERS = np.array([[0.0, 0.0, 0.0], [0.1, 0.1, 0.0]])
@@ -120,7 +120,7 @@ candidate_sets = st.lists(
 def test_the_compiled_set_packing_matches_the_reference(items: list, node_limit: int) -> None:
     """Weighted set packing: the same candidates, in the same order, as locate._best_disjoint,
     also when the node limit cuts the search short."""
-    from echoloc import _locate_kernels
+    from echoloc.localise import _locate_kernels
 
     echo = np.array([e for e, _ in items], dtype=np.int64)
     weights = np.array([w for _, w in items])
@@ -139,7 +139,7 @@ def test_the_compiled_set_packing_matches_the_reference(items: list, node_limit:
 def test_tied_weights_leave_the_packing_to_the_reference() -> None:
     """Equal weights in one group of conflicting candidates: the reference's order (set
     iteration) decides, so the compiled packing declines."""
-    from echoloc import _locate_kernels
+    from echoloc.localise import _locate_kernels
 
     ids = np.array([[0, 4, -1, -1], [0, 5, -1, -1], [1, 6, -1, -1]])
     out = np.empty(3, dtype=np.int64)
@@ -162,7 +162,7 @@ def test_tied_weights_leave_the_packing_to_the_reference() -> None:
 )
 def test_the_compiled_sort_within_channels_matches_lexsort(channels: list) -> None:
     """Each channel's paths sorted stably (ties keep their order, NaN last), as np.lexsort does."""
-    from echoloc import _locate_kernels
+    from echoloc.localise import _locate_kernels
 
     paths = np.array([p for ch in channels for p in ch], dtype=float)
     offset = np.cumsum([0] + [len(ch) for ch in channels])
@@ -197,7 +197,7 @@ def test_the_compiled_path_sigmas_match_path_sigmas_m(
 @given(rows=st.lists(st.tuples(st.integers(-1, 2), st.integers(-1, 2), st.integers(0, 2)), max_size=40))
 def test_the_compiled_first_of_each_matches_the_reference(rows: list) -> None:
     """The first row of every distinct (echo, use), in order, as locate._first_of_each."""
-    from echoloc import _locate_kernels
+    from echoloc.localise import _locate_kernels
 
     echo = np.array([[a, b] for a, b, _ in rows], dtype=np.int64).reshape(-1, 2)
     use = np.array([[u, 2 - u] for _, _, u in rows], dtype=np.int8).reshape(-1, 2)
@@ -361,7 +361,7 @@ def test_the_fast_located_object_is_the_dataclass_value() -> None:
 def test_the_kernel_orders_objects_only_beyond_doubt() -> None:
     """_nearest_first sorts the surviving rows nearest first, and leaves distances within
     1e-9 of each other (or not finite) to locate's own order."""
-    from echoloc import _locate_kernels
+    from echoloc.localise import _locate_kernels
 
     origin = np.zeros(3)
     position = np.array([[0.0, 0.0, 2.0], [9.0, 9.0, 9.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.5]])

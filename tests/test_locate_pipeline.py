@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from echoloc import pipeline
-from echoloc.evaluate import evaluate
-from echoloc.scenefile import load_scene
-from echoloc.simulate import simulate
-from echoloc.transducer import PRESETS
+from echoloc.localise.evaluate import evaluate
+from echoloc.physics.transducer import PRESETS
+from echoloc.sim.scenefile import load_scene
+from echoloc.sim.simulate import simulate
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 

@@ -13,10 +13,11 @@ from mcap_ros2.decoder import DecoderFactory
 from plyfile import PlyData
 from scipy.spatial.transform import Rotation
 
-from echoloc import cli
+from echoloc.cli import commands as cli
 from echoloc.errors import EchoLocError
-from echoloc.export import SENSOR_FRAME_ID
-from echoloc.map_export import (
+from echoloc.io.export import SENSOR_FRAME_ID
+from echoloc.io.recording import write_recording
+from echoloc.maps.map_export import (
     MAP_CLOUD_TOPIC,
     MAP_TOPIC,
     TF_TOPIC,
@@ -26,11 +27,10 @@ from echoloc.map_export import (
     write_map_mcap,
     write_octomap,
 )
-from echoloc.mapping import MAP_FRAME_ID, GridSpec, OccupancyGrid, SensorModel
-from echoloc.recording import write_recording
-from echoloc.reflectors import Plane
-from echoloc.scene import Array, Scene, SensorMotion
-from echoloc.simulate import simulate
+from echoloc.maps.mapping import MAP_FRAME_ID, GridSpec, OccupancyGrid, SensorModel
+from echoloc.sim.reflectors import Plane
+from echoloc.sim.scene import Array, Scene, SensorMotion
+from echoloc.sim.simulate import simulate
 
 
 def _grid(spec: GridSpec, seed: int = 1) -> OccupancyGrid:
@@ -250,7 +250,7 @@ def test_map_command_stamps_objects_with_their_own_frames_time(
     assert len(tfs) == 20
 
 
-@pytest.mark.filterwarnings("always::echoloc.mapping.MapWarning")
+@pytest.mark.filterwarnings("always::echoloc.maps.mapping.MapWarning")
 def test_a_trajectory_that_misses_every_frame_is_refused_and_a_partial_one_warned(
     capsys: pytest.CaptureFixture[str], panned_wall: Path, tmp_path: Path
 ) -> None:
@@ -266,7 +266,7 @@ def test_a_trajectory_that_misses_every_frame_is_refused_and_a_partial_one_warne
     assert "69 of 120 frames fall outside" in stderr
 
 
-@pytest.mark.filterwarnings("always::echoloc.mapping.MapWarning")
+@pytest.mark.filterwarnings("always::echoloc.maps.mapping.MapWarning")
 def test_a_map_with_nothing_in_reach_says_so(
     capsys: pytest.CaptureFixture[str], panned_wall: Path, tmp_path: Path
 ) -> None:
@@ -278,7 +278,7 @@ def test_a_map_with_nothing_in_reach_says_so(
 
 
 def test_an_unaligned_floor_plan_still_gives_one_octomap_voxel_per_cell(tmp_path: Path) -> None:
-    from echoloc.map_export import voxel_centres_m
+    from echoloc.maps.map_export import voxel_centres_m
 
     # The layer is centred on y = 0 with 2 cm cells: its centre sits on an OctoMap voxel
     # edge, where writing cell centres could send two cells to one voxel and add their
@@ -326,7 +326,7 @@ def test_a_grid_file_that_is_no_grid_or_a_device_is_one_error(tmp_path: Path) ->
     declares more than the limit unpacked is refused from its directory, before unpacking."""
     import zipfile
 
-    from echoloc import map_export
+    from echoloc.maps import map_export
 
     with pytest.raises(EchoLocError, match="not a regular file"):
         read_grid_npz("/dev/zero")

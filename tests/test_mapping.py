@@ -13,10 +13,10 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from echoloc import pipeline
-from echoloc.echoes import ChannelEchoes, FrameEchoes
 from echoloc.errors import EchoLocError
-from echoloc.locate import FrameObjects, LocatedObject
-from echoloc.mapping import (
+from echoloc.io.recording import Recording
+from echoloc.localise.locate import FrameObjects, LocatedObject
+from echoloc.maps.mapping import (
     GridSpec,
     MapAccumulator,
     SensorModel,
@@ -30,11 +30,11 @@ from echoloc.mapping import (
     seen_surface_points_m,
     seen_truth_points_m,
 )
-from echoloc.recording import Recording
-from echoloc.reflectors import Edge, Plane, surface_points_m
-from echoloc.scene import Array, Scene, SensorMotion
-from echoloc.simulate import simulate
-from echoloc.transducer import piston_directivity, piston_half_angle_rad
+from echoloc.physics.transducer import piston_directivity, piston_half_angle_rad
+from echoloc.sim.reflectors import Edge, Plane, surface_points_m
+from echoloc.sim.scene import Array, Scene, SensorMotion
+from echoloc.sim.simulate import simulate
+from echoloc.tof.echoes import ChannelEchoes, FrameEchoes
 
 C = 343.0
 FS = 200e3
@@ -445,8 +445,8 @@ def test_compiled_channel_update_equals_its_numpy_statement(
     """The kernel, on the float32/int32 scratch the accumulator uses and inside the bounds
     the accumulator gives it, touches exactly the cells the numpy statement does on the
     whole grid, with the same evidence, clearing, support and near-axis marks."""
-    from echoloc import _mapping_kernels as kernels
-    from echoloc.mapping import _cone_bounds, channel_window
+    from echoloc.maps import _mapping_kernels as kernels
+    from echoloc.maps.mapping import _cone_bounds, channel_window
 
     spec = GridSpec.box([-1.0, -0.3, 0.0], [1.0, 0.3, 2.0], 0.05)
     shape = np.array(spec.shape, dtype=np.int64)

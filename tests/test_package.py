@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 import echoloc
-from echoloc import entry
+from echoloc.cli import entry
 
 STUB = Path(echoloc.__file__).with_suffix(".pyi")
 
@@ -52,10 +52,10 @@ def test_importing_the_package_loads_no_stage() -> None:
     """``import echoloc`` (or its wire protocol alone) costs no numba or scipy.fft: the
     stages load when a name of theirs is first used."""
     code = (
-        "import sys, echoloc, echoloc.protocol\n"
-        "print(sorted(m for m in ('numba', 'scipy.fft', 'echoloc.echoes') if m in sys.modules))\n"
+        "import sys, echoloc, echoloc.realtime.protocol\n"
+        "print(sorted(m for m in ('numba', 'scipy.fft', 'echoloc.tof.echoes') if m in sys.modules))\n"
         "echoloc.MatchedFilter\n"
-        "print('echoloc.echoes' in sys.modules)\n"
+        "print('echoloc.tof.echoes' in sys.modules)\n"
     )
     env = {k: v for k, v in os.environ.items() if k != "EAGER_IMPORT"}
     out = subprocess.run(
@@ -80,8 +80,8 @@ def test_ctrl_c_while_the_command_line_loads_is_one_line(
 ) -> None:
     """Ctrl-C in the second the command line takes to import: "echoloc: aborted", exit 1,
     as once a command runs, not Python's traceback."""
-    monkeypatch.delitem(sys.modules, "echoloc.cli", raising=False)
-    monkeypatch.setattr(sys, "meta_path", [_InterruptedImport("echoloc.cli"), *sys.meta_path])
+    monkeypatch.delitem(sys.modules, "echoloc.cli.commands", raising=False)
+    monkeypatch.setattr(sys, "meta_path", [_InterruptedImport("echoloc.cli.commands"), *sys.meta_path])
     try:
         with pytest.raises(SystemExit) as stopped:
             entry.main()

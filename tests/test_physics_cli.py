@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from echoloc.cli import main
+from echoloc.cli.commands import main
 
 
 def run_json(capsys: pytest.CaptureFixture[str], *args: str) -> dict:  # type: ignore[type-arg]
@@ -126,9 +126,9 @@ def test_evaluate_json_is_valid_when_nothing_matches(
 
     import numpy as np
 
-    from echoloc.recording import write_recording
-    from echoloc.scene import default_scene
-    from echoloc.simulate import simulate
+    from echoloc.io.recording import write_recording
+    from echoloc.sim.scene import default_scene
+    from echoloc.sim.simulate import simulate
 
     recording = simulate(default_scene(), 1)
     noise = 1e-3 * np.random.default_rng(0).normal(size=recording.frames.shape)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from echoloc.errors import EchoLocError
-from echoloc.protocol import (
+from echoloc.realtime.protocol import (
     HEADER_BYTES,
     KIND_END,
     KIND_FRAME,
@@ -28,8 +28,8 @@ from echoloc.protocol import (
     frame_payload,
     split_messages,
 )
-from echoloc.scene import default_scene
-from echoloc.simulate import recording_header, simulate
+from echoloc.sim.scene import default_scene
+from echoloc.sim.simulate import recording_header, simulate
 
 
 @pytest.fixture(scope="module")
@@ -236,7 +236,7 @@ def test_a_replay_s_loops_send_the_recording_s_frames_each_time(recording, loops
     import socket
     import threading
 
-    from echoloc.transport import Endpoint, recording_span_s, send_recording
+    from echoloc.realtime.transport import Endpoint, recording_span_s, send_recording
 
     server = socket.create_server(("127.0.0.1", 0))
     received = bytearray()

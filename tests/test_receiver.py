@@ -1,4 +1,4 @@
-"""Tests of echoloc.receiver: TVG, ADC, receiver noise, resampling, iq and envelope.
+"""Tests of echoloc.sim.receiver: TVG, ADC, receiver noise, resampling, iq and envelope.
 
 Sources: Bennett, Bell Syst. Tech. J. 27 (1948) (quantisation noise q²/12 for a busy
 signal); Oppenheim & Schafer, Discrete-Time Signal Processing §2.10 (filtered white
@@ -21,7 +21,9 @@ from numpy.typing import NDArray
 from scipy.optimize import minimize_scalar
 
 from echoloc.errors import SceneError
-from echoloc.receiver import (
+from echoloc.physics.transducer import PRESETS, apply_response, frequency_response
+from echoloc.physics.waveform import barker_waveform
+from echoloc.sim.receiver import (
     MAX_DENOMINATOR,
     SIGNAL_KINDS,
     TEMPLATE_FLOOR,
@@ -42,8 +44,6 @@ from echoloc.receiver import (
     to_signal_kind,
     white_noise,
 )
-from echoloc.transducer import PRESETS, apply_response, frequency_response
-from echoloc.waveform import barker_waveform
 
 FS = 200e3
 SAMPLED_PRESETS = sorted(n for n, t in PRESETS.items() if t.centre_frequency_hz < FS / 2)

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from echoloc.errors import RecordingError
-from echoloc.recording import (
+from echoloc.io.recording import (
     FORMAT_NAME,
     FORMAT_VERSION,
     QUATERNION_NORM_TOLERANCE,

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from echoloc.errors import RecordingError
-from echoloc.recording import (
+from echoloc.io.recording import (
     FrameBatch,
     Recording,
     as_header,

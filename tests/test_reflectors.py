@@ -1,4 +1,4 @@
-"""Tests of echoloc.reflectors: echo-path geometry and amplitudes of every reflector kind.
+"""Tests of echoloc.sim.reflectors: echo-path geometry and amplitudes of every reflector kind.
 
 Sources: the image-source method (Allen & Berkley, JASA 65 (1979) 943) with Borish's
 visibility test (JASA 75 (1984) 1827); the law of reflection; Keller's equal-angle
@@ -22,7 +22,7 @@ from scipy.optimize import minimize, minimize_scalar
 from scipy.spatial.transform import Rotation
 
 from echoloc.errors import SceneError
-from echoloc.reflectors import (
+from echoloc.sim.reflectors import (
     EchoPaths,
     Edge,
     Plane,

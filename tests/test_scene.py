@@ -1,4 +1,4 @@
-"""Tests of echoloc.scene: the report's set-up and the validated TOML scene files.
+"""Tests of echoloc.sim.scene: the report's set-up and the validated TOML scene files.
 
 Sources: NOTES.md (report ch. 4, table 4.3: balls at 580, 596 and 665 mm; Barker-13,
 50 kHz, decimated to 200 kHz; four receivers 0.25 m from the transmitter), the
@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from echoloc.errors import EchoLocError, SceneError
-from echoloc.scene import Array, Scene, SensorMotion, default_scene
-from echoloc.scenefile import load_scene
+from echoloc.sim.scene import Array, Scene, SensorMotion, default_scene
+from echoloc.sim.scenefile import load_scene
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 REPORT_TOML = EXAMPLES / "report-three-balls.toml"
@@ -245,7 +245,7 @@ def test_pan_scan_is_a_triangle_wave_about_the_heads_vertical() -> None:
 
 
 def test_scan_keys_are_read_from_scene_files() -> None:
-    from echoloc.scenefile import scene_from_dict
+    from echoloc.sim.scenefile import scene_from_dict
 
     ball = {"reflectors": [{"kind": "point", "position_m": [0.0, 0.0, 1.0]}]}
     scene = scene_from_dict({**ball, "motion": {"pan_deg": 20.0, "tilt_deg": 5.0, "scan_period_s": 2.0}})

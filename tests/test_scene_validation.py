@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from echoloc.errors import SceneError
-from echoloc.scene import REPORT_ARRAY, Array, Scene
-from echoloc.scenefile import scene_from_dict
+from echoloc.sim.scene import REPORT_ARRAY, Array, Scene
+from echoloc.sim.scenefile import scene_from_dict
 
 ONE = [{"position_m": [0.0, 0.0, 0.6]}]
 
@@ -79,8 +79,9 @@ def test_reflector_in_front_is_accepted() -> None:
 @pytest.mark.parametrize("rate_hz", [float("nan"), 0.0, -1.0, 0.5, 5e-324, 1.01e9, float("inf")])
 def test_scenes_and_recordings_refuse_the_same_sample_rates(rate_hz: float) -> None:
     """One range of sample rates, defined once (in the recording contract), for both."""
-    from echoloc import recording, scene
     from echoloc.errors import RecordingError
+    from echoloc.io import recording
+    from echoloc.sim import scene
 
     assert scene.SAMPLE_RATE_RANGE_HZ is recording.SAMPLE_RATE_RANGE_HZ
     assert not hasattr(scene, "MIN_SAMPLE_RATE_HZ")

@@ -1,4 +1,4 @@
-"""Tests of echoloc.simulate: what the receivers of a sensor head record.
+"""Tests of echoloc.sim.simulate: what the receivers of a sensor head record.
 
 Sources: NOTES.md (path l = |p - T| + |p - R|, ToF = l / c, report ch. 3.5), air.py
 (spherical spreading 1 / (r_tx r_rx)), scene.py (noise convention: sigma = 10^(-snr/20)
@@ -19,10 +19,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from echoloc.errors import SceneError
-from echoloc.scene import Array, RandomReflectors, Scene, default_scene
-from echoloc.scenefile import load_scene
-from echoloc.simulate import path_lengths_m, simulate
-from echoloc.synthesis import synthesize_frames
+from echoloc.sim.scene import Array, RandomReflectors, Scene, default_scene
+from echoloc.sim.scenefile import load_scene
+from echoloc.sim.simulate import path_lengths_m, simulate
+from echoloc.sim.synthesis import synthesize_frames
 
 RANDOM_TOML = Path(__file__).resolve().parents[1] / "examples" / "random-1m3.toml"
 FS = 200e3
@@ -402,8 +402,8 @@ def test_the_absorption_table_of_a_long_frame_stays_small_and_exact_at_its_rows(
     oversampled pulse: gigabytes (the fuzz campaign's 1 M-sample scene). Past 64 rows the
     rows widen; at every row the pulse is still attenuated by exactly alpha * path (ISO
     9613-1), and a short frame keeps its half-metre rows."""
-    from echoloc.air import absorption_db_per_m
-    from echoloc.synthesis import MAX_ABSORPTION_BINS, pulse_table
+    from echoloc.physics.air import absorption_db_per_m
+    from echoloc.sim.synthesis import MAX_ABSORPTION_BINS, pulse_table
 
     t = np.arange(200) / 200e3
     pulse = np.sin(2 * np.pi * 50e3 * t) * np.hanning(200)

@@ -1,4 +1,4 @@
-"""End-to-end physics of :func:`echoloc.simulate.simulate`: closed forms, symmetries and round trips.
+"""End-to-end physics of :func:`echoloc.sim.simulate.simulate`: closed forms, symmetries and round trips.
 
 Every echo delay here is measured, not read back from the simulator: the peak of the
 cross-correlation of the frame with the scene's returned pulse, band-limited
@@ -10,10 +10,10 @@ Sources: reciprocity of linear acoustics (exchanging source and receiver leaves 
 transfer unchanged); spherical spreading ``s / (r1 r2)`` and Parseval (the energy of
 a band-limited signal does not depend on its delay); the image-source method (Allen
 and Berkley 1979); the Doppler factor ``alpha = (c - dr_rx/dt) / (c + dr_tx/dt)`` of the
-module docstring of :mod:`echoloc.simulate` (Kinsler et al., sec. 11.9); Bennett
+module docstring of :mod:`echoloc.sim.simulate` (Kinsler et al., sec. 11.9); Bennett
 (1948) for the quantisation error ``q²/12``; Oppenheim and Schafer §2.10 for white
 noise through a filter (power gain ``Σ h²``); the noise convention of
-:mod:`echoloc.scene`; the complex-baseband convention of :mod:`echoloc.receiver`.
+:mod:`echoloc.sim.scene`; the complex-baseband convention of :mod:`echoloc.sim.receiver`.
 """
 
 from __future__ import annotations
@@ -31,14 +31,14 @@ from hypothesis import strategies as st
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from echoloc.air import speed_of_sound_m_s
-from echoloc.receiver import AdcSpec, GainSpec, gain_curve, resample
-from echoloc.recording import read_recording, write_recording
-from echoloc.reflectors import Plane, PointReflector, Reflector, Sphere
-from echoloc.scene import AirDrift, Array, PulseSpec, ReceiverSpec, RingDown, Scene, SensorMotion
-from echoloc.scenefile import load_scene
-from echoloc.simulate import simulate, simulate_to_file
-from echoloc.synthesis import synthesize_frames
+from echoloc.io.recording import read_recording, write_recording
+from echoloc.physics.air import speed_of_sound_m_s
+from echoloc.sim.receiver import AdcSpec, GainSpec, gain_curve, resample
+from echoloc.sim.reflectors import Plane, PointReflector, Reflector, Sphere
+from echoloc.sim.scene import AirDrift, Array, PulseSpec, ReceiverSpec, RingDown, Scene, SensorMotion
+from echoloc.sim.scenefile import load_scene
+from echoloc.sim.simulate import simulate, simulate_to_file
+from echoloc.sim.synthesis import synthesize_frames
 
 FloatArray = NDArray[np.float64]
 
@@ -450,7 +450,7 @@ def test_rotating_sensor_sees_world_points_at_r_transpose_p_minus_x() -> None:
 def decimator_noise_gain(adc_rate_hz: float) -> float:
     """Power gain of the chain's decimator for white noise, ``Σ h²`` (O&S §2.10).
 
-    Measured on :func:`echoloc.receiver.resample` itself: the output power of a unit
+    Measured on :func:`echoloc.sim.receiver.resample` itself: the output power of a unit
     impulse summed over the ``ratio`` input phases is ``Σ h²`` of the polyphase filter.
     """
     ratio = round(adc_rate_hz / FS)

@@ -8,13 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from echoloc.air import absorption_db_per_m
 from echoloc.errors import SceneError
+from echoloc.physics.air import absorption_db_per_m
+from echoloc.physics.transducer import PRESETS, apply_response, directivity
 from echoloc.pipeline import find_echoes
-from echoloc.scene import Array, Scene
-from echoloc.scenefile import load_scene
-from echoloc.simulate import simulate
-from echoloc.transducer import PRESETS, apply_response, directivity
+from echoloc.sim.scene import Array, Scene
+from echoloc.sim.scenefile import load_scene
+from echoloc.sim.simulate import simulate
 
 MONOSTATIC = Array(np.zeros((1, 3)), np.array([[0.001, 0.0, 0.0]]))
 

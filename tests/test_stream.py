@@ -17,13 +17,10 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from echoloc.errors import EchoLocError
-from echoloc.output import echoes_record, objects_record
+from echoloc.io.output import echoes_record, objects_record
 from echoloc.pipeline import prepare, run
-from echoloc.protocol import encode_frame, encode_session
-from echoloc.scene import default_scene
-from echoloc.scenefile import load_scene
-from echoloc.simulate import recording_header, simulate
-from echoloc.stream import (
+from echoloc.realtime.protocol import encode_frame, encode_session
+from echoloc.realtime.stream import (
     FrameQueue,
     LatencyHistogram,
     SequenceTracker,
@@ -32,7 +29,17 @@ from echoloc.stream import (
     recording_frames,
     stream_recording,
 )
-from echoloc.transport import EndEvent, Endpoint, Listener, SessionEvent, parse_endpoint, send_recording
+from echoloc.realtime.transport import (
+    EndEvent,
+    Endpoint,
+    Listener,
+    SessionEvent,
+    parse_endpoint,
+    send_recording,
+)
+from echoloc.sim.scene import default_scene
+from echoloc.sim.scenefile import load_scene
+from echoloc.sim.simulate import recording_header, simulate
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
@@ -127,7 +134,7 @@ def test_streaming_equals_batch_with_transmitters_fired_in_turn(two_tx):
 
 def test_a_session_header_streams_what_the_recording_gives(recording):
     """The network path: a chain prepared from the session (no frames) gives the same objects."""
-    from echoloc.protocol import decode_header, decode_session
+    from echoloc.realtime.protocol import decode_header, decode_session
 
     message = encode_session(recording)
     header = decode_session(decode_header(message), message[52:], "test")
@@ -388,7 +395,7 @@ def test_a_sender_written_from_the_protocol_page_alone_is_located_right():
 
 def test_session_of_two_transmitters_combines_frames_as_the_batch_chain(two_tx):
     """Over the wire the frames name their transmitter; the header alone must combine them."""
-    from echoloc.protocol import decode_header, decode_session
+    from echoloc.realtime.protocol import decode_header, decode_session
 
     message = encode_session(two_tx)
     header = decode_session(decode_header(message), message[52:], "test")
@@ -420,7 +427,7 @@ def test_geometry_file_replaces_the_session_message(recording):
 
 
 def test_garbage_bytes_on_tcp_are_counted_as_malformed_not_dropped_silently():
-    from echoloc.protocol import MAGIC
+    from echoloc.realtime.protocol import MAGIC
 
     garbage = b"not a message at all " * 11
     with Listener(Endpoint("127.0.0.1", 0, "tcp"), FrameQueue(16)) as listener:
@@ -450,8 +457,8 @@ def test_the_listeners_address_outlives_its_socket():
 def test_warm_up_frame_takes_clean_and_locates_its_reflector(recording):
     """The warm-up frame reaches every kernel a crowded frame does: its overlapping echoes go to
     CLEAN on every channel, and the reflector on the transmitter's axis is located there."""
-    from echoloc.echoes import MatchedFilter, _compiled_batch
     from echoloc.pipeline import samples_echoes, transmitter_objects
+    from echoloc.tof.echoes import MatchedFilter, _compiled_batch
 
     chain = prepare(recording)
     processor = StreamProcessor(chain)
@@ -481,15 +488,15 @@ def test_warm_up_frame_takes_clean_and_locates_its_reflector(recording):
 # per-frame kernel must be added here to be held to ``nogil``.
 _FRAME_KERNELS = {
     "echoloc._chain_kernels": ("echoes_and_objects",),
-    "echoloc._echoes_kernels": (
+    "echoloc.tof._echoes_kernels": (
         "weigh_and_fold",
         "correlate_and_fit",
         "batch_channels",
         "clean_run",
         "clean_run_rows",
     ),
-    "echoloc._locate_kernels": ("associate", "associate_frame"),
-    "echoloc._mapping_kernels": ("channel_update", "add_supported_evidence", "apply_frame"),
+    "echoloc.localise._locate_kernels": ("associate", "associate_frame"),
+    "echoloc.maps._mapping_kernels": ("channel_update", "add_supported_evidence", "apply_frame"),
 }
 
 
@@ -535,7 +542,7 @@ def test_a_frame_kernel_lets_another_thread_run_during_its_call() -> None:
     that held the GIL would let it run only around the call's ends (the switch interval is 0.1
     ms here): under a tenth of the call on a quiet machine, under half on a loaded one. Three
     tries, as other jobs may hold the cores for a while."""
-    from echoloc import _echoes_kernels as kernels
+    from echoloc.tof import _echoes_kernels as kernels
 
     rows, bins, folded = 1000, 40_000, 1000
     spectrum = np.broadcast_to(np.ones(bins, np.complex64), (rows, bins))  # read-only, no memory

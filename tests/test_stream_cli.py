@@ -18,10 +18,10 @@ import h5py
 import numpy as np
 import pytest
 
-from echoloc.recording import read_recording, write_recording
-from echoloc.scene import default_scene
-from echoloc.simulate import simulate
-from echoloc.transport import Endpoint, send_recording
+from echoloc.io.recording import read_recording, write_recording
+from echoloc.realtime.transport import Endpoint, send_recording
+from echoloc.sim.scene import default_scene
+from echoloc.sim.simulate import simulate
 
 ECHOLOC = [str(Path(sys.executable).with_name("echoloc"))]
 TIMEOUT_S = 60
@@ -301,7 +301,7 @@ def test_stream_record_writes_the_processed_frames(tmp_path, recording_path):
 def test_help_of_the_real_time_commands(command):
     from click.testing import CliRunner
 
-    from echoloc.cli import cli
+    from echoloc.cli.commands import cli
 
     result = CliRunner().invoke(cli, [command, "--help"])
     assert result.exit_code == 0
@@ -337,7 +337,7 @@ def test_bench_reports_both_chains_and_the_physics():
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(capsys, tmp_path, recording_path, args, message):
-    from echoloc import cli
+    from echoloc.cli import commands as cli
 
     args = [str(recording_path) if a == "x.h5" and args[0] == "send" else a for a in args]
     with pytest.raises(SystemExit) as info:
@@ -351,7 +351,7 @@ def test_bad_input_is_one_line_and_exit_2(capsys, tmp_path, recording_path, args
 
 
 def test_record_with_no_sender_says_so_and_writes_nothing(capsys, tmp_path):
-    from echoloc import cli
+    from echoloc.cli import commands as cli
 
     out = tmp_path / "nothing.h5"
     with pytest.raises(SystemExit) as info:
@@ -366,7 +366,7 @@ def test_record_with_no_sender_says_so_and_writes_nothing(capsys, tmp_path):
 def test_a_busy_port_is_one_line_and_exit_2(capsys):
     import socket
 
-    from echoloc import cli
+    from echoloc.cli import commands as cli
 
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
@@ -382,10 +382,10 @@ def test_a_busy_port_is_one_line_and_exit_2(capsys):
 def test_stream_records_a_batch_before_processing_it(tmp_path, recording_path):
     """`stream --record`: frames are written before the chain runs on them, so a batch whose
     processing fails is still in the recording, sample for sample."""
-    from echoloc.cli import _LiveStream
+    from echoloc.cli.commands import _LiveStream
     from echoloc.pipeline import prepare
-    from echoloc.stream import StreamProcessor, recording_frames
-    from echoloc.transport import SessionEvent
+    from echoloc.realtime.stream import StreamProcessor, recording_frames
+    from echoloc.realtime.transport import SessionEvent
 
     class Failing(StreamProcessor):
         def process_batch(self, frames):

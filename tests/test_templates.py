@@ -15,14 +15,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from echoloc.echoes import EchoOptions
 from echoloc.errors import EchoLocError, RecordingError
-from echoloc.estimators import ESTIMATORS
-from echoloc.recording import Recording, write_recording
-from echoloc.reflectors import PointReflector
-from echoloc.scene import Array, RingDown, Scene
-from echoloc.simulate import simulate
-from echoloc.templates import Template, cut_template, read_template, sent_template, write_template
+from echoloc.io.recording import Recording, write_recording
+from echoloc.sim.reflectors import PointReflector
+from echoloc.sim.scene import Array, RingDown, Scene
+from echoloc.sim.simulate import simulate
+from echoloc.tof.echoes import EchoOptions
+from echoloc.tof.estimators import ESTIMATORS
+from echoloc.tof.templates import Template, cut_template, read_template, sent_template, write_template
 
 FS = 200e3
 # A transmitter and a receiver 0.3 m apart, facing +z.
@@ -152,7 +152,7 @@ def test_mismatched_rate_and_bad_windows_are_refused() -> None:
 
 def run_cli(capsys: pytest.CaptureFixture[str], *args: object) -> tuple[int, str, str]:
     """``echoloc ARGS`` in-process through main(), which turns errors into exit codes."""
-    from echoloc import cli
+    from echoloc.cli import commands as cli
 
     capsys.readouterr()
     with pytest.raises(SystemExit) as info:
@@ -190,7 +190,7 @@ def test_template_command_and_option(tmp_path: Path, capsys: pytest.CaptureFixtu
 
 def test_a_template_for_another_estimator_is_refused_not_ignored(tmp_path: Path) -> None:
     """Only the matched filter uses a template; any other estimator must say so, not ignore it."""
-    from echoloc.estimators import prepare_estimator
+    from echoloc.tof.estimators import prepare_estimator
 
     ball = ball_recording(0.6, None)
     template = sent_template(ball)

@@ -1,4 +1,4 @@
-"""Tests of echoloc.transducer: piston beams, near field, resonator response, Doppler, arrays.
+"""Tests of echoloc.physics.transducer: piston beams, near field, resonator response, Doppler, arrays.
 
 Sources: Kinsler, Frey, Coppens & Sanders, Fundamentals of Acoustics (4th ed.) §7.4
 (baffled piston: 2 J1(x)/x, first null x = 3.8317, on-axis pressure, near field);
@@ -24,9 +24,9 @@ from scipy.integrate import quad
 from scipy.optimize import brentq, minimize_scalar, root_scalar
 from scipy.special import j0, j1, jn_zeros
 
-from echoloc.air import speed_of_sound_m_s
 from echoloc.errors import EchoLocError
-from echoloc.transducer import (
+from echoloc.physics.air import speed_of_sound_m_s
+from echoloc.physics.transducer import (
     PRESETS,
     SPEED_OF_SOUND_20C_M_S,
     X_FIRST_NULL,
@@ -408,7 +408,7 @@ def test_transducer_is_a_frozen_value_with_q() -> None:
 
 
 def test_default_speed_of_sound_is_dry_air_at_20c() -> None:
-    """The 343.2 m/s default is echoloc.air's dry air at 20 °C."""
+    """The 343.2 m/s default is echoloc.physics.air's dry air at 20 °C."""
     assert float(speed_of_sound_m_s(20.0)) == pytest.approx(SPEED_OF_SOUND_20C_M_S, abs=0.02)
 
 

@@ -11,10 +11,10 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from echoloc.cli import main
+from echoloc.cli.commands import main
 from echoloc.errors import EchoLocError, GeometryError
-from echoloc.locate import solve_positions
-from echoloc.uncertainty import (
+from echoloc.localise.locate import solve_positions
+from echoloc.localise.uncertainty import (
     array_channels,
     cross_array,
     error_map,

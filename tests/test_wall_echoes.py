@@ -11,7 +11,7 @@ the fact, by linearity: wall ``w``'s echo times ``g_w`` is the echo of a wall of
 reflection ``g_w``, chosen to put its peak a set number of dB below the direct path's.
 
 The rf frame is the direct path, the scaled echoes and white noise at 80 dB per-sample SNR
-for the direct path (echoloc's convention, :mod:`echoloc.scene`: its peak amplitude over the
+for the direct path (echoloc's convention, :mod:`echoloc.sim.scene`: its peak amplitude over the
 noise's standard deviation). The matched filter gains ``10 log10(E / 2)`` = 17.2 dB on top
 (E = 104, the Barker pulse's energy; the analytic correlation's noise power is 2 sigma^2 / E
 per unit amplitude), so the direct path's output SNR is 97 dB, an echo 80 dB below it 17 dB,
@@ -21,13 +21,13 @@ Every wall echo whose pulse lies wholly in the frame and whose output SNR is at 
 above the threshold must be found; an echo below the noise must not be; nothing else may be
 reported (the direct path aside).
 
-The noise power is the median of the correlation's power (:func:`echoloc.echoes.noise_power`),
+The noise power is the median of the correlation's power (:func:`echoloc.tof.echoes.noise_power`),
 which counts the lags that strong echoes' sidelobes occupy: with the 97 dB direct path and
 echoes 40 and 60 dB below it, a third of the frame's lags, it comes out 2.9 dB high. Hence the
 3 dB margin above the threshold, and no echo at 80 dB below beside stronger ones.
 
 Delay tolerance: six times the Cramér-Rao bound on the delay at the echo's SNR
-(:func:`echoloc.crlb.coherent_tof_bound`; 0.06 sample at 17 dB, so 0.37 sample), plus 0.01
+(:func:`echoloc.physics.crlb.coherent_tof_bound`; 0.06 sample at 17 dB, so 0.37 sample), plus 0.01
 sample for the two simulators' interpolators (the cross-check's tolerance; they differ by
 5e-4 sample). Half a carrier cycle is 2 samples: an echo read on the wrong half-cycle fails.
 """
@@ -38,11 +38,11 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from echoloc.crlb import coherent_tof_bound
-from echoloc.echoes import ChannelEchoes, EchoOptions, MatchedFilter, _Clean
-from echoloc.estimators import ESTIMATORS
-from echoloc.recording import Recording
-from echoloc.waveform import barker_waveform
+from echoloc.io.recording import Recording
+from echoloc.physics.crlb import coherent_tof_bound
+from echoloc.physics.waveform import barker_waveform
+from echoloc.tof.echoes import ChannelEchoes, EchoOptions, MatchedFilter, _Clean
+from echoloc.tof.estimators import ESTIMATORS
 
 pra = pytest.importorskip("pyroomacoustics")
 

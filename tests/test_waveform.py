@@ -1,4 +1,4 @@
-"""Tests of echoloc.waveform: Barker codes and the BPSK pulses built from them.
+"""Tests of echoloc.physics.waveform: Barker codes and the BPSK pulses built from them.
 
 Sources: NOTES.md ("Emitted code", report ch. 3.4): Barker sequences, N carrier cycles
 per bit, bit -1 sends the inverted carrier; R. H. Barker (1953): aperiodic
@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from echoloc.errors import WaveformError
-from echoloc.waveform import (
+from echoloc.physics.waveform import (
     BARKER_CODES,
     aperiodic_autocorrelation,
     barker,

@@ -1,4 +1,4 @@
-"""Tests of echoloc.waveform beyond Barker: Golay, MLS, Kasami, chirps, bursts, names, metrics.
+"""Tests of echoloc.physics.waveform beyond Barker: Golay, MLS, Kasami, chirps, bursts, names, metrics.
 
 Sources: M. J. E. Golay, "Complementary series" (1961): r_a + r_b = 2N delta.
 S. W. Golomb, "Shift Register Sequences" (1967): an m-sequence of order m has period
@@ -24,7 +24,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from echoloc.errors import WaveformError
-from echoloc.waveform import (
+from echoloc.physics.waveform import (
     MLS_TAPS,
     WAVEFORM_NAMES,
     Waveform,

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from echoloc.errors import WaveformError
-from echoloc.receiver import analytic_signal
-from echoloc.waveform import WAVEFORM_NAMES, code_by_name, modulate, waveform_by_name
+from echoloc.physics.waveform import WAVEFORM_NAMES, code_by_name, modulate, waveform_by_name
+from echoloc.sim.receiver import analytic_signal
 
 
 @pytest.mark.parametrize("cycles", [1, 4, 8, 16])

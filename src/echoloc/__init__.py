@@ -5,7 +5,7 @@ locate -> objects``, one module per stage (see DESIGN.md).
 
 Its public names (``__all__``) are loaded on first use (PEP 562, through
 ``lazy_loader.attach_stub``, which reads them from ``__init__.pyi``, the typed list): ``import
-echoloc`` or ``from echoloc.protocol import encode_frame`` does not import numba, scipy and
+echoloc`` or ``from echoloc.realtime.protocol import encode_frame`` does not import numba, scipy and
 every stage (about a second), and ``echoloc.X`` is still ``X`` of its module. Set
 ``EAGER_IMPORT=1`` to load everything at once.
 """

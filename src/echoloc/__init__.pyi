@@ -1,51 +1,8 @@
 """Types of echoloc's public API; lazy_loader reads its imports to load each name on first use."""
 
-from .air import absorption_db_per_m, speed_of_sound_cramer_m_s, speed_of_sound_m_s
-from .backprojection import (
-    BackprojectionOptions,
-    Backprojector,
-    Grid,
-    backproject_frame,
-    frame_image,
-    prepare_backprojection,
-    run_backprojection,
-)
-from .echoes import ChannelEchoes, EchoOptions, FrameEchoes, MatchedFilter
 from .errors import EchoLocError, GeometryError, RecordingError, SceneError, WaveformError
-from .estimators import ESTIMATORS
-from .evaluate import Evaluation, evaluate
-from .export import SENSOR_FRAME_ID, write_mcap, write_ply
-from .liveview import LiveView
-from .locate import (
-    FrameObjects,
-    LocatedObject,
-    LocateOptions,
-    associate,
-    paired_closed_form,
-    solve_positions,
-)
-from .map_export import read_grid_npz, write_grid_npz, write_grid_ply, write_map_mcap, write_octomap
-from .mapping import (
-    GridSpec,
-    MapAccumulator,
-    OccupancyGrid,
-    SensorModel,
-    build_map,
-    map_accuracy,
-    read_trajectory,
-)
-from .pipeline import Chain, find_echoes, frame_echoes, frame_objects, prepare, run
-from .protocol import (
-    ProtocolError,
-    WireFrame,
-    decode_frame,
-    decode_header,
-    decode_session,
-    encode_end,
-    encode_frame,
-    encode_session,
-)
-from .recording import (
+from .io.export import SENSOR_FRAME_ID, write_mcap, write_ply
+from .io.recording import (
     FrameBatch,
     Recording,
     RecordingWarning,
@@ -54,23 +11,25 @@ from .recording import (
     write_recording,
     write_recording_stream,
 )
-from .scene import Array, Scene, default_scene
-from .scenefile import load_scene
-from .simulate import simulate
-from .stream import (
-    FrameQueue,
-    LatencyHistogram,
-    SequenceTracker,
-    StreamFrame,
-    StreamProcessor,
-    StreamResult,
-    StreamStats,
-    stream_recording,
-    warm_kernels,
+from .localise.backprojection import (
+    BackprojectionOptions,
+    Backprojector,
+    Grid,
+    backproject_frame,
+    frame_image,
+    prepare_backprojection,
+    run_backprojection,
 )
-from .transducer import PRESETS, Transducer, array_factor, piston_beam_angles, piston_directivity
-from .transport import Endpoint, Listener, Recorder, parse_endpoint, send_recording
-from .uncertainty import (
+from .localise.evaluate import Evaluation, evaluate
+from .localise.locate import (
+    FrameObjects,
+    LocatedObject,
+    LocateOptions,
+    associate,
+    paired_closed_form,
+    solve_positions,
+)
+from .localise.uncertainty import (
     ErrorMap,
     PositionErrors,
     SpacingRecommendation,
@@ -82,7 +41,19 @@ from .uncertainty import (
     spacing_study,
     uncertainty_area,
 )
-from .waveform import (
+from .maps.map_export import read_grid_npz, write_grid_npz, write_grid_ply, write_map_mcap, write_octomap
+from .maps.mapping import (
+    GridSpec,
+    MapAccumulator,
+    OccupancyGrid,
+    SensorModel,
+    build_map,
+    map_accuracy,
+    read_trajectory,
+)
+from .physics.air import absorption_db_per_m, speed_of_sound_cramer_m_s, speed_of_sound_m_s
+from .physics.transducer import PRESETS, Transducer, array_factor, piston_beam_angles, piston_directivity
+from .physics.waveform import (
     Waveform,
     WaveformMetrics,
     barker,
@@ -97,6 +68,35 @@ from .waveform import (
     waveform_by_name,
     waveform_metrics,
 )
+from .pipeline import Chain, find_echoes, frame_echoes, frame_objects, prepare, run
+from .realtime.liveview import LiveView
+from .realtime.protocol import (
+    ProtocolError,
+    WireFrame,
+    decode_frame,
+    decode_header,
+    decode_session,
+    encode_end,
+    encode_frame,
+    encode_session,
+)
+from .realtime.stream import (
+    FrameQueue,
+    LatencyHistogram,
+    SequenceTracker,
+    StreamFrame,
+    StreamProcessor,
+    StreamResult,
+    StreamStats,
+    stream_recording,
+    warm_kernels,
+)
+from .realtime.transport import Endpoint, Listener, Recorder, parse_endpoint, send_recording
+from .sim.scene import Array, Scene, default_scene
+from .sim.scenefile import load_scene
+from .sim.simulate import simulate
+from .tof.echoes import ChannelEchoes, EchoOptions, FrameEchoes, MatchedFilter
+from .tof.estimators import ESTIMATORS
 
 __version__: str
 

@@ -1,5 +1,5 @@
-"""``python -m echoloc``: the ``echoloc`` command (:func:`echoloc.entry.main`)."""
+"""``python -m echoloc``: the ``echoloc`` command (:func:`echoloc.cli.entry.main`)."""
 
-from echoloc.entry import main
+from echoloc.cli.entry import main
 
 main()

@@ -1,8 +1,8 @@
 """The per-frame chain in one compiled call: frames' echoes, then each frame's objects.
 
 :func:`echoes_and_objects` runs the matched filter's compiled batch path
-(:func:`echoloc._echoes_kernels.correlate_and_fit`) on every channel of a batch of frames, then
-the association (:func:`echoloc._locate_kernels.associate_frame`) on each frame whose channels
+(:func:`echoloc.tof._echoes_kernels.correlate_and_fit`) on every channel of a batch of frames, then
+the association (:func:`echoloc.localise._locate_kernels.associate_frame`) on each frame whose channels
 it could all vouch for. Called from Python, the two stages made the echoes Python objects and
 flattened them again for a second call; here the one call hands the association the echoes'
 own arrays, 9-19 µs less a frame on one core (`benchmarks/bench_chain_kernel.py`). Frames
@@ -18,8 +18,8 @@ import numba
 import numpy as np
 from numba import njit
 
-from echoloc._echoes_kernels import correlate_and_fit
-from echoloc._locate_kernels import associate_frame
+from echoloc.localise._locate_kernels import associate_frame
+from echoloc.tof._echoes_kernels import correlate_and_fit
 
 # The kernel's cached machine code holds batch_echoes_parallel's, which calls numba's threading
 # layer. Loaded from the cache before that layer was launched it crashed the process (numba

@@ -9,7 +9,7 @@ The scipy chain is the obvious way to write the same job:
   ``scipy.optimize.least_squares``, kept when its residual passes the chi-square gate
   echoloc uses, then taken greedily by residual.
 
-echoloc's chain runs as a stream (:class:`echoloc.stream.StreamProcessor`, the code
+echoloc's chain runs as a stream (:class:`echoloc.realtime.stream.StreamProcessor`, the code
 ``echoloc stream`` runs). Both are timed frame by frame on one core (the process
 is pinned to one CPU while timing, so FFT worker threads cannot borrow the other),
 and the peak of memory allocated while processing is measured with
@@ -37,14 +37,14 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import optimize, signal, stats
 
-from echoloc.echoes import EchoOptions
 from echoloc.errors import EchoLocError
-from echoloc.evaluate import evaluate
-from echoloc.locate import FrameObjects, LocatedObject, model_paths_m
+from echoloc.io.recording import Recording
+from echoloc.localise.evaluate import evaluate
+from echoloc.localise.locate import FrameObjects, LocatedObject, model_paths_m
 from echoloc.pipeline import Chain, prepare, samples_echoes
-from echoloc.recording import Recording
-from echoloc.scene import RandomReflectors, Scene, default_scene
-from echoloc.stream import STREAM_BATCH_FRAMES, StreamProcessor, recording_frames
+from echoloc.realtime.stream import STREAM_BATCH_FRAMES, StreamProcessor, recording_frames
+from echoloc.sim.scene import RandomReflectors, Scene, default_scene
+from echoloc.tof.echoes import EchoOptions
 
 #: Range whose echoes one frame must wait for (the report's working volume), m.
 PHYSICS_RANGE_M = 2.0
@@ -203,7 +203,7 @@ def bench_chains(
     """Time echoloc's streamed chain and the scipy chain on ``recording``; the figures as a dict.
 
     Both run pinned to ``workers`` cores (one by default), echoloc's echoes stage with
-    that many threads (:attr:`echoloc.echoes.EchoOptions.workers`); the scipy chain uses one.
+    that many threads (:attr:`echoloc.tof.echoes.EchoOptions.workers`); the scipy chain uses one.
     echoloc's stream makes ``rounds`` passes over the recording, one frame a call, and as many
     working off a backlog ``backlog_frames`` frames a call as ``echoloc stream`` does when
     frames queue up, the two kinds of pass alternating: its ms/frame is the median pass (this

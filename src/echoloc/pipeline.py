@@ -19,9 +19,20 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from echoloc.air import speed_of_sound_m_s
-from echoloc.calibrate import Calibration, apply_calibration
-from echoloc.channel_health import (
+from echoloc.errors import EchoLocError
+from echoloc.io.recording import Recording, dead_receivers
+from echoloc.localise.calibrate import Calibration, apply_calibration
+from echoloc.localise.locate import (
+    FrameLocator,
+    FrameObjects,
+    LocatedObject,
+    LocateOptions,
+    LocateWarning,
+    combine_frames,
+    model_paths_m,
+)
+from echoloc.physics.air import speed_of_sound_m_s
+from echoloc.tof.channel_health import (
     ASSESS_FRAMES,
     ChannelHealth,
     ChannelWatch,
@@ -33,8 +44,8 @@ from echoloc.channel_health import (
     touches_clipping,
     warn_health,
 )
-from echoloc.conditioning import Conditioning, blinded, condition_frame, effective_options
-from echoloc.echoes import (
+from echoloc.tof.conditioning import Conditioning, blinded, condition_frame, effective_options
+from echoloc.tof.echoes import (
     ChannelEchoes,
     EchoOptions,
     FrameEchoes,
@@ -45,14 +56,13 @@ from echoloc.echoes import (
     run_kernel,
     with_clean,
 )
-from echoloc.envelope_peaks import (
+from echoloc.tof.envelope_peaks import (
     arrivals_from_peaks,
     arrivals_from_truth,
     learn_echo_shape,
     prepare_peak_detector,
 )
-from echoloc.errors import EchoLocError
-from echoloc.estimators import (
+from echoloc.tof.estimators import (
     Estimator,
     MatchedEstimator,
     default_threshold_db,
@@ -60,17 +70,7 @@ from echoloc.estimators import (
     prepare_estimator,
     resolve_estimator,
 )
-from echoloc.locate import (
-    FrameLocator,
-    FrameObjects,
-    LocatedObject,
-    LocateOptions,
-    LocateWarning,
-    combine_frames,
-    model_paths_m,
-)
-from echoloc.recording import Recording, dead_receivers
-from echoloc.templates import Template
+from echoloc.tof.templates import Template
 
 PLAUSIBLE_SPEED_OF_SOUND_M_S = (100.0, 2000.0)
 """Speeds of sound (m/s) :func:`prepare` takes without a warning: every gas a sensor could
@@ -103,7 +103,7 @@ class Chain:
 
     @property
     def health(self) -> ChannelHealth:
-        """The receivers' health (:mod:`echoloc.channel_health`) as assessed so far."""
+        """The receivers' health (:mod:`echoloc.tof.channel_health`) as assessed so far."""
         watch = self.channel_watch
         return healthy(self.recording.n_receivers) if watch is None else watch.health
 
@@ -123,7 +123,7 @@ class Chain:
 
     @property
     def locators(self) -> tuple[FrameLocator, ...]:
-        """A :class:`echoloc.locate.FrameLocator` per transmitter: the set-up its frames share,
+        """A :class:`echoloc.localise.locate.FrameLocator` per transmitter: the set-up its frames share,
         looked up once for the whole recording or stream (and its working receivers)."""
         working = self.working_receivers
         key = ("locators", working.tobytes())
@@ -143,7 +143,7 @@ class Chain:
         compiled call: the matched estimator, the locator and its kernel's arguments. None
         where that path does not apply and the stages run one after the other: another
         estimator, a calibration (it corrects the echoes between the stages), several
-        transmitters, a clipped channel re-read (:func:`echoloc.channel_health.reread_clipped`
+        transmitters, a clipped channel re-read (:func:`echoloc.tof.channel_health.reread_clipped`
         works between the stages), or a locator without a compiled path."""
         if self.calibration is not None or len(self.recording.transmitters_m) != 1 or self.health.reread:
             return None
@@ -174,14 +174,14 @@ def prepare(
 
     With a ``calibration`` its speed of sound is used and its receiver delays are
     taken off every echo (an explicit ``speed_of_sound_m_s`` still wins).
-    ``conditioning`` (:mod:`echoloc.conditioning`; default: subtract the background
+    ``conditioning`` (:mod:`echoloc.tof.conditioning`; default: subtract the background
     and undo the receiver gain when the recording has them) is applied to every
     frame; a blind zone in seconds raises ``blanking_s`` to it. ``check_channels``
     (default): degraded receiver channels are found, warned about (a
-    :class:`echoloc.channel_health.ChannelWarning` naming the recording and the
+    :class:`echoloc.tof.channel_health.ChannelWarning` naming the recording and the
     receiver), corrected or left out of localisation (:func:`channel_watch`); with the
     matched filter, a clipped channel is kept and its echoes near clipped samples re-read
-    (:func:`echoloc.channel_health.reread_clipped`).
+    (:func:`echoloc.tof.channel_health.reread_clipped`).
     """
     conditioning = conditioning or Conditioning()
     estimator = resolve_estimator(estimator, recording)
@@ -274,7 +274,7 @@ def prepare(
 def channel_watch(
     recording: Recording, min_receivers: int, dead: Sequence[int] = (), *, reread_clipped: bool = False
 ) -> ChannelWatch:
-    """The channel check of a chain (:mod:`echoloc.channel_health`), warning about what it finds.
+    """The channel check of a chain (:mod:`echoloc.tof.channel_health`), warning about what it finds.
 
     A recording with frames is assessed now, on up to :data:`ASSESS_FRAMES` of them spread
     over it (its ``dead`` receivers, which the reader warned about, are not warned about
@@ -366,7 +366,7 @@ def run(
     :func:`samples_echoes_batch`): the same answers as one at a time. With several
     transmitters fired in turn, each frame
     is located together with the latest frame of every other transmitter
-    (:func:`echoloc.locate.combine_frames`): n_tx times the ellipsoids per object once
+    (:func:`echoloc.localise.locate.combine_frames`): n_tx times the ellipsoids per object once
     every transmitter has fired.
     """
     if batch_frames < 1:
@@ -417,7 +417,7 @@ def find_echoes(
 
 
 # ----------------------------------------------------------------------------- streaming
-# The same chain, fed samples instead of a recording's frame index (echoloc.stream).
+# The same chain, fed samples instead of a recording's frame index (echoloc.realtime.stream).
 
 
 def samples_echoes(
@@ -441,7 +441,7 @@ def samples_echoes_batch(
     times_s: Sequence[float],
 ) -> list[FrameEchoes]:
     """:func:`samples_echoes` of several frames, in one call of the estimator where it takes
-    batches (:func:`echoloc.estimators.estimate_frames`): the same echoes, more frames a second."""
+    batches (:func:`echoloc.tof.estimators.estimate_frames`): the same echoes, more frames a second."""
     raw, frames = _raw_and_conditioned(chain, samples, indices)
     return _echoes_of_conditioned(chain, raw, frames, indices, times_s)[0]
 
@@ -455,9 +455,9 @@ def _echoes_of_conditioned(
 ) -> tuple[list[FrameEchoes], NDArray[np.bool_] | None]:
     """:func:`samples_echoes_batch` of frames conditioned (``frames``) from ``raw`` (None: the
     frames differ in shape, nothing is re-read), and the samples of channels it re-read that
-    are clipped (:func:`echoloc.channel_health.clipped_samples`; None: none). Clipped
+    are clipped (:func:`echoloc.tof.channel_health.clipped_samples`; None: none). Clipped
     channels the channel check keeps are re-read near their clipped samples
-    (:func:`echoloc.channel_health.reread_clipped`)."""
+    (:func:`echoloc.tof.channel_health.reread_clipped`)."""
     channels_of_frames: Sequence[Sequence[Any]] = estimate_frames(chain.estimator, frames)
     health = chain.health
     estimator = chain.estimator
@@ -481,7 +481,7 @@ def learn_chain_echo_shape(
     chain: Chain, frames: Sequence[int], arrival: str = "truth", name: str | None = None
 ) -> Template:
     """The echo shape of ``frames`` of the chain's recording, conditioned as the chain does
-    (:func:`echoloc.envelope_peaks.learn_echo_shape`), aligned on ``arrival``: ``"truth"``,
+    (:func:`echoloc.tof.envelope_peaks.learn_echo_shape`), aligned on ``arrival``: ``"truth"``,
     the known targets' paths (the report's BALL template), or ``"peaks"``, strong isolated
     echoes (their peaks). Errors name the recording."""
     recording = chain.recording
@@ -520,13 +520,13 @@ def _raw_and_conditioned(
     indices: Sequence[int],
 ) -> tuple[NDArray[Any] | None, NDArray[Any]]:
     """The frames' samples as they came, stacked (None without a channel check, or when they
-    differ in shape), and conditioned (:func:`echoloc.conditioning.condition_frame`),
+    differ in shape), and conditioned (:func:`echoloc.tof.conditioning.condition_frame`),
     stacked (n_frames, n_rx, n_samples)."""
     recording = chain.recording
     watch = chain.channel_watch
     raw = None
     if watch is not None and len(samples):
-        # Degraded channels (echoloc.channel_health): a live session's first frames are
+        # Degraded channels (echoloc.tof.channel_health): a live session's first frames are
         # assessed as they come; DC offsets and non-finite samples are corrected.
         try:
             raw = np.stack([np.asarray(frame) for frame in samples])
@@ -553,7 +553,7 @@ def _frame_echoes(chain: Chain, index: int, time_s: float, channels: Sequence[An
 
 def transmitter_objects(chain: Chain, echoes: FrameEchoes, transmitter: int) -> FrameObjects:
     """Objects of one frame fired by ``transmitter``, as :func:`frame_objects` finds them
-    (:func:`echoloc.locate.locate_frame`, its set-up done once: :attr:`Chain.locators`)."""
+    (:func:`echoloc.localise.locate.locate_frame`, its set-up done once: :attr:`Chain.locators`)."""
     return chain.locators[transmitter](echoes)
 
 
@@ -600,7 +600,7 @@ def _excusing_clipped(
     association, which needs every channel's echo, drops it. So the echoes no object uses
     are associated again with that channel excused, and each object found is kept when its
     predicted echo on the excused channel touches clipped samples
-    (:func:`echoloc.channel_health.touches_clipping`), where the channel may have lost it;
+    (:func:`echoloc.tof.channel_health.touches_clipping`), where the channel may have lost it;
     elsewhere the channel would have shown its echo, and the object is a ghost. ``clipped``
     (n_rx, n_samples): the frame's clipped samples of the re-read channels.
     """

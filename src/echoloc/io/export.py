@@ -1,0 +1,612 @@
+"""Located objects for other programs: PLY point clouds and MCAP files of ROS 2 messages.
+
+Positions are in the echoloc sensor frame, the ROS optical-frame convention of REP 103
+(``x`` right, ``y`` down, ``z`` boresight, metres; ``../shared/FORMATS.md``). Its ROS
+frame id is :data:`SENSOR_FRAME_ID`; a robot attaches it with one static transform,
+for example ``ros2 run tf2_ros static_transform_publisher --x 0.1 --z 0.3 --roll -1.5708
+--yaw -1.5708 --frame-id base_link --child-frame-id echoloc_sensor_optical_frame`` for a
+sensor looking forward along the robot's ``x`` (REP 103's body-to-optical rotation).
+
+MCAP files hold ROS 2 messages in CDR, written with the ``mcap`` and
+``mcap-ros2-support`` libraries (no ROS installation), with the message definitions of
+ROS 2 **Jazzy** embedded as schemas:
+
+- ``/echoloc/objects``: one ``sensor_msgs/msg/PointCloud2`` per frame, fields ``x, y,
+  z, intensity, cov_xx, cov_yy, cov_zz`` (FLOAT32).
+- ``/echoloc/range/rx{N}``: one ``sensor_msgs/msg/Range`` per receiver and frame, in
+  the receiver's own frame ``echoloc_rx{N}`` (origin at the receiver, ``x`` along its
+  boresight, as ``Range`` measures along ``x``).
+- ``/tf_static``: one ``tf2_msgs/msg/TFMessage`` placing every ``echoloc_rx{N}`` in
+  :data:`SENSOR_FRAME_ID`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from mcap.writer import CompressionType
+from mcap_ros2.writer import Writer as Ros2Writer
+from numpy.typing import ArrayLike, NDArray
+
+from echoloc.errors import EchoLocError, missing_directory
+from echoloc.io.recording import Recording
+from echoloc.localise.locate import FrameObjects, LocatedObject
+from echoloc.pipeline import recording_speed_of_sound_m_s
+from echoloc.tof.echoes import frame_time_s
+
+SENSOR_FRAME_ID = "echoloc_sensor_optical_frame"
+"""ROS frame id of the sensor frame (REP 103 optical convention: x right, y down, z boresight)."""
+
+OBJECTS_TOPIC = "/echoloc/objects"
+RANGE_TOPIC_PREFIX = "/echoloc/range/rx"
+TF_STATIC_TOPIC = "/tf_static"
+ROS_DISTRIBUTION = "jazzy"
+"""The ROS 2 distribution whose message definitions the MCAP schemas carry (``Range`` has ``variance``)."""
+
+_SEPARATOR = "=" * 80
+
+# Message definitions (ROS 2 Jazzy, common_interfaces / rcl_interfaces / geometry2);
+# only the comments are left out, which do not change the type or its encoding.
+_TIME_MSG = """int32 sec
+uint32 nanosec
+"""
+_HEADER_MSG = """builtin_interfaces/Time stamp
+string frame_id
+"""
+_POINT_FIELD_MSG = """uint8 INT8    = 1
+uint8 UINT8   = 2
+uint8 INT16   = 3
+uint8 UINT16  = 4
+uint8 INT32   = 5
+uint8 UINT32  = 6
+uint8 FLOAT32 = 7
+uint8 FLOAT64 = 8
+
+string name
+uint32 offset
+uint8  datatype
+uint32 count
+"""
+_POINT_CLOUD2_MSG = """std_msgs/Header header
+
+uint32 height
+uint32 width
+
+PointField[] fields
+
+bool    is_bigendian
+uint32  point_step
+uint32  row_step
+uint8[] data
+
+bool is_dense
+"""
+_RANGE_MSG = """std_msgs/Header header
+
+uint8 ULTRASOUND=0
+uint8 INFRARED=1
+
+uint8 radiation_type
+
+float32 field_of_view
+
+float32 min_range
+float32 max_range
+
+float32 range
+
+float32 variance
+"""
+_VECTOR3_MSG = """float64 x
+float64 y
+float64 z
+"""
+_QUATERNION_MSG = """float64 x 0
+float64 y 0
+float64 z 0
+float64 w 1
+"""
+_TRANSFORM_MSG = """Vector3 translation
+Quaternion rotation
+"""
+_TRANSFORM_STAMPED_MSG = """std_msgs/Header header
+string child_frame_id
+Transform transform
+"""
+_TF_MESSAGE_MSG = """geometry_msgs/TransformStamped[] transforms
+"""
+
+
+def _schema_text(main: str, *dependencies: tuple[str, str]) -> str:
+    """A ``ros2msg`` schema: the main definition, then each dependency after a separator line."""
+    parts = [main]
+    for name, text in dependencies:
+        parts.append(f"{_SEPARATOR}\nMSG: {name}\n{text}")
+    return "\n".join(parts)
+
+
+POINT_CLOUD2_SCHEMA = _schema_text(
+    _POINT_CLOUD2_MSG,
+    ("std_msgs/Header", _HEADER_MSG),
+    ("builtin_interfaces/Time", _TIME_MSG),
+    ("sensor_msgs/PointField", _POINT_FIELD_MSG),
+)
+RANGE_SCHEMA = _schema_text(
+    _RANGE_MSG, ("std_msgs/Header", _HEADER_MSG), ("builtin_interfaces/Time", _TIME_MSG)
+)
+TF_MESSAGE_SCHEMA = _schema_text(
+    _TF_MESSAGE_MSG,
+    ("geometry_msgs/TransformStamped", _TRANSFORM_STAMPED_MSG),
+    ("std_msgs/Header", _HEADER_MSG),
+    ("builtin_interfaces/Time", _TIME_MSG),
+    ("geometry_msgs/Transform", _TRANSFORM_MSG),
+    ("geometry_msgs/Vector3", _VECTOR3_MSG),
+    ("geometry_msgs/Quaternion", _QUATERNION_MSG),
+)
+
+POINT_FIELDS = ("x", "y", "z", "intensity", "cov_xx", "cov_yy", "cov_zz")
+"""The PointCloud2 fields, in order, each one FLOAT32 (``PointField.FLOAT32 = 7``)."""
+_FLOAT32 = 7
+RADIATION_ULTRASOUND = 0
+
+
+def receiver_frame_id(receiver: int) -> str:
+    """ROS frame id of receiver ``receiver``'s ``Range`` messages: origin at it, x along its axis."""
+    return f"echoloc_rx{receiver}"
+
+
+# --- the points -----------------------------------------------------------------------
+
+
+ObjectsInput = FrameObjects | Sequence[FrameObjects] | Sequence[LocatedObject] | NDArray[np.float64]
+
+
+def _as_frames(objects: ObjectsInput, source: str) -> list[FrameObjects]:
+    """Normalise the accepted inputs to a list of frames.
+
+    An (n, 3) array of positions becomes one frame with unknown (NaN) covariance and
+    score 1; a sequence of :class:`LocatedObject` becomes frame 0.
+    """
+    if isinstance(objects, FrameObjects):
+        return [objects]
+    if isinstance(objects, np.ndarray):
+        points = np.asarray(objects, dtype=float)
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise EchoLocError(f"{source}: points must have shape (n, 3), got {points.shape}")
+        nan_cov = np.full((3, 3), np.nan)
+        located = tuple(LocatedObject(p, nan_cov, (), (), math.nan, 1.0) for p in points)
+        return [FrameObjects(0, 0.0, located)]
+    items = list(objects)
+    if all(isinstance(item, FrameObjects) for item in items):
+        return [item for item in items if isinstance(item, FrameObjects)]
+    if all(isinstance(item, LocatedObject) for item in items):
+        return [FrameObjects(0, 0.0, tuple(item for item in items if isinstance(item, LocatedObject)))]
+    raise EchoLocError(f"{source}: expected FrameObjects, LocatedObject items or an (n, 3) array")
+
+
+def _point_table(
+    frame: FrameObjects, intensity: ArrayLike | None, source: str
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+    """Positions (n, 3), intensities (n,), covariance diagonals (n, 3) and receiver counts (n,)."""
+    n = len(frame.objects)
+    positions = np.array([o.position_m for o in frame.objects], dtype=float).reshape(n, 3)
+    cov_diag = np.array([np.diag(o.covariance_m2) for o in frame.objects], dtype=float).reshape(n, 3)
+    support = np.array([len(o.receivers) for o in frame.objects], dtype=np.int64)
+    if intensity is None:
+        values = np.array([o.score for o in frame.objects], dtype=float)
+    else:
+        values = np.asarray(intensity, dtype=float).reshape(-1)
+        if values.shape != (n,):
+            raise EchoLocError(f"{source}: frame {frame.frame} has {n} objects but {values.size} intensities")
+    return positions, values, cov_diag, support
+
+
+def _intensity_for(intensities: Sequence[ArrayLike] | None, index: int, n_frames: int, source: str) -> Any:
+    if intensities is None:
+        return None
+    if len(intensities) != n_frames:
+        raise EchoLocError(f"{source}: {len(intensities)} intensity arrays for {n_frames} frames")
+    return intensities[index]
+
+
+def _check_path(path: str | Path, suffix: str) -> Path:
+    target = Path(path)
+    if target.suffix.lower() != suffix:
+        raise EchoLocError(
+            f"{target}: expected a {suffix} file name, got extension {target.suffix or '(none)'!r}"
+        )
+    if problem := missing_directory(target):
+        raise EchoLocError(f"{target}: {problem}")
+    if target.is_dir():
+        raise EchoLocError(f"{target}: is a directory")
+    return target
+
+
+# --- PLY ----------------------------------------------------------------------------------
+
+
+def write_ply(
+    path: str | Path,
+    objects: ObjectsInput,
+    *,
+    binary: bool = True,
+    per_frame: bool = False,
+    intensities: Sequence[ArrayLike] | None = None,
+    double: bool = False,
+    comments: Sequence[str] | None = None,
+) -> list[Path]:
+    """Write located objects as a PLY point cloud (Bourke's polygon file format, 1994).
+
+    Vertex properties: ``x, y, z`` (m, sensor frame, float32 or with ``double`` float64),
+    ``intensity`` (the object's localisation score, or the given per-frame
+    ``intensities``, e.g. echo amplitudes), ``cov_xx, cov_yy, cov_zz`` (diagonal of the
+    position covariance, m^2), ``receivers`` (how many receivers support the object)
+    and, when all frames share one file, ``frame`` (the frame index). ``binary``
+    writes ``binary_little_endian``, else ``ascii``. With ``per_frame`` one file per
+    frame is written next to ``path``, named ``{stem}_{frame:06d}.ply``. ``comments``
+    replace the header's description of the points (what they are, their frame and
+    what their intensity means) for other kinds of points.
+
+    Returns the paths written. Raises :class:`EchoLocError` for a name not ending in
+    ``.ply``, a missing directory or a file that cannot be written.
+    """
+    target = _check_path(path, ".ply")
+    frames = _as_frames(objects, str(target))
+    source = str(target)
+    tables = [
+        _point_table(frame, _intensity_for(intensities, i, len(frames), source), source)
+        for i, frame in enumerate(frames)
+    ]
+    if per_frame:
+        written = []
+        for frame, table in zip(frames, tables, strict=True):
+            out = target.with_name(f"{target.stem}_{frame.frame:06d}.ply")
+            _write_ply_file(out, [table], None, binary=binary, double=double, comments=comments)
+            written.append(out)
+        return written
+    frame_ids = [frame.frame for frame in frames]
+    _write_ply_file(target, tables, frame_ids, binary=binary, double=double, comments=comments)
+    return [target]
+
+
+def _write_ply_file(
+    path: Path,
+    tables: list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]],
+    frame_ids: list[int] | None,
+    *,
+    binary: bool,
+    double: bool,
+    comments: Sequence[str] | None = None,
+) -> None:
+    float_type, float_name = ("<f8", "double") if double else ("<f4", "float")
+    columns: list[tuple[str, str, str]] = [(name, float_type, float_name) for name in POINT_FIELDS]
+    columns.append(("receivers", "u1", "uchar"))
+    if frame_ids is not None:
+        columns.append(("frame", "<i4", "int"))
+    n = sum(len(t[0]) for t in tables)
+    vertices = np.zeros(n, dtype=[(name, dtype) for name, dtype, _ in columns])
+    row = 0
+    for index, (positions, values, cov_diag, support) in enumerate(tables):
+        rows = slice(row, row + len(positions))
+        for axis, name in enumerate(("x", "y", "z")):
+            vertices[name][rows] = positions[:, axis]
+        vertices["intensity"][rows] = values
+        for axis, name in enumerate(("cov_xx", "cov_yy", "cov_zz")):
+            vertices[name][rows] = cov_diag[:, axis]
+        vertices["receivers"][rows] = np.clip(support, 0, 255)
+        if frame_ids is not None:
+            vertices["frame"][rows] = frame_ids[index]
+        row += len(positions)
+    described = comments or (
+        "echoloc located objects",
+        f"frame_id {SENSOR_FRAME_ID}: REP 103 optical frame, x right, y down, z boresight, metres",
+        "intensity: localisation score of the object (or the echo amplitude if given)",
+        "cov_xx cov_yy cov_zz: diagonal of the position covariance, m^2 (NaN: unknown)",
+        "receivers: number of receivers whose echoes support the object",
+    )
+    header = [
+        "ply",
+        f"format {'binary_little_endian' if binary else 'ascii'} 1.0",
+        *(f"comment {line}" for line in described),
+    ]
+    if frame_ids is not None:
+        header.append("comment frame: index of the recording frame the object was located in")
+    header.append(f"element vertex {n}")
+    header.extend(f"property {ply_name} {name}" for name, _, ply_name in columns)
+    header.append("end_header")
+    try:
+        with path.open("wb") as stream:
+            stream.write(("\n".join(header) + "\n").encode("ascii"))
+            if binary:
+                stream.write(vertices.tobytes())
+            else:
+                float_format = "%.17g" if double else "%.9g"
+                formats = [float_format if name in POINT_FIELDS else "%d" for name, _, _ in columns]
+                for vertex in vertices:
+                    line = " ".join(fmt % value for fmt, value in zip(formats, vertex.tolist(), strict=True))
+                    stream.write((line + "\n").encode("ascii"))
+    except OSError as error:
+        raise EchoLocError(f"{path}: cannot write: {error.strerror or error}") from error
+
+
+# --- MCAP (ROS 2) -------------------------------------------------------------------------
+
+
+def ros_time(time_s: float) -> dict[str, int]:
+    """``builtin_interfaces/Time`` of ``time_s`` seconds: whole seconds and nanoseconds, nanosec < 1e9."""
+    if not (math.isfinite(time_s) and time_s < 2**31):
+        # Checked before the nanoseconds are rounded: 1e300 s has no integer count of them.
+        raise EchoLocError(f"stamp {time_s} s does not fit a ROS time (int32 seconds)")
+    total_ns = round(time_s * 1e9)
+    if total_ns < 0:
+        raise EchoLocError(f"stamp {time_s} s is before 1970 (ROS time must not be negative)")
+    sec, nanosec = divmod(total_ns, 1_000_000_000)
+    if sec > 2**31 - 1:
+        raise EchoLocError(f"stamp {time_s} s does not fit a ROS time (int32 seconds)")
+    return {"sec": int(sec), "nanosec": int(nanosec)}
+
+
+def point_cloud2(
+    frame: FrameObjects,
+    stamp_s: float,
+    *,
+    intensity: ArrayLike | None = None,
+    frame_id: str = SENSOR_FRAME_ID,
+) -> dict[str, Any]:
+    """A ``sensor_msgs/msg/PointCloud2`` (as a dict) of one frame's objects.
+
+    An unordered cloud (height 1), little-endian, 7 FLOAT32 fields per point
+    (:data:`POINT_FIELDS`): point_step 28 bytes, row_step 28 * width; ``is_dense`` is
+    true when no value is NaN or infinite.
+    """
+    positions, values, cov_diag, _ = _point_table(frame, intensity, f"frame {frame.frame}")
+    n = len(positions)
+    table = np.column_stack([positions, values, cov_diag]).astype("<f4").reshape(n, len(POINT_FIELDS))
+    point_step = 4 * len(POINT_FIELDS)
+    fields = [
+        {"name": name, "offset": 4 * i, "datatype": _FLOAT32, "count": 1}
+        for i, name in enumerate(POINT_FIELDS)
+    ]
+    return {
+        "header": {"stamp": ros_time(stamp_s), "frame_id": frame_id},
+        "height": 1,
+        "width": n,
+        "fields": fields,
+        "is_bigendian": False,
+        "point_step": point_step,
+        "row_step": point_step * n,
+        "data": table.tobytes(),
+        "is_dense": bool(np.all(np.isfinite(table))),
+    }
+
+
+def receiver_ranges_m(
+    frame: FrameObjects, receivers_m: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Per receiver, distance to the nearest object its echoes support, and that distance's variance.
+
+    The range is the Euclidean distance ``|p - r|`` from the receiver to the object,
+    not half the echo's path (which equals it only for a transmitter at the receiver);
+    its variance is ``u^T C u`` with ``u`` the unit vector from receiver to object and
+    ``C`` the object's covariance (first-order propagation). A receiver that supports
+    no object gets ``+inf`` (REP 117: no detection) and variance 0 (unknown).
+    """
+    n_rx = len(receivers_m)
+    ranges = np.full(n_rx, np.inf)
+    variances = np.zeros(n_rx)
+    for obj in frame.objects:
+        for rx in set(obj.receivers):
+            if not 0 <= rx < n_rx:
+                continue
+            offset = np.asarray(obj.position_m, dtype=float) - receivers_m[rx]
+            distance = float(np.linalg.norm(offset))
+            if distance < ranges[rx]:
+                ranges[rx] = distance
+                u = offset / distance if distance > 0 else np.zeros(3)
+                variance = float(u @ np.asarray(obj.covariance_m2, dtype=float) @ u)
+                variances[rx] = variance if np.isfinite(variance) and variance > 0 else 0.0
+    return ranges, variances
+
+
+def _axis_quaternion(axis: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Quaternion (x, y, z, w) of a frame whose x is ``axis`` (in the optical frame) and z is up (-y).
+
+    For ``axis`` = +z this is REP 103's optical-to-body rotation: body x = optical z,
+    body y = -optical x, body z = -optical y.
+    """
+    x = np.asarray(axis, dtype=float)
+    x = x / np.linalg.norm(x)
+    up = np.array([0.0, -1.0, 0.0])
+    if abs(float(x @ up)) > 0.999:
+        up = np.array([0.0, 0.0, 1.0])
+    y = np.cross(up, x)
+    y /= np.linalg.norm(y)
+    z = np.cross(x, y)
+    return _matrix_quaternion(np.column_stack([x, y, z]))
+
+
+def _matrix_quaternion(m: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Unit quaternion (x, y, z, w) of rotation matrix ``m`` (Shepperd 1978, largest-pivot branch)."""
+    trace = float(np.trace(m))
+    diagonal = np.diag(m)
+    if trace >= diagonal.max():
+        w = 0.5 * math.sqrt(1.0 + trace)
+        q = np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1], 0.0]) / (4 * w)
+        q[3] = w
+    else:
+        i = int(np.argmax(diagonal))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * math.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k])
+        q = np.zeros(4)
+        q[i] = 0.25 * s
+        q[j] = (m[j, i] + m[i, j]) / s
+        q[k] = (m[k, i] + m[i, k]) / s
+        q[3] = (m[k, j] - m[j, k]) / s
+    return q / np.linalg.norm(q)
+
+
+def _max_range_m(recording: Recording, speed_m_s: float, receiver: int) -> float:
+    """Farthest reflector distance from receiver whose echo still falls inside the window.
+
+    An echo of path ``L`` from transmitter ``t`` to receiver ``r`` via ``p`` has
+    ``|p - r| <= (L + |t - r|) / 2`` (triangle inequality); ``L`` at most the window's
+    ``n_samples / sample_rate_hz`` times the speed of sound. The largest over transmitters.
+    """
+    window_path_m = recording.n_samples / recording.sample_rate_hz * speed_m_s
+    baselines = np.linalg.norm(recording.transmitters_m - recording.receivers_m[receiver], axis=1)
+    return float((window_path_m + baselines.max()) / 2)
+
+
+def write_mcap(
+    path: str | Path,
+    recording: Recording | None,
+    objects_per_frame: Sequence[FrameObjects],
+    *,
+    start_time_s: float = 0.0,
+    frame_rate_hz: float | None = None,
+    intensities: Sequence[ArrayLike] | None = None,
+    frame_id: str = SENSOR_FRAME_ID,
+    ranges: bool = True,
+    tf_static: bool = True,
+    min_range_m: float = 0.0,
+    compression: str = "zstd",
+) -> int:
+    """Write the objects of every frame as ROS 2 (Jazzy) messages in an MCAP file.
+
+    Per frame one ``sensor_msgs/msg/PointCloud2`` on ``/echoloc/objects`` in
+    ``frame_id`` and, when ``recording`` is given and ``ranges``, one
+    ``sensor_msgs/msg/Range`` per receiver on ``/echoloc/range/rx{N}`` (frame
+    ``echoloc_rx{N}``; :func:`receiver_ranges_m`; ULTRASOUND; field of view twice the
+    recording's ``field_of_view_deg`` in radians, or pi, the half-space in front, when
+    unknown; ``min_range`` = ``min_range_m``, ``max_range`` from the recording window,
+    :func:`_max_range_m`). With ``tf_static`` one ``/tf_static`` message places the
+    receiver frames in ``frame_id``.
+
+    Stamps (header and MCAP log time) are ``start_time_s`` (e.g. the Unix time of the
+    first emission) plus the frame's time: the recording's ``frame_times`` (or
+    back-to-back frames) when ``recording`` is given, else ``frame / frame_rate_hz``
+    when given, else each frame's ``time_s``. Returns the number of messages written.
+    """
+    target = _check_path(path, ".mcap")
+    source = str(target)
+    frames = list(objects_per_frame)
+    if not all(isinstance(frame, FrameObjects) for frame in frames):
+        raise EchoLocError(f"{source}: objects_per_frame must hold FrameObjects")
+    if frame_rate_hz is not None and not (math.isfinite(frame_rate_hz) and frame_rate_hz > 0):
+        raise EchoLocError(f"{source}: frame rate must be positive, got {frame_rate_hz}")
+    if not math.isfinite(start_time_s):
+        raise EchoLocError(f"{source}: start time must be finite, got {start_time_s}")
+    try:
+        compression_type = {
+            "zstd": CompressionType.ZSTD,
+            "lz4": CompressionType.LZ4,
+            "none": CompressionType.NONE,
+        }[compression]
+    except KeyError:
+        raise EchoLocError(f"{source}: compression must be zstd, lz4 or none, got {compression!r}") from None
+    if recording is not None:
+        for frame in frames:
+            if not 0 <= frame.frame < recording.n_frames:
+                raise EchoLocError(
+                    f"{source}: frame {frame.frame} is not in {recording.source} "
+                    f"({recording.n_frames} frames)"
+                )
+
+    def stamp_of(frame: FrameObjects) -> float:
+        if recording is not None:
+            return start_time_s + frame_time_s(recording, frame.frame)
+        if frame_rate_hz is not None:
+            return start_time_s + frame.frame / frame_rate_hz
+        return start_time_s + frame.time_s
+
+    stamps = [stamp_of(frame) for frame in frames]
+    for stamp in stamps:
+        ros_time(stamp)  # raises for stamps ROS cannot hold, before the file is created
+    try:
+        stream = target.open("wb")
+    except OSError as error:
+        raise EchoLocError(f"{target}: cannot write: {error.strerror or error}") from error
+    count = 0
+    with stream, Ros2Writer(stream, compression=compression_type) as writer:
+        writer.add_metadata(
+            "echoloc",
+            {
+                "ros_distribution": ROS_DISTRIBUTION,
+                "frame_id": frame_id,
+                "frame_convention": "REP 103 optical: x right, y down, z boresight",
+            },
+        )
+        cloud_schema = writer.register_msgdef("sensor_msgs/msg/PointCloud2", POINT_CLOUD2_SCHEMA)
+        with_ranges = recording is not None and ranges
+        if recording is not None and (with_ranges or tf_static):
+            receiver_axes = (
+                recording.receiver_axes
+                if recording.receiver_axes is not None
+                else np.tile([0.0, 0.0, 1.0], (recording.n_receivers, 1))
+            )
+            if tf_static:
+                tf_schema = writer.register_msgdef("tf2_msgs/msg/TFMessage", TF_MESSAGE_SCHEMA)
+                first = min(stamps) if stamps else start_time_s
+                transforms = []
+                for rx in range(recording.n_receivers):
+                    tx, ty, tz = (float(v) for v in recording.receivers_m[rx])
+                    qx, qy, qz, qw = (float(v) for v in _axis_quaternion(receiver_axes[rx]))
+                    transforms.append(
+                        {
+                            "header": {"stamp": ros_time(first), "frame_id": frame_id},
+                            "child_frame_id": receiver_frame_id(rx),
+                            "transform": {
+                                "translation": {"x": tx, "y": ty, "z": tz},
+                                "rotation": {"x": qx, "y": qy, "z": qz, "w": qw},
+                            },
+                        }
+                    )
+                t_ns = round(first * 1e9)
+                writer.write_message(
+                    TF_STATIC_TOPIC, tf_schema, {"transforms": transforms}, log_time=t_ns, publish_time=t_ns
+                )
+                count += 1
+        if recording is not None and with_ranges:
+            range_schema = writer.register_msgdef("sensor_msgs/msg/Range", RANGE_SCHEMA)
+            speed = recording_speed_of_sound_m_s(recording)
+            fov_rad = (
+                math.pi
+                if recording.field_of_view_deg is None
+                else 2.0 * math.radians(recording.field_of_view_deg)
+            )
+            max_ranges = [_max_range_m(recording, speed, rx) for rx in range(recording.n_receivers)]
+        for index, (frame, stamp) in enumerate(zip(frames, stamps, strict=True)):
+            t_ns = round(stamp * 1e9)
+            intensity = _intensity_for(intensities, index, len(frames), source)
+            cloud = point_cloud2(frame, stamp, intensity=intensity, frame_id=frame_id)
+            writer.write_message(
+                OBJECTS_TOPIC, cloud_schema, cloud, log_time=t_ns, publish_time=t_ns, sequence=index
+            )
+            count += 1
+            if recording is None or not with_ranges:
+                continue
+            distances, variances = receiver_ranges_m(frame, recording.receivers_m)
+            for rx in range(recording.n_receivers):
+                message = {
+                    "header": {"stamp": ros_time(stamp), "frame_id": receiver_frame_id(rx)},
+                    "radiation_type": RADIATION_ULTRASOUND,
+                    "field_of_view": fov_rad,
+                    "min_range": float(min_range_m),
+                    "max_range": max_ranges[rx],
+                    "range": float(distances[rx]),
+                    "variance": float(variances[rx]),
+                }
+                writer.write_message(
+                    f"{RANGE_TOPIC_PREFIX}{rx}",
+                    range_schema,
+                    message,
+                    log_time=t_ns,
+                    publish_time=t_ns,
+                    sequence=index,
+                )
+                count += 1
+    return count

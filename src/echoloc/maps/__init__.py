@@ -1,0 +1,1 @@
+"""Occupancy maps: located objects accumulated into grids, and the grids exported."""

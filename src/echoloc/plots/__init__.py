@@ -1,0 +1,1 @@
+"""Pictures (matplotlib): a frame, the physics (beams, spectra), images, maps, design studies."""

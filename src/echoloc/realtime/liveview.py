@@ -1,0 +1,313 @@
+"""The live view: what a stream sees, published on a Foxglove WebSocket server on 127.0.0.1.
+
+Why Foxglove rather than a page of our own: it is the viewer robot integrators
+already run beside ROS 2, it shows 3-D scenes, plots and grids with no code of
+ours in a browser, and the ``foxglove-sdk`` server speaks its documented WebSocket
+protocol (subprotocol ``foxglove.sdk.v1``), so any client can subscribe too. Connect
+Foxglove to ``ws://127.0.0.1:8765`` (Open connection -> Foxglove WebSocket).
+
+Topics, all in the sensor frame ``echoloc_sensor_optical_frame`` (FORMATS.md):
+
+- ``/echoloc/objects`` (``foxglove.SceneUpdate``): one sphere per object, 2 sigma
+  wide, and its range as text;
+- ``/echoloc/points`` (``foxglove.PointCloud``): the objects as points (x, y, z, score,
+  float32);
+- ``/echoloc/locate`` (JSON): the frame's line of ``echoloc locate --json``;
+- ``/echoloc/echo_traces`` (JSON): per receiver, the matched filter's envelope (rf
+  with a waveform; else the signal's envelope), max-pooled to about ``trace_points``
+  points (``path_step_m`` apart), and the echoes' paths, for the Plot panel (x axis:
+  index);
+- ``/echoloc/stats`` (JSON): the stream's counters (:class:`echoloc.realtime.stream.StreamStats`);
+- ``/echoloc/map`` (``foxglove.Grid``): an occupancy grid, when a mapper publishes one
+  (:meth:`LiveView.publish_map`).
+
+Publishing is throttled to ``max_rate_hz`` (objects and traces of the latest
+frame), so viewing never slows the chain down; nothing is computed for the view
+while no client is subscribed.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import foxglove
+import numpy as np
+from foxglove.channels import GridChannel, PointCloudChannel, SceneUpdateChannel
+from foxglove.messages import (
+    Color,
+    Grid,
+    PackedElementField,
+    PackedElementFieldNumericType,
+    PointCloud,
+    Pose,
+    Quaternion,
+    SceneEntity,
+    SceneUpdate,
+    SpherePrimitive,
+    TextPrimitive,
+    Timestamp,
+    Vector3,
+)
+from numpy.typing import NDArray
+from scipy import signal
+
+from echoloc.errors import EchoLocError
+from echoloc.io.export import SENSOR_FRAME_ID
+from echoloc.io.output import objects_record
+from echoloc.io.recording import Recording
+from echoloc.realtime.stream import StreamResult, StreamStats
+from echoloc.tof.echoes import MatchedFilter
+
+DEFAULT_VIEW_PORT = 8765
+TOPICS = (
+    "/echoloc/objects",
+    "/echoloc/points",
+    "/echoloc/locate",
+    "/echoloc/echo_traces",
+    "/echoloc/stats",
+    "/echoloc/map",
+)
+
+_IDENTITY = Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)
+
+
+def _timestamp(ns: int) -> Timestamp:
+    return Timestamp(ns // 1_000_000_000, ns % 1_000_000_000)
+
+
+def envelope_trace(
+    samples: NDArray[Any], points: int, matched: MatchedFilter | None = None
+) -> tuple[NDArray[np.float64], int]:
+    """Envelope of each channel (n_rx, n_samples), max-pooled to about ``points`` points.
+
+    With ``matched``, the magnitude of the analytic correlation with the template
+    (:meth:`echoloc.tof.echoes.MatchedFilter.correlate_single`), which peaks where an
+    echo arrives; otherwise the magnitude of the analytic signal of real samples
+    (``scipy.signal.hilbert``), or of complex (iq) samples themselves. Returns the
+    pooled envelopes and the pooling factor (samples per point).
+    """
+    arr = np.asarray(samples)
+    if matched is not None:
+        envelope = np.abs(matched.correlate_single(arr))
+    elif arr.dtype.kind == "c":
+        envelope = np.abs(arr)
+    else:
+        envelope = np.abs(signal.hilbert(arr, axis=-1))
+    factor = max(1, int(np.ceil(arr.shape[-1] / max(points, 1))))
+    n = envelope.shape[-1] // factor * factor
+    pooled = envelope[:, :n].reshape(envelope.shape[0], -1, factor).max(axis=-1)
+    return pooled, factor
+
+
+class LiveView:
+    """A Foxglove WebSocket server with echoloc's topics (see the module's table).
+
+    Parameters
+    ----------
+    host, port
+        Where to serve; 127.0.0.1 keeps it on this machine. Port 0 picks a free one
+        (see :attr:`port`).
+    max_rate_hz
+        At most this many frames a second are published.
+    trace_points
+        About this many points per receiver in ``/echoloc/echo_traces``.
+    """
+
+    def __init__(
+        self,
+        host: str = "127.0.0.1",
+        port: int = DEFAULT_VIEW_PORT,
+        *,
+        max_rate_hz: float = 20.0,
+        trace_points: int = 600,
+    ) -> None:
+        self.context = foxglove.Context()
+        try:
+            self.server = foxglove.start_server(name="echoloc", host=host, port=port, context=self.context)
+        except Exception as error:  # the SDK raises its own error types for a busy port
+            raise EchoLocError(f"cannot start the live view on ws://{host}:{port}: {error}") from None
+        self.host = host
+        self.max_rate_hz = max_rate_hz
+        self.trace_points = trace_points
+        self._objects = SceneUpdateChannel("/echoloc/objects", context=self.context)
+        self._points = PointCloudChannel("/echoloc/points", context=self.context)
+        self._locate = foxglove.Channel("/echoloc/locate", message_encoding="json", context=self.context)
+        self._traces = foxglove.Channel("/echoloc/echo_traces", message_encoding="json", context=self.context)
+        self._stats = foxglove.Channel("/echoloc/stats", message_encoding="json", context=self.context)
+        self._map = GridChannel("/echoloc/map", context=self.context)
+        self._last_ns = 0
+        self._sample_rate_hz = 1.0
+        self._matched: MatchedFilter | None = None
+        self.published = 0
+
+    @property
+    def port(self) -> int:
+        return int(self.server.port)
+
+    @property
+    def url(self) -> str:
+        return f"ws://{self.host}:{self.port}"
+
+    def close(self) -> None:
+        self.server.stop()
+
+    def __enter__(self) -> LiveView:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    def set_session(self, header: Recording) -> None:
+        """The session the frames to come belong to: prepares the traces' matched filter once."""
+        self._sample_rate_hz = float(header.sample_rate_hz)
+        self._matched = None
+        if header.signal_kind == "rf" and header.waveform is not None:
+            self._matched = MatchedFilter(
+                np.asarray(header.waveform, float), header.n_samples, self._sample_rate_hz
+            )
+
+    def publish(self, result: StreamResult, samples: NDArray[Any], stats: StreamStats | None = None) -> bool:
+        """Publish one frame's objects and traces (and ``stats``), unless throttled; True if published.
+
+        ``samples`` (n_rx, n_samples) are the frame's, of the session given to
+        :meth:`set_session`.
+        """
+        now = time.time_ns()
+        if now - self._last_ns < 1e9 / self.max_rate_hz:
+            return False
+        self._last_ns = now
+        objects = result.objects
+        stamp = _timestamp(now)
+        if self._objects.has_sinks():
+            self._objects.log(self._scene(result, stamp), log_time=now)
+        if self._points.has_sinks():
+            self._points.log(self._cloud(result, stamp), log_time=now)
+        if self._locate.has_sinks():
+            self._locate.log(objects_record(objects), log_time=now)
+        if self._traces.has_sinks():
+            self._traces.log(self._trace_record(result, samples), log_time=now)
+        if stats is not None and self._stats.has_sinks():
+            self._stats.log(stats.record(), log_time=now)
+        self.published += 1
+        return True
+
+    def publish_map(
+        self,
+        occupancy: NDArray[np.floating],
+        cell_size_m: float,
+        origin_m: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        orientation_xyzw: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0),
+    ) -> None:
+        """Publish an occupancy grid (rows along y, columns along x, values 0..1) as ``foxglove.Grid``.
+
+        The hook for a mapper (an occupancy grid of the sensor's surroundings): the
+        grid lies in its own x-y plane, placed in the sensor frame by ``origin_m`` (its
+        cell (0, 0)) and ``orientation_xyzw``; values are sent as float32
+        ``occupancy`` (-1 where unknown).
+        """
+        grid = np.ascontiguousarray(occupancy, dtype=np.float32)
+        if grid.ndim != 2 or grid.size == 0:
+            raise EchoLocError(f"an occupancy grid must be 2-D and not empty, got shape {grid.shape}")
+        now = time.time_ns()
+        columns = grid.shape[1]
+        self._map.log(
+            Grid(
+                timestamp=_timestamp(now),
+                frame_id=SENSOR_FRAME_ID,
+                pose=Pose(
+                    position=Vector3(x=origin_m[0], y=origin_m[1], z=origin_m[2]),
+                    orientation=Quaternion(
+                        x=orientation_xyzw[0],
+                        y=orientation_xyzw[1],
+                        z=orientation_xyzw[2],
+                        w=orientation_xyzw[3],
+                    ),
+                ),
+                column_count=columns,
+                cell_size=foxglove.messages.Vector2(x=cell_size_m, y=cell_size_m),
+                row_stride=columns * 4,
+                cell_stride=4,
+                fields=[
+                    PackedElementField(name="occupancy", offset=0, type=PackedElementFieldNumericType.Float32)
+                ],
+                data=grid.tobytes(),
+            ),
+            log_time=now,
+        )
+
+    # -- messages
+
+    def _scene(self, result: StreamResult, stamp: Timestamp) -> SceneUpdate:
+        spheres = []
+        texts = []
+        for obj in result.objects.objects:
+            x, y, z = (float(v) for v in obj.position_m)
+            size = float(max(4 * np.max(obj.std_m), 0.01))  # 2 sigma each side, at least 1 cm
+            pose = Pose(position=Vector3(x=x, y=y, z=z), orientation=_IDENTITY)
+            spheres.append(
+                SpherePrimitive(
+                    pose=pose,
+                    size=Vector3(x=size, y=size, z=size),
+                    color=Color(r=1.0, g=0.45, b=0.1, a=0.8),
+                )
+            )
+            texts.append(
+                TextPrimitive(
+                    pose=Pose(position=Vector3(x=x, y=y - 0.02, z=z), orientation=_IDENTITY),
+                    billboard=True,
+                    font_size=12.0,
+                    scale_invariant=True,
+                    color=Color(r=1.0, g=1.0, b=1.0, a=1.0),
+                    text=f"{np.linalg.norm(obj.position_m) * 1e3:.0f} mm",
+                )
+            )
+        entity = SceneEntity(
+            timestamp=stamp,
+            frame_id=SENSOR_FRAME_ID,
+            id="objects",
+            frame_locked=True,
+            spheres=spheres,
+            texts=texts,
+            metadata=[],
+        )
+        return SceneUpdate(entities=[entity])
+
+    def _cloud(self, result: StreamResult, stamp: Timestamp) -> PointCloud:
+        objects = result.objects.objects
+        data = np.zeros((len(objects), 4), dtype="<f4")
+        for k, obj in enumerate(objects):
+            data[k, :3] = obj.position_m
+            data[k, 3] = obj.score
+        fields = [
+            PackedElementField(name=name, offset=4 * k, type=PackedElementFieldNumericType.Float32)
+            for k, name in enumerate(("x", "y", "z", "score"))
+        ]
+        return PointCloud(
+            timestamp=stamp,
+            frame_id=SENSOR_FRAME_ID,
+            pose=Pose(position=Vector3(x=0.0, y=0.0, z=0.0), orientation=_IDENTITY),
+            point_stride=16,
+            fields=fields,
+            data=data.tobytes(),
+        )
+
+    def _trace_record(self, result: StreamResult, samples: NDArray[Any]) -> dict[str, Any]:
+        pooled, factor = envelope_trace(samples, self.trace_points, self._matched)
+        rate = self._sample_rate_hz
+        echoes = result.echoes
+        c = echoes.speed_of_sound_m_s
+        return {
+            "frame": echoes.frame,
+            "time_s": float(echoes.time_s),
+            "sample_step_s": factor / rate,
+            "path_step_m": factor / rate * c,
+            "channels": [
+                {
+                    "receiver": receiver,
+                    "envelope": [round(float(v), 6) for v in pooled[receiver]],
+                    "echo_paths_m": [float(t * c) for t in channel.tof_s],
+                }
+                for receiver, channel in enumerate(echoes.channels)
+            ],
+        }
