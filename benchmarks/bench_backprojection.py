@@ -48,7 +48,7 @@ from echoloc.localise.backprojection import (
 )
 from echoloc.localise.locate import LocatedObject
 from echoloc.sim.scenefile import scene_from_dict
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).resolve().parent / "results" / "backprojection.md"

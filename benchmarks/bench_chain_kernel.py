@@ -30,7 +30,7 @@ from echoloc.benchmark import _stream_pass, bench_scene, pinned_cores
 from echoloc.io.output import echoes_record, objects_record
 from echoloc.pipeline import Chain, prepare
 from echoloc.realtime.stream import STREAM_BATCH_FRAMES, StreamFrame, StreamProcessor, recording_frames
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 from echoloc.tof.echoes import EchoOptions, _correlated_channels
 
 

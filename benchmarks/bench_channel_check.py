@@ -20,7 +20,7 @@ from echoloc.io.recording import as_header
 from echoloc.pipeline import prepare, run
 from echoloc.realtime.stream import StreamProcessor, recording_frames
 from echoloc.sim.scene import default_scene
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 
 
 def _file_ms(chain: object, frames: list[int]) -> float:

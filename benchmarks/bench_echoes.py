@@ -35,7 +35,7 @@ from echoloc.io.recording import Recording
 from echoloc.localise.locate import model_paths_m
 from echoloc.pipeline import Chain, prepare
 from echoloc.sim.scene import RandomReflectors, Scene, default_scene
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 from echoloc.tof.echoes import (
     MATCHED_DECIMATION,
     EchoOptions,

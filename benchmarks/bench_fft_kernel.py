@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 from echoloc.benchmark import bench_scene, pinned_cores
 from echoloc.pipeline import prepare
 from echoloc.realtime.stream import StreamProcessor, recording_frames
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 from echoloc.tof.echoes import (
     EchoOptions,
     FrameEchoes,

@@ -48,7 +48,7 @@ import numpy as np
 from echoloc.benchmark import _stream_pass, bench_scene, pinned_cores
 from echoloc.pipeline import prepare
 from echoloc.realtime.stream import StreamProcessor, recording_frames
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 from echoloc.tof.echoes import EchoOptions
 
 #: (module, function, label): every call the streamed chain makes from Python into compiled code.

@@ -29,9 +29,9 @@ import numpy as np
 
 from bench_pipeline import baseline_locate
 from echoloc import pipeline
-from echoloc.localise.evaluate import evaluate
+from echoloc.localise.evaluation import evaluate
 from echoloc.sim.scenefile import scene_from_dict
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 from echoloc.tof.echoes import FrameEchoes
 
 ROOT = Path(__file__).resolve().parents[1]

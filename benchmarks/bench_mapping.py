@@ -37,7 +37,7 @@ from echoloc.maps.mapping import (
     half_power_angle_deg,
 )
 from echoloc.sim.scenefile import load_scene
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 from echoloc.tof.echoes import FrameEchoes
 
 ROOT = Path(__file__).resolve().parent.parent

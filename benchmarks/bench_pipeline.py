@@ -27,10 +27,10 @@ from dataclasses import replace
 import numpy as np
 
 from echoloc.benchmark import baseline_echoes, baseline_locate
-from echoloc.localise.evaluate import evaluate
+from echoloc.localise.evaluation import evaluate
 from echoloc.pipeline import Chain, frame_echoes, frame_objects, prepare
 from echoloc.sim.scene import RandomReflectors, default_scene
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 from echoloc.tof.echoes import MATCHED_DECIMATION, MatchedFilter, matched_filter_batch
 
 

@@ -32,7 +32,7 @@ import numpy as np
 import scipy.fft
 
 from echoloc.sim.scene import REPORT_ARRAY, RandomReflectors, Scene
-from echoloc.sim.simulate import path_lengths_m, simulate, simulate_batches
+from echoloc.sim.simulation import path_lengths_m, simulate, simulate_batches
 
 BENCH_SCENE = Scene(
     array=REPORT_ARRAY,
@@ -91,7 +91,7 @@ def rounds(n_frames: int, n_rounds: int) -> None:
 
 _CHILD = """
 import resource, sys, time
-from echoloc.sim.simulate import simulate_to_file
+from echoloc.sim.simulation import simulate_to_file
 sys.path.insert(0, {bench_dir!r})
 from bench_simulate import BENCH_SCENE
 start = time.perf_counter()

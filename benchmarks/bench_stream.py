@@ -43,7 +43,7 @@ from echoloc.realtime.stream import (
     StreamProcessor,
 )
 from echoloc.realtime.transport import Endpoint, Listener, SessionEvent
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 
 
 def rss_mib() -> float:

@@ -22,7 +22,7 @@ import numpy as np
 
 from echoloc.benchmark import bench_scene
 from echoloc.pipeline import prepare
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 from echoloc.tof.echoes import MATCHED_DECIMATION, MatchedFilter, matched_filter_batch, matched_filter_echoes
 
 

@@ -45,7 +45,7 @@ from echoloc.io.recording import read_recording
 from echoloc.sim.reflectors import Sphere
 from echoloc.sim.scene import Scene
 from echoloc.sim.scenefile import load_scene
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 from echoloc.tof.envelope_stats import (
     EchoFigures,
     FrameStart,

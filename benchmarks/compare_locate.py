@@ -32,7 +32,7 @@ from echoloc import pipeline
 from echoloc.benchmark import bench_scene
 from echoloc.localise import locate
 from echoloc.sim.scenefile import scene_from_dict
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 

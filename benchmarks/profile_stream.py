@@ -166,7 +166,7 @@ def profile(seconds: float, reflectors: int, n_frames: int, top: int) -> list[st
     from echoloc.benchmark import bench_scene, pinned_cores
     from echoloc.pipeline import prepare
     from echoloc.realtime.stream import StreamProcessor, recording_frames
-    from echoloc.sim.simulate import simulate
+    from echoloc.sim.simulation import simulate
     from echoloc.tof.echoes import EchoOptions
 
     with pinned_cores(1):  # one core, as `echoloc bench` times the chain

@@ -110,7 +110,7 @@ def main() -> None:
     args = parser.parse_args()
     import h5py
 
-    evaluate_module = importlib.import_module("echoloc.localise.evaluate")
+    evaluate_module = importlib.import_module("echoloc.localise.evaluation")
     with h5py.File(args.data, "r") as file:
         truth_all = file["truth_positions"][:]
     every = range(len(truth_all))

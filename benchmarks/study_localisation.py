@@ -11,7 +11,7 @@ at random in the cubic metre in front of the report's array, σ_path 0.5 mm, SNR
 - back-projection on the raw matched-filter envelopes (``restore=False``), on the
   first ``--raw-frames`` frames only: what the code's sidelobes do to it.
 
-Scored with :func:`echoloc.localise.evaluate.evaluate` (match radius 20 mm): recall, false
+Scored with :func:`echoloc.localise.evaluation.evaluate` (match radius 20 mm): recall, false
 objects, RMSE and bias per axis, mean reported std. Time per frame is the whole
 chain from samples to objects, one approach after the other (not interleaved: see
 ``bench_backprojection.py`` for side-by-side timing).
@@ -37,11 +37,11 @@ from echoloc.localise.backprojection import (
     prepare_backprojection,
     run_backprojection,
 )
-from echoloc.localise.evaluate import Evaluation, evaluate
+from echoloc.localise.evaluation import Evaluation, evaluate
 from echoloc.localise.locate import FrameObjects
 from echoloc.plots.imaging import save_image_png
 from echoloc.sim.scenefile import scene_from_dict
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).resolve().parent / "results"

@@ -47,7 +47,7 @@ from echoloc.plots.maps import draw_floor_plan, plot_grid
 from echoloc.sim.reflectors import Edge, surface_points_m
 from echoloc.sim.scene import Scene, SensorMotion
 from echoloc.sim.scenefile import load_scene
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"

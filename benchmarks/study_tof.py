@@ -55,7 +55,7 @@ from echoloc.sim.receiver import analytic_signal, template_for_kind, to_signal_k
 from echoloc.sim.reflectors import PointReflector, Reflector, Sphere, echo_paths, states_at
 from echoloc.sim.scene import Array, ReceiverSpec, Scene
 from echoloc.sim.scenefile import load_scene
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 from echoloc.tof.echoes import (
     MATCHED_DECIMATION,
     ChannelEchoes,

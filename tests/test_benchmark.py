@@ -10,7 +10,7 @@ from echoloc.errors import EchoLocError
 from echoloc.localise.locate import model_paths_m
 from echoloc.pipeline import prepare
 from echoloc.sim.scene import default_scene
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 
 
 @pytest.fixture(scope="module")

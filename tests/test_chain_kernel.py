@@ -13,7 +13,7 @@ import pytest
 from echoloc.benchmark import bench_scene
 from echoloc.io.output import echoes_record, objects_record
 from echoloc.pipeline import Chain, prepare, run, samples_results_batch
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 from echoloc.tof.echoes import _correlated_channels
 
 
@@ -130,7 +130,7 @@ def test_the_one_call_kernel_loads_from_the_cache_in_a_fresh_process(crowded):
         from echoloc import _chain_kernels
         from echoloc.benchmark import bench_scene
         from echoloc.pipeline import prepare, samples_results_batch
-        from echoloc.sim.simulate import simulate
+        from echoloc.sim.simulation import simulate
 
         recording = simulate(bench_scene(5), 1)
         found = samples_results_batch(prepare(recording), [recording.frames[0]], [0], [0.0], [0])

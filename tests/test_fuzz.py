@@ -13,7 +13,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fuzz"))
+from repo_paths import REPO
+
+sys.path.insert(0, str(REPO / "fuzz"))
 
 import harness  # fuzz/ ships with the repository, not the wheel: found through sys.path
 

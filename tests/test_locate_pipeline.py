@@ -2,18 +2,17 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from echoloc import pipeline
-from echoloc.localise.evaluate import evaluate
+from echoloc.localise.evaluation import evaluate
 from echoloc.physics.transducer import PRESETS
 from echoloc.sim.scenefile import load_scene
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
+from repo_paths import REPO
 
-EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+EXAMPLES = REPO / "examples"
 
 
 def test_two_transmitters_fired_in_turn_are_located_together() -> None:

@@ -12,13 +12,13 @@ import io
 import re
 import socket
 import threading
-from pathlib import Path
 
 import numpy as np
 
 import echoloc
+from repo_paths import REPO
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+README = REPO / "README.md"
 USING_THE_LIBRARY = "## Using the library"
 LIVE_PORT = "port=7447"
 
@@ -80,9 +80,9 @@ def test_the_readme_live_example_locates_frames_a_sender_streams_to_it() -> None
     assert LIVE_PORT in code, f"README's live example no longer listens with {LIVE_PORT}"
     port = _free_tcp_port()
     recording = echoloc.simulate(echoloc.default_scene(), n_frames=10)
-    endpoint = echoloc.Endpoint("127.0.0.1", port)
+    endpoint = echoloc.realtime.Endpoint("127.0.0.1", port)
     sender = threading.Thread(
-        target=echoloc.send_recording, args=(recording, endpoint), kwargs={"speed": 0}, daemon=True
+        target=echoloc.realtime.send_recording, args=(recording, endpoint), kwargs={"speed": 0}, daemon=True
     )
     printed = io.StringIO()
     code = code.replace(LIVE_PORT, f"port={port}")

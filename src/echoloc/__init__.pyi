@@ -1,217 +1,48 @@
-"""Types of echoloc's public API; lazy_loader reads its imports to load each name on first use."""
+"""Types of echoloc's stable public API; lazy_loader reads its imports to load each name on first use.
 
-from .errors import EchoLocError, GeometryError, RecordingError, SceneError, WaveformError
-from .io.export import SENSOR_FRAME_ID, write_mcap, write_ply
-from .io.recording import (
-    FrameBatch,
-    Recording,
-    RecordingWarning,
-    append_recording_stream,
-    read_recording,
-    write_recording,
-    write_recording_stream,
-)
-from .localise.backprojection import (
-    BackprojectionOptions,
-    Backprojector,
-    Grid,
-    backproject_frame,
-    frame_image,
-    prepare_backprojection,
-    run_backprojection,
-)
-from .localise.evaluate import Evaluation, evaluate
-from .localise.locate import (
-    FrameObjects,
-    LocatedObject,
-    LocateOptions,
-    associate,
-    paired_closed_form,
-    solve_positions,
-)
-from .localise.uncertainty import (
-    ErrorMap,
-    PositionErrors,
-    SpacingRecommendation,
-    SpacingStudy,
-    UncertaintyArea,
-    error_map,
-    position_errors,
-    recommended_spacing,
-    spacing_study,
-    uncertainty_area,
-)
-from .maps.map_export import read_grid_npz, write_grid_npz, write_grid_ply, write_map_mcap, write_octomap
-from .maps.mapping import (
-    GridSpec,
-    MapAccumulator,
-    OccupancyGrid,
-    SensorModel,
-    build_map,
-    map_accuracy,
-    read_trajectory,
-)
-from .physics.air import absorption_db_per_m, speed_of_sound_cramer_m_s, speed_of_sound_m_s
-from .physics.transducer import PRESETS, Transducer, array_factor, piston_beam_angles, piston_directivity
-from .physics.waveform import (
-    Waveform,
-    WaveformMetrics,
-    barker,
-    barker_waveform,
-    chirp_waveform,
-    code_metrics,
-    golay_pair,
-    kasami_set,
-    mls,
-    modulate,
-    tone_burst,
-    waveform_by_name,
-    waveform_metrics,
-)
-from .pipeline import Chain, find_echoes, frame_echoes, frame_objects, prepare, run
-from .realtime.liveview import LiveView
-from .realtime.protocol import (
-    ProtocolError,
-    WireFrame,
-    decode_frame,
-    decode_header,
-    decode_session,
-    encode_end,
-    encode_frame,
-    encode_session,
-)
-from .realtime.stream import (
-    FrameQueue,
-    LatencyHistogram,
-    SequenceTracker,
-    StreamFrame,
-    StreamProcessor,
-    StreamResult,
-    StreamStats,
-    stream_recording,
-    warm_kernels,
-)
-from .realtime.transport import Endpoint, Listener, Recorder, parse_endpoint, send_recording
+The names here are the stable API. The subpackages hold the rest, each with its own list."""
+
+from . import io, localise, maps, physics, plots, realtime, sim, tof
+from .errors import EchoLocError
+from .io.recording import Recording, read_recording, write_recording
+from .localise.evaluation import Evaluation, evaluate
+from .localise.locate import FrameObjects, LocatedObject, LocateOptions
+from .pipeline import Chain, prepare, run
 from .sim.scene import Array, Scene, default_scene
 from .sim.scenefile import load_scene
-from .sim.simulate import simulate
-from .tof.echoes import ChannelEchoes, EchoOptions, FrameEchoes, MatchedFilter
-from .tof.estimators import ESTIMATORS
+from .sim.simulation import simulate
+from .tof.echoes import ChannelEchoes, EchoOptions, FrameEchoes
 
 __version__: str
 
 __all__ = [
-    "ESTIMATORS",
-    "PRESETS",
-    "SENSOR_FRAME_ID",
     "Array",
-    "BackprojectionOptions",
-    "Backprojector",
     "Chain",
     "ChannelEchoes",
     "EchoLocError",
     "EchoOptions",
-    "Endpoint",
-    "ErrorMap",
     "Evaluation",
-    "FrameBatch",
     "FrameEchoes",
     "FrameObjects",
-    "FrameQueue",
-    "GeometryError",
-    "Grid",
-    "GridSpec",
-    "LatencyHistogram",
-    "Listener",
-    "LiveView",
     "LocateOptions",
     "LocatedObject",
-    "MapAccumulator",
-    "MatchedFilter",
-    "OccupancyGrid",
-    "PositionErrors",
-    "ProtocolError",
-    "Recorder",
     "Recording",
-    "RecordingError",
-    "RecordingWarning",
     "Scene",
-    "SceneError",
-    "SensorModel",
-    "SequenceTracker",
-    "SpacingRecommendation",
-    "SpacingStudy",
-    "StreamFrame",
-    "StreamProcessor",
-    "StreamResult",
-    "StreamStats",
-    "Transducer",
-    "UncertaintyArea",
-    "Waveform",
-    "WaveformError",
-    "WaveformMetrics",
-    "WireFrame",
     "__version__",
-    "absorption_db_per_m",
-    "append_recording_stream",
-    "array_factor",
-    "associate",
-    "backproject_frame",
-    "barker",
-    "barker_waveform",
-    "build_map",
-    "chirp_waveform",
-    "code_metrics",
-    "decode_frame",
-    "decode_header",
-    "decode_session",
     "default_scene",
-    "encode_end",
-    "encode_frame",
-    "encode_session",
-    "error_map",
     "evaluate",
-    "find_echoes",
-    "frame_echoes",
-    "frame_image",
-    "frame_objects",
-    "golay_pair",
-    "kasami_set",
+    "io",
     "load_scene",
-    "map_accuracy",
-    "mls",
-    "modulate",
-    "paired_closed_form",
-    "parse_endpoint",
-    "piston_beam_angles",
-    "piston_directivity",
-    "position_errors",
+    "localise",
+    "maps",
+    "physics",
+    "plots",
     "prepare",
-    "prepare_backprojection",
-    "read_grid_npz",
     "read_recording",
-    "read_trajectory",
-    "recommended_spacing",
+    "realtime",
     "run",
-    "run_backprojection",
-    "send_recording",
+    "sim",
     "simulate",
-    "solve_positions",
-    "spacing_study",
-    "speed_of_sound_cramer_m_s",
-    "speed_of_sound_m_s",
-    "stream_recording",
-    "tone_burst",
-    "uncertainty_area",
-    "warm_kernels",
-    "waveform_by_name",
-    "waveform_metrics",
-    "write_grid_npz",
-    "write_grid_ply",
-    "write_map_mcap",
-    "write_mcap",
-    "write_octomap",
-    "write_ply",
+    "tof",
     "write_recording",
-    "write_recording_stream",
 ]

@@ -39,7 +39,7 @@ from scipy import optimize, signal, stats
 
 from echoloc.errors import EchoLocError
 from echoloc.io.recording import Recording
-from echoloc.localise.evaluate import evaluate
+from echoloc.localise.evaluation import evaluate
 from echoloc.localise.locate import FrameObjects, LocatedObject, model_paths_m
 from echoloc.pipeline import Chain, prepare, samples_echoes
 from echoloc.realtime.stream import STREAM_BATCH_FRAMES, StreamProcessor, recording_frames

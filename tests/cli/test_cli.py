@@ -33,10 +33,11 @@ import pytest
 from echoloc.cli import commands as cli
 from echoloc.io.recording import Recording, read_recording, write_recording
 from echoloc.sim.scene import default_scene
-from echoloc.sim.simulate import path_lengths_m, simulate
+from echoloc.sim.simulation import path_lengths_m, simulate
 from raw_files import write_raw
+from repo_paths import REPO
 
-EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+EXAMPLES = REPO / "examples"
 ECHOLOC = Path(sys.executable).parent / "echoloc"
 COMMANDS = ("demo", "simulate", "echoes", "locate", "evaluate")
 N_FRAMES = 2
@@ -954,7 +955,7 @@ def test_backprojection_locates_two_transmitters_reflectors(
 ) -> None:
     """`--method backprojection` ("points to peaks") finds the three reflectors of
     examples/two-transmitters.toml within 5 mm in every frame, and nothing else."""
-    scene = Path(__file__).resolve().parents[1] / "examples" / "two-transmitters.toml"
+    scene = REPO / "examples" / "two-transmitters.toml"
     assert run(capsys, "simulate", scene, "-o", "two.h5", "--frames", "3").code == 0
     result = run(
         capsys, "evaluate", "two.h5", "--method", "backprojection", "--json", "--match-radius-m", "0.005"

@@ -128,7 +128,7 @@ def test_evaluate_json_is_valid_when_nothing_matches(
 
     from echoloc.io.recording import write_recording
     from echoloc.sim.scene import default_scene
-    from echoloc.sim.simulate import simulate
+    from echoloc.sim.simulation import simulate
 
     recording = simulate(default_scene(), 1)
     noise = 1e-3 * np.random.default_rng(0).normal(size=recording.frames.shape)

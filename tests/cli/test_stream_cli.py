@@ -21,7 +21,7 @@ import pytest
 from echoloc.io.recording import read_recording, write_recording
 from echoloc.realtime.transport import Endpoint, send_recording
 from echoloc.sim.scene import default_scene
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 
 ECHOLOC = [str(Path(sys.executable).with_name("echoloc"))]
 TIMEOUT_S = 60

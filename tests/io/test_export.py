@@ -28,7 +28,7 @@ from echoloc.io.export import (
 from echoloc.io.recording import Recording
 from echoloc.localise.locate import FrameObjects, LocatedObject
 from echoloc.sim.scene import default_scene
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 
 
 @pytest.fixture(scope="module")

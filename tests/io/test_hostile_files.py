@@ -34,8 +34,8 @@ from echoloc.io.recording import (
 )
 from echoloc.localise.calibrate import read_calibration
 from echoloc.sim.scenefile import load_scene, scene_from_dict
+from repo_paths import REPO
 
-REPO = Path(__file__).resolve().parent.parent
 SCENE = REPO / "examples" / "report-three-balls.toml"
 
 

@@ -13,6 +13,7 @@ from typing import Any
 import h5py
 import numpy as np
 import pytest
+from test_recording import EXTENSIONS, N_RX, N_SAMPLES, assert_same, make_recording
 
 from echoloc.errors import RecordingError
 from echoloc.io.recording import (
@@ -25,7 +26,6 @@ from echoloc.io.recording import (
     write_recording,
     write_recording_stream,
 )
-from test_recording import EXTENSIONS, N_RX, N_SAMPLES, assert_same, make_recording
 
 N_STREAM = 11  # frames in the streamed recordings
 SPLIT = (0, 4, 4, 9, 11)  # batch boundaries: batches of 4, 0, 5 and 2 frames

@@ -32,11 +32,11 @@ from echoloc.localise.backprojection import (
     run_backprojection,
     search,
 )
-from echoloc.localise.evaluate import evaluate
+from echoloc.localise.evaluation import evaluate
 from echoloc.localise.locate import exact_solutions
 from echoloc.physics.waveform import barker_waveform
 from echoloc.sim.scenefile import scene_from_dict
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 from echoloc.tof.echoes import MatchedFilter, noise_power
 
 FS = 200e3

@@ -14,10 +14,10 @@ from echoloc.cli.commands import main
 from echoloc.errors import EchoLocError
 from echoloc.io.recording import Recording, write_recording
 from echoloc.localise.calibrate import Calibration, fit_calibration, read_calibration, write_calibration
-from echoloc.localise.evaluate import evaluate
+from echoloc.localise.evaluation import evaluate
 from echoloc.pipeline import frame_echoes, frame_objects, prepare
 from echoloc.sim.scene import RandomReflectors, default_scene
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 from echoloc.tof.echoes import ChannelEchoes, FrameEchoes
 
 DELAYS_S = np.array([3.1e-6, -2.4e-6, 7.25e-6, 0.0])

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from echoloc.errors import EchoLocError
-from echoloc.localise.evaluate import evaluate, frames_at_positions, match, target_positions
+from echoloc.localise.evaluation import evaluate, frames_at_positions, match, target_positions
 from echoloc.localise.locate import FrameObjects, LocatedObject
 
 

@@ -30,7 +30,7 @@ from echoloc.maps.map_export import (
 from echoloc.maps.mapping import MAP_FRAME_ID, GridSpec, OccupancyGrid, SensorModel
 from echoloc.sim.reflectors import Plane
 from echoloc.sim.scene import Array, Scene, SensorMotion
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 
 
 def _grid(spec: GridSpec, seed: int = 1) -> OccupancyGrid:

@@ -33,7 +33,7 @@ from echoloc.maps.mapping import (
 from echoloc.physics.transducer import piston_directivity, piston_half_angle_rad
 from echoloc.sim.reflectors import Edge, Plane, surface_points_m
 from echoloc.sim.scene import Array, Scene, SensorMotion
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 from echoloc.tof.echoes import ChannelEchoes, FrameEchoes
 
 C = 343.0

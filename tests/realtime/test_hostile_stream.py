@@ -55,7 +55,7 @@ from echoloc.realtime.transport import (
     send_recording,
 )
 from echoloc.sim.scene import default_scene
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 
 N_FRAMES = 3
 
@@ -779,8 +779,9 @@ def test_record_refuses_to_replace_a_file_without_force(tmp_path, capsys):
 
 
 def test_record_with_force_replaces_the_file(tmp_path, recording_path, recording):
-    from echoloc.io.recording import read_recording
     from test_stream_cli import Proc, echoloc
+
+    from echoloc.io.recording import read_recording
 
     out = tmp_path / "again.h5"
     out.write_bytes(b"an earlier recording")

@@ -17,7 +17,7 @@ from echoloc.pipeline import prepare
 from echoloc.realtime.liveview import LiveView, envelope_trace
 from echoloc.realtime.stream import StreamProcessor, recording_frames
 from echoloc.sim.scene import default_scene
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 
 SUBPROTOCOL = "foxglove.sdk.v1"  # what foxglove-sdk >= 0.30 serves (foxglove.websocket.v1 before)
 

@@ -29,7 +29,8 @@ from echoloc.realtime.protocol import (
     split_messages,
 )
 from echoloc.sim.scene import default_scene
-from echoloc.sim.simulate import recording_header, simulate
+from echoloc.sim.simulation import recording_header, simulate
+from repo_paths import REPO
 
 
 @pytest.fixture(scope="module")
@@ -194,9 +195,8 @@ def test_byte_stream_split_resynchronises_after_garbage():
 
 def test_the_protocol_page_example_is_what_the_encoder_writes():
     """docs/STREAM_PROTOCOL.md's hex dump decodes to the frame it describes, and back."""
-    from pathlib import Path
 
-    page = (Path(__file__).resolve().parents[1] / "docs" / "STREAM_PROTOCOL.md").read_text()
+    page = (REPO / "docs" / "STREAM_PROTOCOL.md").read_text()
     dump = page.split("payload CRC set:\n\n```\n", 1)[1].split("```", 1)[0]
     data = bytes.fromhex("".join(line[6:] for line in dump.splitlines()))
     header = decode_header(data)

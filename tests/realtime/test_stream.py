@@ -8,7 +8,6 @@ import sys
 import threading
 import time
 from dataclasses import replace
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -39,9 +38,10 @@ from echoloc.realtime.transport import (
 )
 from echoloc.sim.scene import default_scene
 from echoloc.sim.scenefile import load_scene
-from echoloc.sim.simulate import recording_header, simulate
+from echoloc.sim.simulation import recording_header, simulate
+from repo_paths import REPO
 
-EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+EXAMPLES = REPO / "examples"
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,7 @@ from echoloc.errors import SceneError
 from echoloc.sim.reflectors import Sphere
 from echoloc.sim.scene import REPORT_ARRAY, PulseSpec, ReceiverSpec, RingDown, Scene
 from echoloc.sim.scenefile import load_scene, preset_names, preset_path, scene_from_dict
-from echoloc.sim.simulate import moving_average, simulate
+from echoloc.sim.simulation import moving_average, simulate
 from echoloc.tof.envelope_stats import (
     arrival_samples,
     frame_start_levels,

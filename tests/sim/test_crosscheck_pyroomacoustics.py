@@ -78,7 +78,7 @@ from numpy.typing import NDArray
 
 from echoloc.sim.reflectors import Plane, PointReflector
 from echoloc.sim.scene import Array, RingDown, Scene
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 
 pra = pytest.importorskip("pyroomacoustics")
 

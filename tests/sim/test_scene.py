@@ -18,8 +18,9 @@ import pytest
 from echoloc.errors import EchoLocError, SceneError
 from echoloc.sim.scene import Array, Scene, SensorMotion, default_scene
 from echoloc.sim.scenefile import load_scene
+from repo_paths import REPO
 
-EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+EXAMPLES = REPO / "examples"
 REPORT_TOML = EXAMPLES / "report-three-balls.toml"
 RANDOM_TOML = EXAMPLES / "random-1m3.toml"
 ONE_REFLECTOR = "[[reflectors]]\nposition_m = [0.0, 0.0, 1.0]\n"

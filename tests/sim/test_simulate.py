@@ -1,4 +1,4 @@
-"""Tests of echoloc.sim.simulate: what the receivers of a sensor head record.
+"""Tests of echoloc.sim.simulation: what the receivers of a sensor head record.
 
 Sources: NOTES.md (path l = |p - T| + |p - R|, ToF = l / c, report ch. 3.5), air.py
 (spherical spreading 1 / (r_tx r_rx)), scene.py (noise convention: sigma = 10^(-snr/20)
@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,10 +20,11 @@ from hypothesis import strategies as st
 from echoloc.errors import SceneError
 from echoloc.sim.scene import Array, RandomReflectors, Scene, default_scene
 from echoloc.sim.scenefile import load_scene
-from echoloc.sim.simulate import path_lengths_m, simulate
+from echoloc.sim.simulation import path_lengths_m, simulate
 from echoloc.sim.synthesis import synthesize_frames
+from repo_paths import REPO
 
-RANDOM_TOML = Path(__file__).resolve().parents[1] / "examples" / "random-1m3.toml"
+RANDOM_TOML = REPO / "examples" / "random-1m3.toml"
 FS = 200e3
 FC = 50e3
 # Gaussian-windowed 50 kHz tone: spectral std fs / (2 pi sigma) = 4 kHz, so its energy

@@ -1,4 +1,4 @@
-"""End-to-end physics of :func:`echoloc.sim.simulate.simulate`: closed forms, symmetries and round trips.
+"""End-to-end physics of :func:`echoloc.sim.simulation.simulate`: closed forms, symmetries and round trips.
 
 Every echo delay here is measured, not read back from the simulator: the peak of the
 cross-correlation of the frame with the scene's returned pulse, band-limited
@@ -10,7 +10,7 @@ Sources: reciprocity of linear acoustics (exchanging source and receiver leaves 
 transfer unchanged); spherical spreading ``s / (r1 r2)`` and Parseval (the energy of
 a band-limited signal does not depend on its delay); the image-source method (Allen
 and Berkley 1979); the Doppler factor ``alpha = (c - dr_rx/dt) / (c + dr_tx/dt)`` of the
-module docstring of :mod:`echoloc.sim.simulate` (Kinsler et al., sec. 11.9); Bennett
+module docstring of :mod:`echoloc.sim.simulation` (Kinsler et al., sec. 11.9); Bennett
 (1948) for the quantisation error ``q²/12``; Oppenheim and Schafer §2.10 for white
 noise through a filter (power gain ``Σ h²``); the noise convention of
 :mod:`echoloc.sim.scene`; the complex-baseband convention of :mod:`echoloc.sim.receiver`.
@@ -37,15 +37,16 @@ from echoloc.sim.receiver import AdcSpec, GainSpec, gain_curve, resample
 from echoloc.sim.reflectors import Plane, PointReflector, Reflector, Sphere
 from echoloc.sim.scene import AirDrift, Array, PulseSpec, ReceiverSpec, RingDown, Scene, SensorMotion
 from echoloc.sim.scenefile import load_scene
-from echoloc.sim.simulate import simulate, simulate_to_file
+from echoloc.sim.simulation import simulate, simulate_to_file
 from echoloc.sim.synthesis import synthesize_frames
+from repo_paths import REPO
 
 FloatArray = NDArray[np.float64]
 
 FS = 200e3
 FC = 50e3
 C20 = float(speed_of_sound_m_s(20.0, 0.0))
-EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+EXAMPLES = REPO / "examples"
 
 
 # --- helpers -------------------------------------------------------------------------

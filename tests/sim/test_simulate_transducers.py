@@ -14,7 +14,7 @@ from echoloc.physics.transducer import PRESETS, apply_response, directivity
 from echoloc.pipeline import find_echoes
 from echoloc.sim.scene import Array, Scene
 from echoloc.sim.scenefile import load_scene
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 
 MONOSTATIC = Array(np.zeros((1, 3)), np.array([[0.001, 0.0, 0.0]]))
 

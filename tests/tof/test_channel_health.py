@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,11 +11,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from echoloc.io.recording import Recording
-from echoloc.localise.evaluate import evaluate
+from echoloc.localise.evaluation import evaluate
 from echoloc.localise.locate import model_paths_m
 from echoloc.pipeline import _excusing_clipped, prepare, run, samples_echoes_batch, transmitter_objects
 from echoloc.sim.scenefile import load_scene
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 from echoloc.tof.channel_health import (
     ASSESS_FRAMES,
     ChannelHealth,
@@ -30,8 +29,9 @@ from echoloc.tof.channel_health import (
 )
 from echoloc.tof.echoes import EchoOptions, FrameEchoes, MatchedFilter
 from echoloc.tof.estimators import MatchedEstimator
+from repo_paths import REPO
 
-EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "random-1m3.toml"
+EXAMPLE = REPO / "examples" / "random-1m3.toml"
 
 
 def _noise(rng: np.random.Generator, n_frames: int = 8, n_rx: int = 4, n: int = 2400) -> np.ndarray:

@@ -22,7 +22,7 @@ from echoloc.io.recording import Recording, write_recording
 from echoloc.pipeline import frame_echoes, prepare
 from echoloc.sim.receiver import AdcSpec, GainSpec
 from echoloc.sim.scene import REPORT_ARRAY, ReceiverSpec, RingDown, Scene
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 from echoloc.tof.conditioning import (
     Conditioning,
     blind_zone_s,

@@ -321,7 +321,7 @@ def test_two_equal_echoes_half_a_chip_apart_are_both_found_at_the_reports_snr() 
     from echoloc.physics.crlb import peak_amplitude
     from echoloc.sim.reflectors import PointReflector
     from echoloc.sim.scene import Array, Scene
-    from echoloc.sim.simulate import simulate
+    from echoloc.sim.simulation import simulate
 
     pair = Array(np.array([[-0.02, 0.0, 0.0]]), np.array([[0.02, 0.0, 0.0]]))
     tx, rx = pair.transmitters_m[0], pair.receivers_m[0]

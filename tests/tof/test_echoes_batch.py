@@ -7,13 +7,14 @@ import numpy as np
 import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
+from test_echoes import FS, N_SAMPLES, PULSE, frames_with_echoes
 
 from echoloc.benchmark import bench_scene
 from echoloc.errors import EchoLocError
 from echoloc.localise.locate import model_paths_m
 from echoloc.pipeline import prepare
 from echoloc.sim.scene import default_scene
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 from echoloc.tof import echoes as echoes_module
 from echoloc.tof.echoes import (
     ChannelEchoes,
@@ -29,7 +30,6 @@ from echoloc.tof.echoes import (
     matched_filter_batch,
     matched_filter_echoes,
 )
-from test_echoes import FS, N_SAMPLES, PULSE, frames_with_echoes
 
 MF = MatchedFilter(PULSE, N_SAMPLES, FS)
 
@@ -704,7 +704,7 @@ def test_two_threads_with_parallel_kernels_on_numba_s_workqueue_layer_do_not_kil
         from echoloc.benchmark import bench_scene
         from echoloc.tof.echoes import EchoOptions
         from echoloc.pipeline import prepare, run
-        from echoloc.sim.simulate import simulate
+        from echoloc.sim.simulation import simulate
 
         recording = simulate(bench_scene(5), 64)
         chains = [prepare(recording, echo_options=EchoOptions(workers=2)) for _ in range(2)]

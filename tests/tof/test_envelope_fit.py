@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from test_envelopes import ENVELOPE_RECORDING_BOUND_S
 
 from echoloc.errors import EchoLocError
 from echoloc.io.recording import Recording
@@ -29,7 +30,7 @@ from echoloc.physics.crlb import (
     peak_amplitude,
 )
 from echoloc.sim.scene import REPORT_ARRAY, ReceiverSpec, Scene
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 from echoloc.tof.echoes import ChannelEchoes, EchoOptions, noise_power
 from echoloc.tof.envelope_fit import (
     BandLimitedShape,
@@ -40,7 +41,6 @@ from echoloc.tof.envelope_fit import (
     fft_upsample,
 )
 from echoloc.tof.estimators import ESTIMATORS
-from test_envelopes import ENVELOPE_RECORDING_BOUND_S
 
 RATE_HZ = 20e3
 CARRIER_HZ = 50e3

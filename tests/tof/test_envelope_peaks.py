@@ -32,12 +32,13 @@ from echoloc.tof.envelope_peaks import (
 )
 from echoloc.tof.estimators import default_estimator
 from echoloc.tof.templates import Template
+from repo_paths import REPO
 
 FS = 22_000.0
 N = 62
 WIDTH = 1.6  # samples, the Gaussian's standard deviation (FWHM 3.8 samples, as the CH101's)
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "ch101-spiel" / "dev.h5"
-evaluate_module = importlib.import_module("echoloc.localise.evaluate")
+DATA = REPO.parent / "shared" / "data" / "ch101-spiel" / "dev.h5"
+evaluate_module = importlib.import_module("echoloc.localise.evaluation")
 
 
 def gaussian_echo(peak_samples: float, height: float = 1000.0) -> np.ndarray:

@@ -25,7 +25,7 @@ from echoloc.io.recording import Recording
 from echoloc.physics.waveform import barker_waveform, waveform_by_name
 from echoloc.sim.receiver import GainSpec
 from echoloc.sim.scene import REPORT_ARRAY, PulseSpec, ReceiverSpec, Scene
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 from echoloc.sim.synthesis import synthesize_frames
 from echoloc.tof.echoes import ChannelEchoes, EchoOptions
 from echoloc.tof.envelopes import (

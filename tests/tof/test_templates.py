@@ -19,7 +19,7 @@ from echoloc.errors import EchoLocError, RecordingError
 from echoloc.io.recording import Recording, write_recording
 from echoloc.sim.reflectors import PointReflector
 from echoloc.sim.scene import Array, RingDown, Scene
-from echoloc.sim.simulate import simulate
+from echoloc.sim.simulation import simulate
 from echoloc.tof.echoes import EchoOptions
 from echoloc.tof.estimators import ESTIMATORS
 from echoloc.tof.templates import Template, cut_template, read_template, sent_template, write_template

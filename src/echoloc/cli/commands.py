@@ -31,7 +31,7 @@ from echoloc.errors import EchoLocError, unwritable
 from echoloc.io.output import echoes_record, json_line, objects_record
 from echoloc.io.recording import Recording, read_recording, write_recording
 from echoloc.localise.calibrate import fit_calibration, read_calibration, write_calibration
-from echoloc.localise.evaluate import Evaluation, evaluate, frames_at_positions, match
+from echoloc.localise.evaluation import Evaluation, evaluate, frames_at_positions, match
 from echoloc.localise.locate import FrameObjects, LocateOptions
 from echoloc.physics.air import (
     absorption_db_per_m,
@@ -71,7 +71,7 @@ from echoloc.pipeline import (
 )
 from echoloc.sim.scene import default_scene
 from echoloc.sim.scenefile import load_scene
-from echoloc.sim.simulate import recording_header, simulate, simulate_to_file
+from echoloc.sim.simulation import recording_header, simulate, simulate_to_file
 from echoloc.tof.conditioning import Conditioning, parse_blind_zone
 from echoloc.tof.echoes import THRESHOLD_DB_LIMIT, EchoOptions, FrameEchoes, frame_time_s
 from echoloc.tof.envelope_peaks import peak_delay_s

@@ -48,7 +48,7 @@ from echoloc.pipeline import (
     samples_results_batch,
 )
 from echoloc.sim.scene import default_scene
-from echoloc.sim.simulate import recording_header
+from echoloc.sim.simulation import recording_header
 from echoloc.tof.echoes import EchoOptions, FrameEchoes, frame_time_s
 
 Samples = NDArray[np.floating] | NDArray[np.complexfloating]

@@ -1,6 +1,6 @@
 """Scenes: the sensor head, the emitted pulse, the air and the reflectors.
 
-A :class:`Scene` is everything :func:`echoloc.sim.simulate.simulate` needs. It is read
+A :class:`Scene` is everything :func:`echoloc.sim.simulation.simulate` needs. It is read
 from TOML by :func:`echoloc.sim.scenefile.load_scene` (every key checked; an unknown key
 is an error that names it) or built in code; :func:`default_scene` is the report's
 set-up.

@@ -23,7 +23,7 @@ fraction of a sample.
     on simulated 20 kHz IQ (Barker-13 × 4 cycles at 50 kHz through the
     ``electrostatic50`` transducers): 0.6 ns clean, and an RMSE equal to the
     Cramér-Rao bound (ratio 0.97 to 0.99 at per-sample SNR 5 to 100,
-    ``tests/test_envelope_fit.py``). Overlapping IQ echoes are modelled exactly (the
+    ``tests/tof/test_envelope_fit.py``). Overlapping IQ echoes are modelled exactly (the
     sum of their complex models) and separate to within 10 ns even when four fifths
     of their length overlaps.
 

@@ -1,0 +1,51 @@
+"""Types of echoloc.realtime's public names; lazy_loader reads its imports to load each on first use."""
+
+from .liveview import LiveView
+from .protocol import (
+    ProtocolError,
+    WireFrame,
+    decode_frame,
+    decode_header,
+    decode_session,
+    encode_end,
+    encode_frame,
+    encode_session,
+)
+from .stream import (
+    FrameQueue,
+    LatencyHistogram,
+    SequenceTracker,
+    StreamFrame,
+    StreamProcessor,
+    StreamResult,
+    StreamStats,
+    stream_recording,
+    warm_kernels,
+)
+from .transport import Endpoint, Listener, Recorder, parse_endpoint, send_recording
+
+__all__ = [
+    "Endpoint",
+    "FrameQueue",
+    "LatencyHistogram",
+    "Listener",
+    "LiveView",
+    "ProtocolError",
+    "Recorder",
+    "SequenceTracker",
+    "StreamFrame",
+    "StreamProcessor",
+    "StreamResult",
+    "StreamStats",
+    "WireFrame",
+    "decode_frame",
+    "decode_header",
+    "decode_session",
+    "encode_end",
+    "encode_frame",
+    "encode_session",
+    "parse_endpoint",
+    "send_recording",
+    "stream_recording",
+    "warm_kernels",
+]
