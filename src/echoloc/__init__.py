@@ -1,7 +1,7 @@
 """echoloc: airborne ultrasonic echolocation for robots.
 
 The data flow is the architecture: ``scene -> simulate -> Recording -> echoes ->
-locate -> objects``, one module per stage (see DESIGN.md).
+locate -> objects``, one module per stage (see docs/ARCHITECTURE.md).
 
 Its public names (``__all__``) are loaded on first use (PEP 562, through
 ``lazy_loader.attach_stub``, which reads them from ``__init__.pyi``, the typed list): ``import

@@ -3,7 +3,7 @@
 Every problem caused by the user's input (a file, a scene, an option) raises a
 subclass of :class:`EchoLocError`, with a message that names the file, the field
 and the offending value. The command line turns these into one line on stderr and
-exit code 2 (``../shared/FORMATS.md``, "Exit codes").
+exit code 2 (``docs/FORMATS.md``, "Exit codes").
 """
 
 from __future__ import annotations

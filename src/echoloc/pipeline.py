@@ -79,7 +79,7 @@ value outside is most likely in other units (0.343 m/ms, 34 320 cm/s)."""
 
 
 def recording_speed_of_sound_m_s(recording: Recording) -> float:
-    """Speed of sound for a recording (FORMATS.md): the stored value, else from the air state."""
+    """Speed of sound for a recording (docs/FORMATS.md): the stored value, else from the air state."""
     if recording.speed_of_sound_m_s is not None:
         return float(recording.speed_of_sound_m_s)
     temperature = 20.0 if recording.temperature_c is None else recording.temperature_c

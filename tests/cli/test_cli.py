@@ -1,11 +1,11 @@
-"""End-to-end tests of the ``echoloc`` command line against FORMATS.md.
+"""End-to-end tests of the ``echoloc`` command line against docs/FORMATS.md.
 
 Most cases run in-process through :func:`echoloc.cli.commands.main` (which always ends with
 ``sys.exit``) and capture stdout/stderr with ``capsys``; a few run the installed
 console script as a real subprocess, to prove what a user's shell sees: the exit
 code, a clean stdout and no traceback on stderr.
 
-FORMATS.md rules checked here: the recording file (readers reject with exit 2), the
+docs/FORMATS.md rules checked here: the recording file (readers reject with exit 2), the
 JSON Lines of ``echoes --json`` and ``locate --json``, and the exit codes (0 success,
 2 bad input or usage with one line on stderr naming the file and the problem, no
 traceback).
@@ -47,7 +47,7 @@ CHANNEL_KEYS = {"receiver", "echoes"}
 ECHO_KEYS = {"tof_s", "path_m", "amplitude", "snr_db"}
 LOCATE_FRAME_KEYS = {"frame", "time_s", "objects"}
 OBJECT_KEYS = {"position_m", "std_m", "receivers", "score"}
-# Optional fields echoloc adds (FORMATS.md allows optional additions; README documents them).
+# Optional fields echoloc adds (docs/FORMATS.md allows optional additions; README documents them).
 OPTIONAL_OBJECT_KEYS = {"channels", "shared_echoes"}
 EVALUATE_KEYS = {
     "estimator",
@@ -234,7 +234,7 @@ def test_demo_recording_located_within_1_mm_in_every_frame(
     capsys: pytest.CaptureFixture[str], in_tmp: Path
 ) -> None:
     """User expectation: `echoloc locate` on the demo's own recording finds each of the
-    report's three balls (default_scene) within 1 mm, in every frame (FORMATS.md
+    report's three balls (default_scene) within 1 mm, in every frame (docs/FORMATS.md
     `locate --json`, one line per frame)."""
     assert run(capsys, "demo", "-o", "demo.h5", "--frames", 3).code == 0
     result = run(capsys, "locate", "demo.h5", "--json")
@@ -251,7 +251,7 @@ def test_demo_recording_located_within_1_mm_in_every_frame(
 
 
 def test_demo_into_a_missing_directory_is_bad_input(capsys: pytest.CaptureFixture[str], in_tmp: Path) -> None:
-    """FORMATS.md exit codes: an output path that cannot be written is bad input (2),
+    """docs/FORMATS.md exit codes: an output path that cannot be written is bad input (2),
     one line naming the file, no traceback."""
     assert_bad_input(run(capsys, "demo", "-o", "nodir/demo.h5", "--frames", 1), "nodir/demo.h5")
     assert not (in_tmp / "nodir").exists()
@@ -261,7 +261,7 @@ def test_demo_into_a_missing_directory_is_bad_input(capsys: pytest.CaptureFixtur
 
 
 def check_echoes_records(records: list[dict[str, Any]], rec: Recording) -> None:
-    """The shape rules of FORMATS.md `echoes --json`, for every record."""
+    """The shape rules of docs/FORMATS.md `echoes --json`, for every record."""
     assert rec.speed_of_sound_m_s is not None
     c = rec.speed_of_sound_m_s
     for record in records:
@@ -283,7 +283,7 @@ def check_echoes_records(records: list[dict[str, Any]], rec: Recording) -> None:
 def test_echoes_json_follows_the_contract_and_finds_every_true_path(
     capsys: pytest.CaptureFixture[str], good_h5: Path
 ) -> None:
-    """FORMATS.md `echoes --json`: one object per frame with exactly the keys frame,
+    """docs/FORMATS.md `echoes --json`: one object per frame with exactly the keys frame,
     time_s, channels[{receiver, echoes[{tof_s, path_m, amplitude, snr_db}]}]; echoes in
     ascending tof; path_m = tof_s x the speed of sound; every true path of the default
     scene matched by an echo within 0.5 mm."""
@@ -311,7 +311,7 @@ def test_echoes_json_follows_the_contract_and_finds_every_true_path(
 def test_echoes_json_threshold_estimator_first_echo_within_2_mm(
     capsys: pytest.CaptureFixture[str], good_h5: Path
 ) -> None:
-    """FORMATS.md `echoes --json`: tof_s is the path over c "whatever the estimator";
+    """docs/FORMATS.md `echoes --json`: tof_s is the path over c "whatever the estimator";
     with --estimator threshold the first echo of each channel is the nearest ball's
     path within 2 mm, and the format rules hold as for the matched filter."""
     result = run(capsys, "echoes", good_h5, "--json", "--estimator", "threshold")
@@ -331,7 +331,7 @@ def test_echoes_json_threshold_estimator_first_echo_within_2_mm(
 def test_echoes_speed_of_sound_override_scales_path_not_tof(
     capsys: pytest.CaptureFixture[str], good_h5: Path
 ) -> None:
-    """FORMATS.md: path_m is tof_s times "the speed of sound used", so with
+    """docs/FORMATS.md: path_m is tof_s times "the speed of sound used", so with
     --speed-of-sound the paths follow the given value."""
     result = run(capsys, "echoes", good_h5, "--json", "--speed-of-sound", 340.0, "--frames", 0)
     assert result.code == 0, result
@@ -346,7 +346,7 @@ def test_echoes_speed_of_sound_override_scales_path_not_tof(
 
 
 def test_locate_json_follows_the_contract(capsys: pytest.CaptureFixture[str], good_h5: Path) -> None:
-    """FORMATS.md `locate --json`: one object per frame with exactly the keys frame,
+    """docs/FORMATS.md `locate --json`: one object per frame with exactly the keys frame,
     time_s, objects[{position_m[3], std_m[3], receivers, score}]; receivers an int
     3..4 (how many receivers support the object), score in [0, 1], std_m > 0; and the
     three balls found within 1 mm."""
@@ -397,7 +397,7 @@ def test_workers_change_no_output_and_a_bad_count_is_one_line(
 
 
 def test_locate_reads_npz_recordings(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
-    """FORMATS.md: "the same names in a NumPy .npz are accepted too"."""
+    """docs/FORMATS.md: "the same names in a NumPy .npz are accepted too"."""
     path = write_recording(simulate(default_scene(), n_frames=1), tmp_path / "balls.npz")
     result = run(capsys, "locate", path, "--json")
     assert result.code == 0, result
@@ -437,7 +437,7 @@ def test_frames_open_slices_select_all(
 def test_bad_frames_is_a_usage_error(
     capsys: pytest.CaptureFixture[str], good_h5: Path, command: str, frames: str
 ) -> None:
-    """FORMATS.md exit codes: a --frames value that is not N or START:STOP inside the
+    """docs/FORMATS.md exit codes: a --frames value that is not N or START:STOP inside the
     recording is bad usage: exit 2, one line on stderr naming --frames."""
     result = run(capsys, command, good_h5, "--json", "--frames", frames)
     assert_bad_input(result, "--frames")
@@ -470,7 +470,7 @@ def test_simulate_then_evaluate_random_scene(capsys: pytest.CaptureFixture[str],
 def test_evaluate_without_truth_is_bad_input(
     capsys: pytest.CaptureFixture[str], in_tmp: Path, good_h5: Path
 ) -> None:
-    """FORMATS.md: truth_positions is read by `evaluate`; a recording without it is bad
+    """docs/FORMATS.md: truth_positions is read by `evaluate`; a recording without it is bad
     input for evaluate: exit 2, one line naming the file and truth_positions."""
     rec = dataclasses.replace(read_recording(good_h5), truth_positions_m=None)
     write_recording(rec, in_tmp / "notruth.h5")
@@ -479,7 +479,7 @@ def test_evaluate_without_truth_is_bad_input(
 
 
 def test_locate_ignores_truth(capsys: pytest.CaptureFixture[str], in_tmp: Path, good_h5: Path) -> None:
-    """FORMATS.md: truth_positions is "never" read by echoes or locate: removing it does
+    """docs/FORMATS.md: truth_positions is "never" read by echoes or locate: removing it does
     not change their output."""
     rec = dataclasses.replace(read_recording(good_h5), truth_positions_m=None)
     write_recording(rec, in_tmp / "notruth.h5")
@@ -535,7 +535,7 @@ def test_broken_recording_is_bad_input(
     command: str,
     case: tuple[str, Breaker, tuple[str, ...]],
 ) -> None:
-    """FORMATS.md recording file: "A reader rejects with a clear message (exit code 2 on
+    """docs/FORMATS.md recording file: "A reader rejects with a clear message (exit code 2 on
     the command line)" a channel count that does not match receivers, NaN samples, a
     wrong format or version, a sample rate that is not positive, a missing required
     item; exit codes: one line on stderr naming the file and the field, no traceback."""
@@ -545,12 +545,12 @@ def test_broken_recording_is_bad_input(
 
 
 def test_missing_file_is_bad_input(capsys: pytest.CaptureFixture[str], in_tmp: Path) -> None:
-    """FORMATS.md exit codes: a missing recording is exit 2, one line naming the file."""
+    """docs/FORMATS.md exit codes: a missing recording is exit 2, one line naming the file."""
     assert_bad_input(run(capsys, "locate", "missing.h5"), "missing.h5")
 
 
 def test_text_file_named_h5_is_bad_input(capsys: pytest.CaptureFixture[str], in_tmp: Path) -> None:
-    """FORMATS.md exit codes: a file that is not HDF5 despite its .h5 name is exit 2,
+    """docs/FORMATS.md exit codes: a file that is not HDF5 despite its .h5 name is exit 2,
     one line naming the file (not an h5py traceback)."""
     (in_tmp / "notes.h5").write_text("these are my notes, not a recording\n")
     assert_bad_input(run(capsys, "echoes", "notes.h5"), "notes.h5", "HDF5")
@@ -559,14 +559,14 @@ def test_text_file_named_h5_is_bad_input(capsys: pytest.CaptureFixture[str], in_
 def test_unknown_extension_is_bad_input(
     capsys: pytest.CaptureFixture[str], in_tmp: Path, good_h5: Path
 ) -> None:
-    """FORMATS.md: a recording is .h5 or .npz; any other extension is exit 2, one line
+    """docs/FORMATS.md: a recording is .h5 or .npz; any other extension is exit 2, one line
     naming the file and the extension."""
     shutil.copy(good_h5, in_tmp / "balls.wav")
     assert_bad_input(run(capsys, "locate", "balls.wav"), "balls.wav", ".wav")
 
 
 def test_directory_as_recording_is_bad_input(capsys: pytest.CaptureFixture[str], in_tmp: Path) -> None:
-    """FORMATS.md exit codes: a directory where a recording is expected is exit 2."""
+    """docs/FORMATS.md exit codes: a directory where a recording is expected is exit 2."""
     (in_tmp / "folder.h5").mkdir()
     assert_bad_input(run(capsys, "locate", "folder.h5"), "folder.h5")
 
@@ -574,7 +574,7 @@ def test_directory_as_recording_is_bad_input(capsys: pytest.CaptureFixture[str],
 def test_simulate_scene_with_unknown_key_is_bad_input(
     capsys: pytest.CaptureFixture[str], in_tmp: Path
 ) -> None:
-    """FORMATS.md exit codes: a scene file with an unknown key (a typo) is exit 2, one
+    """docs/FORMATS.md exit codes: a scene file with an unknown key (a typo) is exit 2, one
     line naming the file and the key, and no recording is written."""
     (in_tmp / "bad.toml").write_text("seed = 1\nbogus = 2\n")
     assert_bad_input(run(capsys, "simulate", "bad.toml", "-o", "out.h5"), "bad.toml", "bogus")
@@ -582,7 +582,7 @@ def test_simulate_scene_with_unknown_key_is_bad_input(
 
 
 def test_simulate_missing_scene_is_bad_input(capsys: pytest.CaptureFixture[str], in_tmp: Path) -> None:
-    """FORMATS.md exit codes: a missing scene file is exit 2, one line naming it."""
+    """docs/FORMATS.md exit codes: a missing scene file is exit 2, one line naming it."""
     assert_bad_input(run(capsys, "simulate", "nope.toml", "-o", "out.h5"), "nope.toml")
     assert not (in_tmp / "out.h5").exists()
 
@@ -604,7 +604,7 @@ def test_simulate_missing_scene_is_bad_input(capsys: pytest.CaptureFixture[str],
 def test_bad_option_value_is_bad_input(
     capsys: pytest.CaptureFixture[str], good_h5: Path, command: str, option: str, value: str
 ) -> None:
-    """FORMATS.md exit codes: an option value out of its range (a negative speed of
+    """docs/FORMATS.md exit codes: an option value out of its range (a negative speed of
     sound or blanking time, ...) is exit 2, one line naming the option."""
     assert_bad_input(run(capsys, command, good_h5, "--json", option, value), option)
 
@@ -621,7 +621,7 @@ def test_bad_option_value_is_bad_input(
 def test_non_finite_option_value_is_bad_input(
     capsys: pytest.CaptureFixture[str], good_h5: Path, command: str, option: str, value: str
 ) -> None:
-    """FORMATS.md exit codes, user expectation: a NaN or infinite number is never a
+    """docs/FORMATS.md exit codes, user expectation: a NaN or infinite number is never a
     meaningful option value; it is bad input (exit 2) rather than a run that silently
     finds nothing."""
     assert_bad_input(run(capsys, command, good_h5, "--json", option, value), option)
@@ -641,7 +641,7 @@ def test_non_finite_option_value_is_bad_input(
 def test_click_usage_errors_exit_2(
     capsys: pytest.CaptureFixture[str], good_h5: Path, args: tuple[str, ...]
 ) -> None:
-    """FORMATS.md exit codes: bad usage is exit 2, one line on stderr naming the
+    """docs/FORMATS.md exit codes: bad usage is exit 2, one line on stderr naming the
     problem and pointing to the command's --help, no traceback."""
     result = run(capsys, *(a.format(good=good_h5) for a in args))
     assert result.code == 2, result
@@ -656,7 +656,7 @@ def test_click_usage_errors_exit_2(
 def test_nan_sample_with_repair_warns_and_succeeds(
     capsys: pytest.CaptureFixture[str], in_tmp: Path, good_h5: Path
 ) -> None:
-    """FORMATS.md: NaN samples are rejected "unless asked to repair them";
+    """docs/FORMATS.md: NaN samples are rejected "unless asked to repair them";
     --repair-nonfinite succeeds (exit 0) with one warning line on stderr."""
     broken_copy(good_h5, in_tmp / "nan.h5", _nan_sample)
     result = run(capsys, "locate", "nan.h5", "--json", "--repair-nonfinite")
@@ -673,7 +673,7 @@ def test_dead_channel_warns_and_locates_with_three_receivers(
 ) -> None:
     """User expectation: one dead receiver (all zeros) is not fatal: locate exits 0 with
     a warning on stderr naming the file and receiver, and reports objects supported by
-    the 3 remaining receivers (FORMATS.md `receivers`: how many support the object)."""
+    the 3 remaining receivers (docs/FORMATS.md `receivers`: how many support the object)."""
     result = run(capsys, "locate", dead_h5, "--json")
     assert result.code == 0, result
     assert "Traceback" not in result.err
@@ -770,7 +770,7 @@ def test_human_table_shows_frames_without_objects(capsys: pytest.CaptureFixture[
 
 @pytest.mark.filterwarnings("always::echoloc.io.recording.RecordingWarning")
 def test_too_few_working_receivers_is_bad_input(capsys: pytest.CaptureFixture[str], in_tmp: Path) -> None:
-    """FORMATS.md exit codes: two dead receivers leave too few to locate in 3-D; that is
+    """docs/FORMATS.md exit codes: two dead receivers leave too few to locate in 3-D; that is
     bad input (exit 2, one error line naming the file), not an empty result."""
     rec = simulate(default_scene(), n_frames=1)
     frames = rec.frames.copy()
@@ -792,7 +792,7 @@ def test_too_few_working_receivers_is_bad_input(capsys: pytest.CaptureFixture[st
 
 
 def test_subprocess_locate_json_stdout_is_pure_json_lines(tmp_path: Path, good_h5: Path) -> None:
-    """FORMATS.md `locate --json`: a real run's stdout is nothing but JSON Lines, one
+    """docs/FORMATS.md `locate --json`: a real run's stdout is nothing but JSON Lines, one
     per frame, and stderr is empty (no progress bar, no log noise)."""
     result = run_process("locate", good_h5, "--json", cwd=tmp_path)
     assert result.code == 0, result
@@ -801,18 +801,18 @@ def test_subprocess_locate_json_stdout_is_pure_json_lines(tmp_path: Path, good_h
 
 
 def test_subprocess_missing_file_one_line_no_traceback(tmp_path: Path) -> None:
-    """FORMATS.md exit codes, as a shell sees them: exit 2, one line naming the file."""
+    """docs/FORMATS.md exit codes, as a shell sees them: exit 2, one line naming the file."""
     assert_bad_input(run_process("echoes", "missing.h5", "--json", cwd=tmp_path), "missing.h5")
 
 
 def test_subprocess_bad_option_one_line_no_traceback(tmp_path: Path, good_h5: Path) -> None:
-    """FORMATS.md exit codes, as a shell sees them: --blanking-s -1 is exit 2, one line."""
+    """docs/FORMATS.md exit codes, as a shell sees them: --blanking-s -1 is exit 2, one line."""
     result = run_process("locate", good_h5, "--blanking-s", "-1", cwd=tmp_path)
     assert_bad_input(result, "--blanking-s")
 
 
 def test_subprocess_unknown_option_is_usage_error(tmp_path: Path, good_h5: Path) -> None:
-    """FORMATS.md exit codes, as a shell sees them: an unknown option is click's usage
+    """docs/FORMATS.md exit codes, as a shell sees them: an unknown option is click's usage
     error, exit 2, no traceback."""
     result = run_process("locate", good_h5, "--bogus", cwd=tmp_path)
     assert result.code == 2, result
@@ -821,7 +821,7 @@ def test_subprocess_unknown_option_is_usage_error(tmp_path: Path, good_h5: Path)
 
 
 def test_subprocess_repair_nonfinite_warns_on_one_line(tmp_path: Path, good_h5: Path) -> None:
-    """FORMATS.md: NaN samples are bad input (exit 2, one line) unless --repair-nonfinite,
+    """docs/FORMATS.md: NaN samples are bad input (exit 2, one line) unless --repair-nonfinite,
     which succeeds with one warning line; as a shell sees them."""
     broken_copy(good_h5, tmp_path / "nan.h5", _nan_sample)
     refused = run_process("locate", "nan.h5", "--json", cwd=tmp_path)
@@ -836,7 +836,7 @@ def test_subprocess_repair_nonfinite_warns_on_one_line(tmp_path: Path, good_h5: 
 
 
 def test_subprocess_long_error_message_stays_on_one_line(tmp_path: Path) -> None:
-    """FORMATS.md exit codes: "one line on stderr naming the file and the problem",
+    """docs/FORMATS.md exit codes: "one line on stderr naming the file and the problem",
     however long the file's name (stderr piped, so no terminal width applies)."""
     name = "a-recording-with-a-rather-long-but-perfectly-ordinary-descriptive-file-name.h5"
     result = run_process("locate", name, cwd=tmp_path)

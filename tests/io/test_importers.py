@@ -10,7 +10,7 @@ conversion of the real CH101 data set published with
 A few of its frames are written back into the data set's CSV layout (with the two
 trailing columns the published loader drops) and imported; the result must equal
 dev.h5 bit for bit. Every refusal must exit 2 with one line on stderr naming the file
-and no traceback (FORMATS.md, "Exit codes").
+and no traceback (docs/FORMATS.md, "Exit codes").
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Tests of the recording file contract (FORMATS.md, "Recording file")."""
+"""Tests of the recording file contract (docs/FORMATS.md, "Recording file")."""
 
 from __future__ import annotations
 

@@ -58,7 +58,7 @@ def test_chi2_tail_at_its_landmarks() -> None:
 @settings(max_examples=50, deadline=None)
 @given(point=points_in_front)
 def test_closed_form_agrees_with_the_general_solver(point: np.ndarray) -> None:
-    """NOTES.md's paired-geometry formulas and the Gauss-Newton solver give the same point."""
+    """docs/METHOD.md's paired-geometry formulas and the Gauss-Newton solver give the same point."""
     paths = model_paths_m(TX, CROSS, point[None])
     closed = paired_closed_form(paths, D)[0]
     general = solve_positions(TX, CROSS, paths, 0.5e-3).position_m[0]
@@ -110,7 +110,7 @@ def test_flat_array_of_three_receivers(point: np.ndarray, angle: float) -> None:
 
 
 def test_linear_start_is_exact_for_exact_paths() -> None:
-    """The squared equations are exact, so the linear start is exact with exact paths (NOTES.md)."""
+    """The squared equations are exact, so the linear start is exact with exact paths (docs/METHOD.md)."""
     points = np.array([[0.1, -0.2, 0.6], [-0.3, 0.3, 0.9], [0.0, 0.0, 0.3]])
     paths = model_paths_m(TX, CROSS, points)
     assert linear_start(TX, CROSS, paths, UP) == pytest.approx(points, abs=1e-9)

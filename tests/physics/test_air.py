@@ -1,6 +1,6 @@
 """Tests of echoloc.physics.air: speed of sound in air and spherical spreading.
 
-Sources: NOTES.md ("Speed of sound": c ∝ sqrt(T), +1 K ≈ +0.17 %, humidity adds about
+Sources: docs/METHOD.md ("Speed of sound": c ∝ sqrt(T), +1 K ≈ +0.17 %, humidity adds about
 0.3 % at 20 °C); the tabulated 331.3 m/s for dry air at 0 °C; saturation vapour
 pressures of water from IAPWS-95 (Wagner & Pruß 2002, J. Phys. Chem. Ref. Data 31, 387).
 """
@@ -40,20 +40,20 @@ def test_dry_air_at_20c_is_343_2() -> None:
 
 @given(temperatures_c)
 def test_dry_air_follows_sqrt_of_absolute_temperature(t_c: float) -> None:
-    """Ideal gas: c = 331.3 sqrt(T / 273.15 K) in dry air (NOTES.md)."""
+    """Ideal gas: c = 331.3 sqrt(T / 273.15 K) in dry air (docs/METHOD.md)."""
     expected = 331.3 * math.sqrt((t_c + KELVIN_AT_0C) / KELVIN_AT_0C)
     assert float(speed_of_sound_m_s(t_c, 0.0)) == pytest.approx(expected, rel=1e-12)
 
 
 def test_one_kelvin_warmer_is_0_17_percent_faster() -> None:
-    """+1 K at 20 °C raises c by about 0.17 % (NOTES.md; closed form 1/(2 T) = 0.1706 %)."""
+    """+1 K at 20 °C raises c by about 0.17 % (docs/METHOD.md; closed form 1/(2 T) = 0.1706 %)."""
     gain = float(speed_of_sound_m_s(21.0) / speed_of_sound_m_s(20.0)) - 1.0
     assert gain == pytest.approx(0.0017, abs=0.00005)
     assert gain == pytest.approx(math.sqrt(294.15 / 293.15) - 1.0, rel=1e-9)
 
 
 def test_saturated_air_at_20c_is_0_3_to_0_4_percent_faster() -> None:
-    """Water vapour (lighter molecules) raises c; saturated at 20 °C by 0.3-0.4 % (NOTES.md)."""
+    """Water vapour (lighter molecules) raises c; saturated at 20 °C by 0.3-0.4 % (docs/METHOD.md)."""
     gain = float(speed_of_sound_m_s(20.0, 1.0) / speed_of_sound_m_s(20.0, 0.0)) - 1.0
     assert 0.003 <= gain <= 0.004
 
@@ -102,7 +102,7 @@ def test_water_mole_fraction_is_partial_pressure_ratio() -> None:
 
 @pytest.mark.parametrize("rh", [-0.01, 1.01, 1.5, -1.0])
 def test_humidity_outside_0_1_raises(rh: float) -> None:
-    """Relative humidity is a fraction 0..1 (FORMATS.md, "Units")."""
+    """Relative humidity is a fraction 0..1 (docs/FORMATS.md, "Units")."""
     with pytest.raises(EchoLocError, match="relative_humidity"):
         speed_of_sound_m_s(20.0, rh)
 

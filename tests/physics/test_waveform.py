@@ -1,6 +1,6 @@
 """Tests of echoloc.physics.waveform: Barker codes and the BPSK pulses built from them.
 
-Sources: NOTES.md ("Emitted code", report ch. 3.4): Barker sequences, N carrier cycles
+Sources: docs/METHOD.md ("Emitted code", report ch. 3.4): Barker sequences, N carrier cycles
 per bit, bit -1 sends the inverted carrier; R. H. Barker (1953): aperiodic
 autocorrelation sidelobes |r| <= 1 against a peak equal to the length.
 """
@@ -55,7 +55,7 @@ def test_barker_autocorrelation_peak_and_sidelobes(length: int, variant: int) ->
 
 @pytest.mark.parametrize(("length", "text"), REPORT_CODES.items())
 def test_default_variants_are_the_reports_sequences(length: int, text: str) -> None:
-    """The default variant of each length is the sequence listed in the report (NOTES.md)."""
+    """The default variant of each length is the sequence listed in the report (docs/METHOD.md)."""
     assert barker(length).tolist() == [1 if ch == "+" else -1 for ch in text]
 
 

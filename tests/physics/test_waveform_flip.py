@@ -1,6 +1,6 @@
 """The ``flip{N}`` pulse: two trains of N carrier cycles, the second inverted (report ch. 3.3).
 
-Source: NOTES.md, "Time of flight": envelope-zero detection with two pulse trains;
+Source: docs/METHOD.md, "Time of flight": envelope-zero detection with two pulse trains;
 the envelope of the carrier passes through zero at the phase reversal.
 """
 

@@ -104,7 +104,7 @@ def test_foxglove_client_receives_and_decodes_objects_traces_and_stats(results):
     assert wanted <= set(got)
     truth = recording.truth_positions_m[0]
 
-    # The locate line is FORMATS.md's, and its objects are the three balls.
+    # The locate line is docs/FORMATS.md's, and its objects are the three balls.
     channel, log_time_ns, payload = got["/echoloc/locate"]
     assert channel["encoding"] == "json"
     located = json.loads(payload)

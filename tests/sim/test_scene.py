@@ -1,6 +1,6 @@
 """Tests of echoloc.sim.scene: the report's set-up and the validated TOML scene files.
 
-Sources: NOTES.md (report ch. 4, table 4.3: balls at 580, 596 and 665 mm; Barker-13,
+Sources: docs/METHOD.md (report ch. 4, table 4.3: balls at 580, 596 and 665 mm; Barker-13,
 50 kHz, decimated to 200 kHz; four receivers 0.25 m from the transmitter), the
 examples/ scene files, and errors.py (messages name the file, the field, the value).
 """

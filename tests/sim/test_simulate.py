@@ -1,6 +1,6 @@
 """Tests of echoloc.sim.simulation: what the receivers of a sensor head record.
 
-Sources: NOTES.md (path l = |p - T| + |p - R|, ToF = l / c, report ch. 3.5), air.py
+Sources: docs/METHOD.md (path l = |p - T| + |p - R|, ToF = l / c, report ch. 3.5), air.py
 (spherical spreading 1 / (r_tx r_rx)), scene.py (noise convention: sigma = 10^(-snr/20)
 for a unit echo at 1 m + 1 m), the sampling theorem (a band-limited signal delayed by any
 real tau is sampled exactly by the band-limited fractional delay), and reciprocity

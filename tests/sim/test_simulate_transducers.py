@@ -36,7 +36,8 @@ def scene_with(position: list[float], **changes: object) -> Scene:
 
 
 def test_template_is_the_pulse_through_the_transducer_pair() -> None:
-    """FORMATS.md: the waveform is what an ideal point reflector returns, here through both transducers."""
+    """docs/FORMATS.md: the waveform is what an ideal point reflector returns, here through both
+    transducers."""
     scene = scene_with([0.0, 0.0, 0.6], transducer="electrostatic50")
     recording = simulate(scene, 1)
     pulse = scene.waveform().samples

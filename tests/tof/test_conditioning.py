@@ -1,6 +1,6 @@
 """Frame conditioning (echoloc.tof.conditioning): background, time-varying gain, blind zone; and its wiring.
 
-Sources: FORMATS.md (``background``: a recording of the empty scene, to subtract;
+Sources: docs/FORMATS.md (``background``: a recording of the empty scene, to subtract;
 ``receiver_gain``: ``frames / receiver_gain`` is the signal at the transducer);
 the report's ch. 3-4 (the transmitter's ring-down and the direct path come before
 any echo and must not be reported).

@@ -1,6 +1,6 @@
 """Envelope estimators (echoloc.tof.envelopes): the FIR envelope, CA-CFAR, and the estimators built on them.
 
-Sources: the report's ch. 3.3 (NOTES.md, "Time of flight": threshold, energy,
+Sources: the report's ch. 3.3 (docs/METHOD.md, "Time of flight": threshold, energy,
 leading-edge fit, envelope zero with two pulse trains); Oppenheim & Schafer,
 *Discrete-Time Signal Processing*, 3rd ed., §5.7 (a linear-phase FIR of odd length N
 delays by exactly (N - 1)/2 samples); M. A. Richards, *Fundamentals of Radar Signal

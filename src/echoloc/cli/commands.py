@@ -1,6 +1,6 @@
 """The ``echoloc`` command line: a thin edge over the library.
 
-Exit codes (FORMATS.md): 0 success, 2 bad input or usage (one line on stderr), 1 an
+Exit codes (docs/FORMATS.md): 0 success, 2 bad input or usage (one line on stderr), 1 an
 internal error.
 """
 
@@ -413,7 +413,7 @@ def cli() -> None:
     """Airborne ultrasonic echolocation: coded pulses, time of flight, 3-D obstacle positions.
 
     Start with `echoloc demo`. Recordings are HDF5 (or NPZ) files in the format of
-    FORMATS.md; `echoloc simulate` makes them from a scene file.
+    docs/FORMATS.md; `echoloc simulate` makes them from a scene file.
     """
 
 
@@ -627,7 +627,7 @@ def _learn_template(
 
 @cli.command()
 @_processing_options(locating=False)
-@click.option("--json", "as_json", is_flag=True, help="JSON Lines per FORMATS.md instead of a table.")
+@click.option("--json", "as_json", is_flag=True, help="JSON Lines per docs/FORMATS.md instead of a table.")
 def echoes(processing: Processing, as_json: bool) -> None:
     """Times of flight of the echoes in every frame of RECORDING, per receiver."""
     recording, chain, frames = processing.open()
@@ -663,7 +663,7 @@ def _echo_rows(table: Table, result: FrameEchoes) -> None:
 
 @cli.command()
 @_processing_options(locating=True)
-@click.option("--json", "as_json", is_flag=True, help="JSON Lines per FORMATS.md instead of a table.")
+@click.option("--json", "as_json", is_flag=True, help="JSON Lines per docs/FORMATS.md instead of a table.")
 def locate(processing: Processing, as_json: bool) -> None:
     """3-D positions of the reflectors in every frame of RECORDING."""
     recording, chain, frames = processing.open()

@@ -58,7 +58,7 @@ _force_option = click.option("--force", is_flag=True, help="Replace OUT if it ex
 
 @click.group(name="import", context_settings={"help_option_names": ["-h", "--help"]})
 def import_group() -> None:
-    """Write a contract recording (FORMATS.md) from another layout (docs/IMPORT.md)."""
+    """Write a contract recording (docs/FORMATS.md) from another layout (docs/IMPORT.md)."""
 
 
 @import_group.command(name="spiel")

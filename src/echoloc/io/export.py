@@ -1,7 +1,7 @@
 """Located objects for other programs: PLY point clouds and MCAP files of ROS 2 messages.
 
 Positions are in the echoloc sensor frame, the ROS optical-frame convention of REP 103
-(``x`` right, ``y`` down, ``z`` boresight, metres; ``../shared/FORMATS.md``). Its ROS
+(``x`` right, ``y`` down, ``z`` boresight, metres; ``docs/FORMATS.md``). Its ROS
 frame id is :data:`SENSOR_FRAME_ID`; a robot attaches it with one static transform,
 for example ``ros2 run tf2_ros static_transform_publisher --x 0.1 --z 0.3 --roll -1.5708
 --yaw -1.5708 --frame-id base_link --child-frame-id echoloc_sensor_optical_frame`` for a

@@ -1,4 +1,4 @@
-"""Importers: contract recordings (``FORMATS.md``) from the layouts users already have.
+"""Importers: contract recordings (``docs/FORMATS.md``) from the layouts users already have.
 
 Two layouts are read (``docs/IMPORT.md`` describes both for users):
 

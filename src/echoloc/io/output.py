@@ -1,4 +1,4 @@
-"""Machine-readable output: the JSON Lines of FORMATS.md for ``echoes`` and ``locate``."""
+"""Machine-readable output: the JSON Lines of docs/FORMATS.md for ``echoes`` and ``locate``."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from echoloc.tof.echoes import FrameEchoes
 
 
 def echoes_record(echoes: FrameEchoes) -> dict[str, Any]:
-    """One frame of ``echoloc echoes --json`` (FORMATS.md)."""
+    """One frame of ``echoloc echoes --json`` (docs/FORMATS.md)."""
     c = echoes.speed_of_sound_m_s
     return {
         "frame": echoes.frame,
@@ -34,7 +34,7 @@ def echoes_record(echoes: FrameEchoes) -> dict[str, Any]:
 
 
 def objects_record(objects: FrameObjects) -> dict[str, Any]:
-    """One frame of ``echoloc locate --json`` (FORMATS.md).
+    """One frame of ``echoloc locate --json`` (docs/FORMATS.md).
 
     ``receivers`` counts distinct receivers. Optional fields beyond the contract:
     ``channels``, the transmitter-receiver pairs whose echoes support the object

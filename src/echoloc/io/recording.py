@@ -1,4 +1,4 @@
-"""The Recording value and its file formats (HDF5 and NPZ), per ``FORMATS.md``.
+"""The Recording value and its file formats (HDF5 and NPZ), per ``docs/FORMATS.md``.
 
 A :class:`Recording` holds exactly what the contract's recording file holds, with
 units in the field names. :func:`read_recording` and :func:`write_recording` move it
@@ -1917,7 +1917,7 @@ def _durable(file: Any) -> None:
 
 
 def contract_items(rec: Recording) -> tuple[dict[str, object], dict[str, NDArray[Any]]]:
-    """The root attributes and datasets of ``rec`` by their FORMATS.md names, as a file holds them.
+    """The root attributes and datasets of ``rec`` by their docs/FORMATS.md names, as a file holds them.
 
     For other carriers of the contract (the stream protocol's session message).
     """
@@ -1925,7 +1925,7 @@ def contract_items(rec: Recording) -> tuple[dict[str, object], dict[str, NDArray
 
 
 def recording_from_items(source: str, attrs: dict[str, object], data: dict[str, NDArray[Any]]) -> Recording:
-    """A :class:`Recording` from attributes and datasets by their FORMATS.md names, as a reader makes it.
+    """A :class:`Recording` from attributes and datasets by their docs/FORMATS.md names, as a reader makes it.
 
     Checks names, types and dtypes as :func:`read_recording` does (not the
     contract's other rules: validate the result). ``source`` names it in messages.

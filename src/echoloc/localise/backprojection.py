@@ -1,6 +1,6 @@
 """Back-projection ("points to peaks"): a workspace grid scored by every receiver's envelope.
 
-The report (ch. 3.5, NOTES.md) names two ways to locate several reflectors. The
+The report (ch. 3.5, docs/METHOD.md) names two ways to locate several reflectors. The
 association of :mod:`echoloc.localise.locate` combines echoes ("peaks to points"). Here every
 point ``p`` of a workspace grid looks up its path ``l_i(p) = |p - T_i| + |p - R_i|``
 on every channel i (one transmitter-receiver pair) and reads that channel's
@@ -1026,7 +1026,7 @@ def _baseband_correlation(
 
     ``sum_n x[n + k] conj(w[n]) / sum |w|^2``: an echo ``a w[n - k0]`` gives ``a`` at
     ``k0``, its arrival. Without a waveform the magnitudes themselves (an echo then
-    peaks where its envelope does: a calibration constant, FORMATS.md).
+    peaks where its envelope does: a calibration constant, docs/FORMATS.md).
     """
     x = np.asarray(frame, dtype=np.complex128)
     if signal_kind == "envelope":

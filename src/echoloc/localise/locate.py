@@ -1,6 +1,6 @@
 """Localisation: from path lengths per receiver to reflector positions in 3-D (or 2-D).
 
-Geometry (report ch. 3.5 and appendix F, restated in NOTES.md): an echo's path
+Geometry (report ch. 3.5 and appendix F, restated in docs/METHOD.md): an echo's path
 ``l = |p - T| + |p - R|`` puts the reflector on an ellipsoid (an ellipse in 2-D) with
 foci at the transmitter T and the receiver R. Intersecting the ellipsoids of three or
 more receivers gives ``p``. Every function here works in the dimension of the
@@ -76,7 +76,7 @@ class LocateOptions:
         from the transmitter's axis, or from the axis of a receiver that supports it,
         is rejected (nothing outside a beam can echo). 90: anything in front.
     transmitter_axes, receiver_axes
-        Unit boresight vector per transmitter and per receiver (FORMATS.md
+        Unit boresight vector per transmitter and per receiver (docs/FORMATS.md
         ``transmitter_axes``/``receiver_axes``); None: every one along ``boresight``.
     excuse_one_channel
         In a frame where no object has an echo on every channel, let objects lack one on
@@ -138,7 +138,7 @@ class FrameObjects:
 def paired_closed_form(paths_m: NDArray[np.float64], spacing_m: float) -> NDArray[np.float64]:
     """Exact position for T at the origin and R1..R4 at (+d,0,0), (-d,0,0), (0,+d,0), (0,-d,0).
 
-    ``paths_m`` (..., 4) holds l1..l4. From NOTES.md (report appendix F):
+    ``paths_m`` (..., 4) holds l1..l4. From docs/METHOD.md (report appendix F):
     ``r = (l1^2 + l2^2 - 2 d^2) / (2 (l1 + l2))``,
     ``x = (l2^2 - l1^2 - 2 r (l2 - l1)) / (4 d)``, y likewise from l3, l4, and
     ``z = sqrt(r^2 - x^2 - y^2)``. The range r is taken from the x pair; the y pair
@@ -179,7 +179,7 @@ def exact_solutions(
     """Every point that meets D paths exactly, D = the dimension (3 receivers in 3-D).
 
     The squared equations ``2 R_i.p - 2 l_i rho = |R_i|^2 - l_i^2`` (coordinates
-    relative to the common transmitter T, ``rho = |p|``; NOTES.md) are D linear
+    relative to the common transmitter T, ``rho = |p|``; docs/METHOD.md) are D linear
     equations in D + 1 unknowns: a line ``u0 + s v`` (v spans the null space, its
     components the signed D x D minors). ``rho^2 = |p|^2`` gives a quadratic in s
     with up to two roots. Returns points (n, 2, D) and which of them are real
@@ -236,7 +236,7 @@ def linear_start(
 ) -> NDArray[np.float64]:
     """Closed-form start for paths (n, n_rx) -> positions (n, D), one common transmitter.
 
-    Solves ``2 R_i.p - 2 l_i rho = |R_i|^2 - l_i^2`` (NOTES.md) by least squares. When
+    Solves ``2 R_i.p - 2 l_i rho = |R_i|^2 - l_i^2`` (docs/METHOD.md) by least squares. When
     the system is rank-deficient (D receivers, or a flat array where the normal
     column vanishes) the solution is a line ``x0 + s v`` and ``rho^2 = |p|^2`` picks
     the point on it in front of the array.

@@ -18,7 +18,7 @@ Three tools, from the report's section 4.3 and the usual navigation practice:
   by re-solving with the perturbed paths, beside the linearised figures, and the
   spacing a designer should choose under a stated criterion.
 
-Frame and units: sensor frame of FORMATS.md (z is the boresight, x to the right),
+Frame and units: sensor frame of docs/FORMATS.md (z is the boresight, x to the right),
 metres and radians. Range and angle are taken from the frame's origin (the report's
 transmitter): range ``r = |p|``; in 2-D the angle is the report's azimuth
 ``theta = atan2(x, z)`` (positive towards +x, towards receiver R1).
@@ -171,7 +171,7 @@ def array_channels(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Every (transmitter, receiver) pair as channels: (n_tx n_rx, D) each, transmitter-major.
 
-    Transmitters fire in turn and every receiver records each one (FORMATS.md,
+    Transmitters fire in turn and every receiver records each one (docs/FORMATS.md,
     ``frame_transmitter``); a transducer that both sends and receives appears in both
     lists, and its own channel measures twice the distance.
     """
@@ -190,7 +190,7 @@ def path_jacobian(
     """Gradient of each channel's path at each position: (..., n_ch, D), dimensionless.
 
     Row i is ``(p - T_i)/|p - T_i| + (p - R_i)/|p - R_i|`` (the sum of the unit
-    vectors from transmitter and receiver to the point; NOTES.md, Gauss-Newton).
+    vectors from transmitter and receiver to the point; docs/METHOD.md, Gauss-Newton).
     ``transmitters_m`` is one position (D,) or one per channel (n_ch, D). At a
     transducer the direction is undefined and the row is NaN.
     """

@@ -11,7 +11,7 @@ Sources
   far-field directivity ``H(θ) = 2 J1(ka sin θ) / (ka sin θ)``, first null at
   ``ka sin θ = 3.83`` (``sin θ = 0.61 λ/a``), on-axis pressure
   ``2 ρ0 c U0 |sin(k (sqrt(r² + a²) - r) / 2)|``, Rayleigh distance ``π a²/λ``.
-- [R] the reference report (``/work/shared/reference/report.txt``): ch. 2.4.2.1
+- [R] the reference report (docs/METHOD.md, References): ch. 2.4.2.1
   eq. (2.11) near-field length ``r²/λ``; ch. 2.4.2.5 eqs. (2.19)-(2.20), the piston
   model and the beam widths "x = 1.62" (-3 dB) and "0.61 λ/r" (first null);
   ch. 2.4.2.6 the Murata MA40L1S/MA40L2T pair (40 kHz, ±2 kHz, 30° at -3 dB) and

@@ -860,7 +860,7 @@ def waveform_metrics(
     The received signal is ``waveform.samples`` convolved with ``response`` (an
     impulse response at the waveform's sample rate, e.g. transmitter and receiver
     transducers in series; without it, the waveform itself). It is cross-correlated
-    with a template, as the report's matched filter does (ch. 3.4; NOTES.md):
+    with a template, as the report's matched filter does (ch. 3.4; docs/METHOD.md):
 
     - ``template=None`` or ``"sent"``: the emitted waveform, the report's SENT
       template. With a response this filter is mismatched: the output is the

@@ -3,7 +3,7 @@
 The image (:class:`echoloc.localise.backprojection.Image`) holds per voxel the k-th largest
 channel amplitude SNR; it is drawn in dB (``20 log10``) from 6 dB below the
 detection threshold to its maximum, so everything that could be an object shows.
-Axes follow the sensor frame (FORMATS.md): z is range, x to the right, y down.
+Axes follow the sensor frame (docs/FORMATS.md): z is range, x to the right, y down.
 """
 
 from __future__ import annotations

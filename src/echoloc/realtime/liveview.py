@@ -6,7 +6,7 @@ ours in a browser, and the ``foxglove-sdk`` server speaks its documented WebSock
 protocol (subprotocol ``foxglove.sdk.v1``), so any client can subscribe too. Connect
 Foxglove to ``ws://127.0.0.1:8765`` (Open connection -> Foxglove WebSocket).
 
-Topics, all in the sensor frame ``echoloc_sensor_optical_frame`` (FORMATS.md):
+Topics, all in the sensor frame ``echoloc_sensor_optical_frame`` (docs/FORMATS.md):
 
 - ``/echoloc/objects`` (``foxglove.SceneUpdate``): one sphere per object, 2 sigma
   wide, and its range as text;

@@ -3,7 +3,7 @@
 Every message is a fixed 52-byte little-endian header followed by a payload:
 
 - a **session** message (kind 1) carries the per-recording fields of the recording
-  contract (FORMATS.md: geometry, waveform, air state...) as UTF-8 JSON under the
+  contract (docs/FORMATS.md: geometry, waveform, air state...) as UTF-8 JSON under the
   contract's own names, so the receiver can prepare its chain;
 - a **frame** message (kind 2) carries one frame, n_channels x n_samples samples,
   channel after channel, with its sequence number, start time and transmitter;
@@ -398,7 +398,7 @@ def _json_array(value: NDArray[Any]) -> Any:
 
 
 def session_record(header: Recording) -> dict[str, Any]:
-    """The JSON object of a session message: FORMATS.md's attributes and datasets by name.
+    """The JSON object of a session message: docs/FORMATS.md's attributes and datasets by name.
 
     Per-frame fields (``frames``, ``frame_times``, ``frame_transmitter``, truth,
     poses) are not part of a session; a per-frame ``background`` is refused.
@@ -564,7 +564,7 @@ def _decode_session(
                 ) from None
         elif isinstance(value, str | int | float):
             attrs[name] = value
-        # Anything else is a field of a later contract: ignored, as FORMATS.md asks.
+        # Anything else is a field of a later contract: ignored, as docs/FORMATS.md asks.
     dtype = np.complex128 if header.signal_kind == "iq" else np.float64
     data["frames"] = np.zeros((0, header.n_channels, header.n_samples), dtype=dtype)
     rec = recording_from_items(source, attrs, data)

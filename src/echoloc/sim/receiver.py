@@ -5,11 +5,11 @@ recorded samples, as pure functions of plain values and small frozen specs
 (:class:`GainSpec`, :class:`AdcSpec`). Arrays carry samples on the last axis (the
 batch axes first) unless an ``axis`` says otherwise. Times are measured from the
 start of the frame, which is the instant emission starts (sample k at
-``k / sample_rate_hz``, ``../shared/FORMATS.md``).
+``k / sample_rate_hz``, ``docs/FORMATS.md``).
 
 Sources
 -------
-- [R] the reference report (``/work/shared/reference/report.txt``): ch. 4 records
+- [R] the reference report (docs/METHOD.md, References): ch. 4 records
   at 5 MHz and decimates by 25 to 200 kHz; appendix B, the Polaroid 6500 ranging
   module, whose "receiver amplifier gain is incremented higher at discrete times"
   until "at approximately 38 milliseconds the maximum gain is attained" (fig. 3,
@@ -56,7 +56,7 @@ GainKind = Literal["none", "continuous", "stepped"]
 SignalKind = Literal["rf", "envelope", "iq"]
 
 SIGNAL_KINDS: tuple[str, ...] = get_args(SignalKind)
-"""The recorded representations, as in ``FORMATS.md`` (``signal_kind``)."""
+"""The recorded representations, as in ``docs/FORMATS.md`` (``signal_kind``)."""
 
 MAX_DENOMINATOR = 10_000
 """Largest ``down`` of the rational rate ratio ``up / down`` that :func:`resample` uses."""

@@ -214,7 +214,7 @@ class ReceiverSpec:
     ``baseband_filter_s`` long (causal: it delays an echo by about
     ``order * baseband_filter_s / 2``), before it is resampled to ``output_rate_hz``.
     ``record_waveform = False`` (envelope only) leaves the recording without a
-    ``waveform``, as a chip that does not report its pulse (FORMATS.md allows that for
+    ``waveform``, as a chip that does not report its pulse (docs/FORMATS.md allows that for
     envelope data; the echo's delay is then a calibration constant).
     """
 

@@ -4,7 +4,7 @@ Three steps, in the order the signal needs them undone, each a pure function, an
 frozen :class:`Conditioning` that says which to apply:
 
 1. **Background subtraction** (:func:`subtract_background`): the recording's
-   ``background``, a recording of the empty scene with the same gain (FORMATS.md),
+   ``background``, a recording of the empty scene with the same gain (docs/FORMATS.md),
    (n_rx, n_samples) or one per frame (n_frames, n_rx, n_samples), is subtracted,
    which removes what is the same in every frame: crosstalk, the transmitter's
    ring-down, the direct path, fixed reflections. For envelope recordings the
@@ -15,7 +15,7 @@ frozen :class:`Conditioning` that says which to apply:
    ``benchmarks/real_ch101.py``); where the empty scene is stronger there is no echo.
 2. **Time-varying gain compensation** (:func:`compensate_gain`): frames are divided
    by ``receiver_gain`` (n_samples,), so the samples are the signal at the transducer
-   (FORMATS.md, :class:`~echoloc.io.recording.Recording`) and noise added before the
+   (docs/FORMATS.md, :class:`~echoloc.io.recording.Recording`) and noise added before the
    amplifier is stationary again.
 3. **Blind zone** (:func:`blind_zone_s`): a time before which nothing is reported,
    either given in seconds or ``"auto"``: the end of the transmitter's ring-down

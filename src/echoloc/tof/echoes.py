@@ -42,7 +42,7 @@ estimators are in :mod:`echoloc.tof.envelopes` and the registry of all of them i
     real-amplitude fit settles in.
 
 Conventions: ``tof_s`` is the delay from emission start to the echo's arrival
-(FORMATS.md), whatever the estimator. ``amplitude`` is the echo's peak amplitude in
+(docs/FORMATS.md), whatever the estimator. ``amplitude`` is the echo's peak amplitude in
 sample units (the least-squares scale of the template). ``snr_db`` is the
 matched-filter output SNR, ``10 log10(|a|^2 / P)``, with ``P`` the mean noise power of
 the normalised analytic correlation, estimated robustly from the frame (for the

@@ -1,7 +1,7 @@
 """Time of flight on envelope and IQ data whose pulse is unknown: the real sensor's case.
 
 A ToF chip such as the CH101 reports envelope samples (magnitudes) at a low rate and
-says nothing of its pulse. FORMATS.md allows such a recording without a ``waveform``:
+says nothing of its pulse. docs/FORMATS.md allows such a recording without a ``waveform``:
 the delay between an echo's arrival and its envelope's features is then a calibration
 constant. This module finds echoes on such data with nothing but the data:
 
@@ -137,7 +137,7 @@ def prepare_peak_detector(recording: Recording, template: Template | None) -> Pe
             f"not {recording.signal_kind!r}"
         )
     if template is None and recording.waveform is not None and np.any(recording.waveform):
-        # FORMATS.md: an envelope (or iq) recording's waveform is what an ideal echo arriving
+        # docs/FORMATS.md: an envelope (or iq) recording's waveform is what an ideal echo arriving
         # at t = 0 produces, so its peak is the arrival-to-peak delay.
         template = Template(np.abs(np.asarray(recording.waveform)), recording.sample_rate_hz, 0.0, "waveform")
     delay = 0.0 if template is None else peak_delay_s(template)

@@ -16,7 +16,7 @@ maximum by linear interpolation between samples. The noise of each channel is th
 robust standard deviation (1.4826 × median absolute deviation) of its subtracted
 samples away from the echo and the frame start, over all frames. Timing residuals are
 peak time minus arrival, less the channel's median (a chip's fixed delay is a
-calibration constant, FORMATS.md).
+calibration constant, docs/FORMATS.md).
 """
 
 from __future__ import annotations

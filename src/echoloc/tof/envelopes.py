@@ -3,7 +3,7 @@
 These are the report's own detectors (report ch. 3.3): they look at the echo's
 envelope, not at its carrier phase, and each corrects its raw time by the same
 measurement made on the template (the recording's ``waveform``), so that a clean echo
-comes out at its arrival, ``tof_s`` (FORMATS.md), whatever its amplitude.
+comes out at its arrival, ``tof_s`` (docs/FORMATS.md), whatever its amplitude.
 
 Envelopes (:class:`EnvelopeOptions` ``method``)
     ``analytic``

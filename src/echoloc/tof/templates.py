@@ -5,7 +5,7 @@ DIRECT (the signal a receiver records straight from the transmitter, with no obj
 and BALL (a recorded echo of a small ball). A :class:`Template` is samples at the
 recording's rate plus ``arrival_s``: the time within the template at which the echo it
 represents arrives. The recording's own ``waveform`` is the SENT template
-(``arrival_s = 0``: its first sample is the instant of emission, FORMATS.md); a
+(``arrival_s = 0``: its first sample is the instant of emission, docs/FORMATS.md); a
 template cut from a recording gets its ``arrival_s`` from the geometry (the direct
 path, or a reflector's known position) or from the user.
 
