@@ -23,7 +23,15 @@ from typing import Any
 import click
 import numpy as np
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    SpinnerColumn,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
 from rich.table import Table
 
 from echoloc import __version__
@@ -407,14 +415,73 @@ def _progress(total: int, label: str, enabled: bool) -> Iterator[Callable[[int],
         yield advance
 
 
+_KERNEL_COMMANDS = frozenset(
+    {"demo", "echoes", "locate", "image", "export", "map", "evaluate", "calibrate", "stream", "bench"}
+)
+"""The commands that run compiled kernels: on a first run they compile them first."""
+
+FIRST_RUN_NOTICE = (
+    "echoloc: compiling the numba kernels on this first run (once, about 3 minutes on a "
+    "2-core machine; later runs load them in about a second). `echoloc warmup` compiles "
+    "them ahead, with progress."
+)
+
+
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="echoloc")
-def cli() -> None:
+@click.pass_context
+def cli(context: click.Context) -> None:
     """Airborne ultrasonic echolocation: coded pulses, time of flight, 3-D obstacle positions.
 
     Start with `echoloc demo`. Recordings are HDF5 (or NPZ) files in the format of
     docs/FORMATS.md; `echoloc simulate` makes them from a scene file.
     """
+    # A first run would otherwise sit silent for minutes while numba compiles. Said on a
+    # terminal only: scripts and pipes read stderr for errors.
+    if context.invoked_subcommand in _KERNEL_COMMANDS and stderr.is_terminal:
+        from echoloc.warmup import kernels_cold
+
+        if kernels_cold():
+            stderr.print(FIRST_RUN_NOTICE, style="yellow", highlight=False)
+
+
+# --- warmup ------------------------------------------------------------------------
+
+
+@cli.command(name="warmup")
+@click.option(
+    "--workers",
+    type=click.IntRange(1, 256),
+    default=2,
+    show_default=True,
+    help="Also compile the threaded matched filter as `--workers N` runs it (1: skip it).",
+)
+def warmup_command(workers: int) -> None:
+    """Compile the numba kernels now, once, with progress; later runs load them from the cache."""
+    from echoloc.warmup import kernels_cold, warm_up_steps
+
+    steps = warm_up_steps(workers)
+    cold = kernels_cold()
+    start = time.perf_counter()
+    with Progress(
+        SpinnerColumn(),
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=stderr,
+        transient=True,
+        disable=not stderr.is_terminal,
+    ) as progress:
+        task = progress.add_task("compiling kernels", total=len(steps))
+        for step in steps:
+            progress.update(task, description=f"compiling: {step.name}")
+            step_start = time.perf_counter()
+            step.run()
+            progress.advance(task)
+            click.echo(f"{step.name}: {time.perf_counter() - step_start:.1f} s")
+    state = "compiled" if cold else "loaded from the cache (already compiled)"
+    click.echo(f"kernels {state} in {time.perf_counter() - start:.0f} s")
 
 
 # --- demo --------------------------------------------------------------------------
