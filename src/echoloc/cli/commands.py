@@ -1621,7 +1621,7 @@ def design_command(
 
     The default reproduces the report's study: path l = 1 m, path error 5 mm.
     """
-    from echoloc.localise import uncertainty as unc
+    from echoloc.localise.design import design_record, design_study
 
     for name, value in (
         ("--path-m", path_m),
@@ -1640,98 +1640,22 @@ def design_command(
     if path_m is not None and spacing_m is not None and spacing_m >= path_m:
         raise EchoLocError(f"--spacing-m {spacing_m:g} must be below the path --path-m {path_m:g}")
     held = f"path l = {path_m:g} m" if path_m is not None else f"range r = {range_m:g} m"
-    rec = unc.recommended_spacing(
+    array = load_scene(scene_path).array if scene_path is not None else None
+    study = design_study(
         path_error_m,
         path_m=path_m,
         range_m=range_m,
+        spacing_m=spacing_m,
         max_cross_range_error_m=max_cross_range_error_m,
         max_range_error_m=max_range_error_m,
-    )
-    spacing = spacing_m if spacing_m is not None else rec.spacing_m
-    # The study: the report's spacings 0.01-0.5 m (beyond the recommendation when it is larger).
-    top = max(0.5, 1.5 * rec.spacing_m, 1.2 * (rec.largest_spacing_m or 0.0))
-    if path_m is not None:
-        top = min(top, 0.98 * path_m)
-    errors = path_error_m * np.array([-1.0, -0.5, 0.5, 1.0])
-    study = unc.spacing_study(np.linspace(0.01, top, 300), errors, path_m=path_m, range_m=range_m)
-    table_d = np.array([0.01, 0.02, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5])
-    table_d = np.unique(np.append(table_d[table_d <= top], [rec.spacing_m, spacing]))
-    rows = unc.spacing_study(table_d, [path_error_m, -path_error_m], path_m=path_m, range_m=range_m)
-    # Figure 4.12: the broadside point of the study at spacing d, both paths in error.
-    area_study = unc.spacing_study([spacing], [0.0], path_m=path_m, range_m=range_m)
-    area_path = float(area_study.path_m[0])
-    area = unc.uncertainty_area(area_path, area_path, path_error_m, path_error_m, spacing)
-    if scene_path is not None:
-        array = load_scene(scene_path).array
-        transmitters, receivers = array.transmitters_m, array.receivers_m
-        array_name = str(scene_path)
-    else:
-        transmitters, receivers = unc.cross_array(spacing)
-        array_name = f"report cross, d = {spacing:.3f} m"
-    if offset_m is None:
-        offset_m = area.range_m if plane == "xy" else 0.0
-    reach = max(0.6, 1.6 * area.range_m)
-    grid_u = np.linspace(-reach, reach, 161)
-    grid_v = np.linspace(-reach, reach, 161) if plane == "xy" else np.linspace(0.02, 1.5 * reach, 161)
-    emap = unc.error_map(
-        transmitters,
-        receivers,
-        grid_u,
-        grid_v,
+        array_m=None if array is None else (array.transmitters_m, array.receivers_m),
+        array_name=None if scene_path is None else str(scene_path),
         plane=plane,  # type: ignore[arg-type]
         offset_m=offset_m,
-        sigma_m=path_error_m,
     )
-    probe = np.zeros(transmitters.shape[1])
-    probe[-1] = area.range_m
-    tx_ch, rx_ch = unc.array_channels(transmitters, receivers)
-    at_point = unc.position_errors(probe, tx_ch, rx_ch, path_error_m)
-
-    record: dict[str, Any] = {
-        "held": {"path_m": path_m} if path_m is not None else {"range_m": range_m},
-        "path_error_m": path_error_m,
-        "recommendation": asdict(rec),
-        "spacing_m": spacing,
-        "study": [
-            {
-                "spacing_m": float(d),
-                "range_m": float(rows.range_m[j]),
-                "path_m": float(rows.path_m[j]),
-                "range_error_m": [float(v) for v in rows.range_error_m[:, j]],
-                "angle_error_rad": [float(v) for v in rows.angle_error_rad[:, j]],
-                "linear_range_error_m": [float(v) for v in rows.linear_range_error_m[:, j]],
-                "linear_angle_error_rad": [float(v) for v in rows.linear_angle_error_rad[:, j]],
-                "cross_range_error_m": float(np.max(rows.cross_range_error_m[:, j])),
-            }
-            for j, d in enumerate(rows.spacings_m)
-        ],
-        "study_path_errors_m": [path_error_m, -path_error_m],
-        "uncertainty_area": {
-            "spacing_m": spacing,
-            "path_m": area_path,
-            "range_m": area.range_m,
-            "corners": {
-                name: {
-                    "position_m": [float(v) for v in area.corners_m[k]],
-                    "range_m": float(area.corner_range_m[k]),
-                    "angle_rad": float(area.corner_angle_rad[k]),
-                }
-                for k, name in enumerate("abcd")
-            },
-        },
-        "array": {
-            "name": array_name,
-            "transmitters_m": transmitters.tolist(),
-            "receivers_m": receivers.tolist(),
-            "on_boresight": {
-                "position_m": probe.tolist(),
-                "gdop": float(at_point.gdop),
-                "std_m": [float(v) for v in at_point.std_m],
-                "range_std_m": float(at_point.range_std_m),
-                "angle_std_rad": float(at_point.angle_std_rad),
-            },
-        },
-    }
+    rec, spacing, rows, area = study.recommendation, study.spacing_m, study.table, study.area
+    array_name, at_point, area_path = study.array_name, study.on_boresight, study.area_path_m
+    record = design_record(study)
     if output is not None:
         from echoloc.plots.design import plot_error_map, plot_spacing_study, plot_uncertainty_area
 
@@ -1741,8 +1665,8 @@ def design_command(
             raise EchoLocError(f"{output}: cannot create the output directory ({error.strerror})") from None
         written = [
             plot_uncertainty_area(area, output / "uncertainty_area.png"),
-            plot_spacing_study(study, rec, output / "spacing_study.png"),
-            plot_error_map(emap, output / "gdop_map.png", title=array_name),
+            plot_spacing_study(study.curves, rec, output / "spacing_study.png"),
+            plot_error_map(study.gdop_map, output / "gdop_map.png", title=array_name),
         ]
         record["plots"] = [str(p) for p in written]
     if as_json:

@@ -9,6 +9,7 @@ from .backprojection import (
     prepare_backprojection,
     run_backprojection,
 )
+from .design import DesignStudy, design_record, design_study
 from .evaluation import Evaluation, evaluate
 from .locate import (
     FrameObjects,
@@ -34,6 +35,7 @@ from .uncertainty import (
 __all__ = [
     "BackprojectionOptions",
     "Backprojector",
+    "DesignStudy",
     "ErrorMap",
     "Evaluation",
     "FrameObjects",
@@ -46,6 +48,8 @@ __all__ = [
     "UncertaintyArea",
     "associate",
     "backproject_frame",
+    "design_record",
+    "design_study",
     "error_map",
     "evaluate",
     "frame_image",
