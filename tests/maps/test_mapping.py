@@ -512,3 +512,36 @@ def test_compiled_channel_update_equals_its_numpy_statement(
     np.testing.assert_allclose(free[cells], ref_free, rtol=1e-5, atol=1e-6)
     np.testing.assert_array_equal(support[cells], ref_arc.astype(np.uint8))
     np.testing.assert_array_equal(central[cells], ref_central.astype(np.uint8))
+
+
+# --- the grid echoloc map fills ------------------------------------------------------------
+
+
+def test_the_chosen_grid_covers_what_the_sensor_can_hear_and_obeys_extent_and_height() -> None:
+    """Without an extent, a floor plan reaches (path + baseline)/2 + head size beyond every
+    pose, at the poses' mean height; an extent and a height are taken as given; a 3-D box
+    takes a height for no axis."""
+    from echoloc.maps.mapping import choose_grid
+    from echoloc.sim.scene import default_scene
+
+    recording = simulate(default_scene(), 1)
+    c = 343.0
+    poses = np.array([[0.0, 0.1, 0.0, 0, 0, 0, 1], [0.4, 0.3, 0.2, 0, 0, 0, 1]])
+    heard = recording.n_samples / recording.sample_rate_hz * c
+    baseline = np.max(np.linalg.norm(recording.transmitters_m[:, None] - recording.receivers_m[None], axis=2))
+    size = np.max(np.linalg.norm(np.vstack([recording.transmitters_m, recording.receivers_m]), axis=1))
+    reach = (heard + baseline) / 2 + size
+    plan = choose_grid(recording, poses, 0.05, c)
+    assert plan.shape[1] == 1
+    assert plan.origin_m[0] <= -reach + 1e-9
+    assert plan.upper_m[0] >= 0.4 + reach - 0.05 - 1e-9
+    assert plan.origin_m[2] <= -reach + 1e-9
+    assert plan.upper_m[2] >= 0.2 + reach - 0.05 - 1e-9
+    assert plan.origin_m[1] + plan.cell_m / 2 == pytest.approx(0.2)  # the mean height, y
+    given_plan = choose_grid(recording, poses, 0.1, c, extent_m=[(-1.0, 1.0), (0.0, 2.0)], height_m=0.5)
+    assert given_plan.shape == (20, 1, 20)
+    assert given_plan.origin_m[1] + given_plan.cell_m / 2 == pytest.approx(0.5)
+    box = choose_grid(recording, poses, 0.1, c, three_d=True, extent_m=[(-1, 1), (-0.5, 0.5), (0, 2)])
+    assert box.shape == (20, 10, 20)
+    with pytest.raises(EchoLocError, match="3-D grid"):
+        choose_grid(recording, poses, 0.1, c, three_d=True, height_m=0.5)

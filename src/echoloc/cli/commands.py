@@ -975,15 +975,7 @@ def map_command(
     recording's sensor_poses or --trajectory); without poses, the sensor frame.
     """
     from echoloc.maps.map_export import write_grid_npz, write_grid_ply, write_map_mcap, write_octomap
-    from echoloc.maps.mapping import (
-        GridSpec,
-        chain_accumulator,
-        default_box,
-        default_floor_plan,
-        frame_poses,
-        integrate,
-        read_trajectory,
-    )
+    from echoloc.maps.mapping import chain_accumulator, choose_grid, frame_poses, integrate, read_trajectory
     from echoloc.plots.maps import plot_grid
 
     suffix = output_path.suffix.lower()
@@ -1008,22 +1000,15 @@ def map_command(
     trajectory = read_trajectory(trajectory_path) if trajectory_path is not None else None
     recording, chain, frames = processing.open()
     poses = frame_poses(recording, trajectory)
-    c = chain.speed_of_sound_m_s
-    if three_d:
-        spec = (
-            GridSpec.box([e[0] for e in extent], [e[1] for e in extent], cell_m)
-            if extent is not None
-            else default_box(recording, poses[list(frames)], cell_m, c)
-        )
-    elif extent is not None:
-        height = float(poses[list(frames), 1].mean()) if height_m is None else height_m
-        spec = GridSpec.floor_plan(extent[0], extent[1], cell_m, height)
-    else:
-        spec = default_floor_plan(recording, poses[list(frames)], cell_m, c)
-        if height_m is not None:
-            spec = GridSpec.floor_plan(
-                (spec.origin_m[0], spec.upper_m[0]), (spec.origin_m[2], spec.upper_m[2]), cell_m, height_m
-            )
+    spec = choose_grid(
+        recording,
+        poses[list(frames)],
+        cell_m,
+        chain.speed_of_sound_m_s,
+        three_d=three_d,
+        extent_m=extent,
+        height_m=height_m,
+    )
     accumulator = chain_accumulator(chain, spec, path_sigma_m=processing.path_sigma_m)
     located: list[FrameObjects] = []
 

@@ -7,6 +7,7 @@ from .mapping import (
     OccupancyGrid,
     SensorModel,
     build_map,
+    choose_grid,
     map_accuracy,
     read_trajectory,
 )
@@ -17,6 +18,7 @@ __all__ = [
     "OccupancyGrid",
     "SensorModel",
     "build_map",
+    "choose_grid",
     "map_accuracy",
     "read_grid_npz",
     "read_trajectory",

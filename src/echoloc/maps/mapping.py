@@ -50,7 +50,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -472,6 +472,37 @@ def default_box(
     reach = _window_range_m(recording, speed_of_sound_m_s)
     positions = poses[:, :3]
     return GridSpec.box(positions.min(axis=0) - reach, positions.max(axis=0) + reach, cell_m)
+
+
+def choose_grid(
+    recording: Recording,
+    poses: FloatArray,
+    cell_m: float,
+    speed_of_sound_m_s: float,
+    *,
+    three_d: bool = False,
+    extent_m: Sequence[tuple[float, float]] | None = None,
+    height_m: float | None = None,
+) -> GridSpec:
+    """The grid ``echoloc map`` fills: a floor plan (x, z at one height), or with
+    ``three_d`` a box, over ``extent_m`` ((low, high) per axis, m: x, z for a floor plan,
+    x, y, z for a box) or, without it, over every place the sensor at ``poses`` could have
+    heard. A floor plan lies at ``height_m`` [default: the sensor's mean height, y]."""
+    if three_d:
+        if height_m is not None:
+            raise EchoLocError("a floor plan's height has no meaning for a 3-D grid; give its extent")
+        if extent_m is not None:
+            return GridSpec.box([e[0] for e in extent_m], [e[1] for e in extent_m], cell_m)
+        return default_box(recording, poses, cell_m, speed_of_sound_m_s)
+    if extent_m is not None:
+        height = float(poses[:, 1].mean()) if height_m is None else height_m
+        return GridSpec.floor_plan(extent_m[0], extent_m[1], cell_m, height)
+    spec = default_floor_plan(recording, poses, cell_m, speed_of_sound_m_s)
+    if height_m is None:
+        return spec
+    return GridSpec.floor_plan(
+        (spec.origin_m[0], spec.upper_m[0]), (spec.origin_m[2], spec.upper_m[2]), cell_m, height_m
+    )
 
 
 def _window_range_m(recording: Recording, speed_of_sound_m_s: float) -> float:
