@@ -382,8 +382,8 @@ def test_a_busy_port_is_one_line_and_exit_2(capsys):
 def test_stream_records_a_batch_before_processing_it(tmp_path, recording_path):
     """`stream --record`: frames are written before the chain runs on them, so a batch whose
     processing fails is still in the recording, sample for sample."""
-    from echoloc.cli.commands import _LiveStream
     from echoloc.pipeline import prepare
+    from echoloc.realtime.session import LiveSession
     from echoloc.realtime.stream import StreamProcessor, recording_frames
     from echoloc.realtime.transport import SessionEvent
 
@@ -397,7 +397,7 @@ def test_stream_records_a_batch_before_processing_it(tmp_path, recording_path):
 
     source = read_recording(recording_path)
     out = tmp_path / "kept.h5"
-    session = _LiveStream(Counters(), prepare, 0.1, as_json=False, record_path=out)
+    session = LiveSession(Counters(), prepare, 0.1, record_path=out)
     session.handle(SessionEvent(source))
     session.processor = Failing(session.processor.chain)
     frames = list(recording_frames(source, range(3)))

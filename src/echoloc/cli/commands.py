@@ -1871,36 +1871,13 @@ def _interrupt_cleanly() -> Iterator[None]:
 
 
 def _events(listener: Any, once: bool, max_frames: int | None, duration_s: float | None) -> Iterator[Any]:
-    """Sessions, and lists of the frames that queued up (at most STREAM_BATCH_FRAMES: a
-    backlog is worked off in batches), off the listener's queue until a stop condition;
-    errors to stderr."""
-    from echoloc.realtime.stream import STREAM_BATCH_FRAMES, StreamFrame
-    from echoloc.realtime.transport import EndEvent
+    """What the listener queued, until a stop condition (:func:`listener_events`); its errors
+    to stderr as warnings."""
+    from echoloc.realtime.session import listener_events
 
     _finite("--duration", duration_s, positive=True)
     deadline = None if duration_s is None else time.monotonic() + duration_s
-    frames = 0
-    while True:
-        for message in listener.errors():
-            _warn(message)
-        if deadline is not None and time.monotonic() >= deadline:
-            return
-        room = STREAM_BATCH_FRAMES if max_frames is None else min(STREAM_BATCH_FRAMES, max_frames - frames)
-        items = listener.queue.get_batch(0.1, room)
-        if not items:
-            continue
-        item = items[0]
-        if isinstance(item, EndEvent):
-            if once:
-                return
-            continue
-        if not isinstance(item, StreamFrame):
-            yield item
-            continue
-        yield items
-        frames += len(items)
-        if max_frames is not None and frames >= max_frames:
-            return
+    return listener_events(listener, once=once, max_frames=max_frames, deadline_s=deadline, on_error=_warn)
 
 
 def _open_listener(
@@ -2082,6 +2059,7 @@ def stream_command(
     """
     from rich.live import Live
 
+    from echoloc.realtime.session import LiveSession
     from echoloc.realtime.stream import warm_kernels
     from echoloc.realtime.transport import Recorder
 
@@ -2116,7 +2094,16 @@ def stream_command(
         listen_text, udp, geometry_path, queue_frames, block, idle_timeout_s, accept_session=make_chain
     )
     warm_kernels(estimator, workers)
-    session = _LiveStream(listener, make_chain, deadline_ms / 1e3, as_json, record_path)
+    printer = _StreamPrinter(as_json)
+    session = LiveSession(
+        listener,
+        make_chain,
+        deadline_ms / 1e3,
+        record_path,
+        on_result=printer.result,
+        on_message=printer.message,
+    )
+    printer.session = session
     interrupted = False
     try:
         if view:
@@ -2135,7 +2122,7 @@ def stream_command(
             if table
             else contextlib.nullcontext() as live,
         ):
-            session.live = live
+            printer.live = live
             try:
                 for item in _events(listener, once, max_frames, duration_s):
                     session.handle(item)
@@ -2151,152 +2138,35 @@ def stream_command(
         raise _no_session_error("", listener)
 
 
-_IDENTITY_POSE = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
-
-
-def _live_mapper(header: Recording, chain: Chain) -> Any:
-    """A floor plan at 2 cm around a sensor that does not move (live frames carry no pose)."""
-    from echoloc.maps.mapping import chain_accumulator, default_floor_plan
-
-    spec = default_floor_plan(header, _IDENTITY_POSE[None, :], 0.02, chain.speed_of_sound_m_s)
-    return chain_accumulator(chain, spec)
-
-
-class _LiveStream:
-    """What `echoloc stream` does with each session and frame off the listener's queue."""
+class _StreamPrinter:
+    """How `echoloc stream` shows a live session: JSON Lines, a live table on a terminal, or
+    a status line every STATUS_EVERY_S; its messages on stderr (or above the table)."""
 
     STATUS_EVERY_S = 10.0
 
-    def __init__(
-        self,
-        listener: Any,
-        make_chain: Callable[[Recording], Chain],
-        deadline_s: float,
-        as_json: bool,
-        record_path: Path | None,
-    ) -> None:
-        self.listener = listener
-        self.make_chain = make_chain
-        self.deadline_s = deadline_s
+    def __init__(self, as_json: bool) -> None:
         self.as_json = as_json
-        self.record_path = record_path
-        self.processor: Any = None
-        self.recorder: Any = None
-        self.header: Recording | None = None
-        self.view: Any = None
-        self.mapper: Any = None
-        self._last_map = 0.0
+        self.session: Any = None
         self.live: Any = None
-        self.record_error: BaseException | None = None
         self._last_status = time.monotonic()  # the first status line comes after STATUS_EVERY_S
         self._last_table = 0.0
 
-    def stats(self) -> Any:
-        """The stream's counters: the listener's and the processor's, over every session."""
-        return self.processor.stats(**self.listener.counters())
-
-    def handle(self, item: Any) -> None:
-        """A new session (a SessionEvent), or the frames that queued up (a list)."""
-        from echoloc.realtime.stream import StreamProcessor
-        from echoloc.realtime.transport import Recorder, SessionEvent
-
-        if isinstance(item, SessionEvent):
-            header = item.header
-            # Prepared by the listener as the session arrived (accept_session); --geometry's is not.
-            chain = item.prepared if isinstance(item.prepared, Chain) else self.make_chain(header)
-            if self.processor is None:
-                self.processor = StreamProcessor(chain, deadline_s=self.deadline_s)
-            else:
-                self.processor.start_session(chain)  # the counters go on across sessions
-            self.processor.warm_up()
-            if self.view is not None:
-                self.view.set_session(header)
-                self.mapper = _live_mapper(header, chain)
-            if self.recorder is not None and self.header is not None:
-                self._stop_recording("the sender started a different session")
-            if self.record_path is not None and self.recorder is None and self.header is None:
-                self.recorder = Recorder(self.record_path, header)
-            self.header = header
-            self._say(
-                f"session: {header.n_receivers} receivers, {len(header.transmitters_m)} transmitter(s), "
-                f"{header.n_samples} samples at {header.sample_rate_hz:g} Hz, "
-                f"c = {chain.speed_of_sound_m_s:.2f} m/s"
-            )
-            return
-        if self.recorder is not None:  # recorded first: a frame the chain refuses is kept too
-            for frame in item:
-                self.recorder.add(frame)
-        for frame, result in zip(item, self.processor.process_batch(item), strict=True):
-            self._show(frame, result)
-
-    def _show(self, item: Any, result: Any) -> None:
-        """Print and show one processed frame."""
+    def result(self, frame: Any, result: Any) -> None:
         if self.as_json:
             click.echo(json_line(objects_record(result.objects)))
-        now = item.arrival_s
-        # The live map takes only the frames the view shows (at most 20 a second): it
-        # costs about twice the chain per frame, and the view must never slow the chain.
-        if self.view is not None and self.view.publish(result, item.samples, self.stats()):
-            self._map(result, now)
+        now = frame.arrival_s
         if self.live is not None:
             if now - self._last_table > 0.2:
                 self._last_table = now
-                self.live.update(_stream_table(result.objects, self.stats()))
+                self.live.update(_stream_table(result.objects, self.session.stats()))
         elif now - self._last_status > self.STATUS_EVERY_S:
             self._last_status = now
-            self._say(self.stats().summary())
+            self.message(self.session.stats().summary())
 
-    def _map(self, result: Any, now: float) -> None:
-        """Add a shown frame to the live floor plan (x-z); publish it twice a second."""
-        from echoloc.maps.map_export import floor_plan_cells, floor_plan_pose
-
-        if self.mapper is None:
-            return
-        self.mapper.add_frame(
-            result.echoes, _IDENTITY_POSE, transmitter=result.transmitter, objects=result.objects
-        )
-        if now - self._last_map >= 0.5:
-            self._last_map = now
-            grid = self.mapper.grid()
-            origin, orientation = floor_plan_pose(grid.spec)
-            self.view.publish_map(floor_plan_cells(grid), grid.spec.cell_m, origin, orientation)
-
-    def _say(self, text: str) -> None:
+    def message(self, text: str) -> None:
         (self.live.console if self.live is not None else stderr).print(
             f"echoloc: stream: {text}", markup=False, highlight=False
         )
-
-    def _stop_recording(self, why: str) -> None:
-        try:
-            self.recorder.close()
-        except BaseException as error:
-            self.record_error = error
-        self._say(f"recording stopped ({why}): {self.recorder.frames} frames in {self.record_path}")
-        self.recorder = None
-
-    def close(self, interrupted: bool) -> None:
-        if self.view is not None:
-            self.view.close()
-        if self.recorder is not None:
-            try:
-                self.recorder.close()
-            except BaseException as error:
-                self.record_error = error
-        if self.processor is None:
-            counters = self.listener.counters()
-            none = "no session accepted" if self.listener.sessions_refused else "no session arrived"
-            line = ", ".join(f"{k} {v}" for k, v in counters.items()) + f"; {none}"
-        else:
-            # The listener has stopped: what it received and the queue did not drop is either
-            # processed or was left (queued, or in a batch an interrupt cut short).
-            stats = self.stats()
-            line = replace(stats, unprocessed=stats.received - stats.processed - stats.dropped).summary()
-        self._say(line + (" (interrupted)" if interrupted else ""))
-        if self.recorder is not None and self.record_error is None:
-            self._say(
-                f"recorded {self.recorder.frames} frames to {self.record_path} "
-                f"({self.recorder.dropped} not recorded: the recorder fell behind)"
-            )
 
 
 def _stream_table(objects: FrameObjects, stats: Any) -> Table:

@@ -336,10 +336,14 @@ def _fisher(columns: list[NDArray[np.generic]], noise_sigma: float) -> NDArray[n
 
 
 def _bound(fisher: NDArray[np.float64], parameters: tuple[str, ...]) -> TofBound:
-    covariance = np.linalg.inv(fisher)
+    singular = EchoLocError("the Fisher matrix is singular: the delay is not identifiable from this pulse")
+    try:
+        covariance = np.linalg.inv(fisher)
+    except np.linalg.LinAlgError:  # exactly singular: numpy 1.x raises where 2.x may not
+        raise singular from None
     variance = float(covariance[0, 0])
     if not variance > 0:
-        raise EchoLocError("the Fisher matrix is singular: the delay is not identifiable from this pulse")
+        raise singular
     return TofBound(std_s=math.sqrt(variance), fisher=fisher, parameters=parameters)
 
 

@@ -11,6 +11,7 @@ from .protocol import (
     encode_frame,
     encode_session,
 )
+from .session import LiveSession, listener_events
 from .stream import (
     FrameQueue,
     LatencyHistogram,
@@ -29,6 +30,7 @@ __all__ = [
     "FrameQueue",
     "LatencyHistogram",
     "Listener",
+    "LiveSession",
     "LiveView",
     "ProtocolError",
     "Recorder",
@@ -44,6 +46,7 @@ __all__ = [
     "encode_end",
     "encode_frame",
     "encode_session",
+    "listener_events",
     "parse_endpoint",
     "send_recording",
     "stream_recording",

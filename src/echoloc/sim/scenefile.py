@@ -14,12 +14,17 @@ out.h5`` simulates the CH101-like head.
 from __future__ import annotations
 
 import math
-import tomllib
+import sys
 from collections.abc import Mapping
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 from typing import Any
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # Python 3.10: the same parser, as the tomli backport
+    import tomli as tomllib
 
 import numpy as np
 from numpy.typing import NDArray
