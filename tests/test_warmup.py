@@ -13,7 +13,7 @@ from click.testing import CliRunner
 from rich.console import Console
 
 from echoloc import warmup
-from echoloc.cli import commands
+from echoloc.cli import app, commands
 from echoloc.io.recording import write_recording
 from echoloc.sim.scene import default_scene
 from echoloc.sim.simulation import simulate
@@ -52,7 +52,7 @@ def test_a_cold_first_run_says_so_on_a_terminal_only(
     path = tmp_path / "rec.h5"
     write_recording(simulate(default_scene(), 1), path)
     text = io.StringIO()
-    monkeypatch.setattr(commands, "stderr", Console(file=text, force_terminal=terminal, width=400))
+    monkeypatch.setattr(app, "stderr", Console(file=text, force_terminal=terminal, width=400))
     monkeypatch.setattr(warmup, "kernels_cold", lambda: True)
     result = CliRunner().invoke(commands.cli, ["echoes", str(path)])
     assert result.exit_code == 0, result.output

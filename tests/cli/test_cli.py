@@ -30,6 +30,7 @@ import h5py
 import numpy as np
 import pytest
 
+from echoloc.cli import app, processing
 from echoloc.cli import commands as cli
 from echoloc.io.recording import Recording, read_recording, write_recording
 from echoloc.sim.scene import default_scene
@@ -198,7 +199,7 @@ def in_tmp(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
 @pytest.fixture
 def wide_stdout(monkeypatch: pytest.MonkeyPatch) -> None:
     """Room for the tables whatever COLUMNS the test run inherited."""
-    monkeypatch.setattr(cli.stdout, "width", 200)
+    monkeypatch.setattr(app.stdout, "width", 200)
 
 
 # ----------------------------------------------------------------------------- demo
@@ -859,13 +860,13 @@ def test_a_numpy_warning_names_the_input_it_came_from(
 ) -> None:
     """numpy's floating-point warnings know no file ("invalid value encountered in cast",
     seen by the fuzz campaign): the line names the command's input."""
-    checked = cli.check_locatable
+    checked = processing.check_locatable
 
     def check_with_a_cast(chain: Any) -> None:
         np.array([np.nan]).astype(np.int64)  # numpy warns: invalid value encountered in cast
         checked(chain)
 
-    monkeypatch.setattr(cli, "check_locatable", check_with_a_cast)
+    monkeypatch.setattr(processing, "check_locatable", check_with_a_cast)
     with warnings.catch_warnings():
         warnings.simplefilter("default")
         result = run(capsys, "locate", good_h5, "--json")
@@ -1204,7 +1205,7 @@ def test_an_interrupt_a_finaliser_swallowed_is_raised_again(sigint: str) -> None
     import signal
     import time
 
-    from echoloc.cli.commands import _interrupt_cleanly
+    from echoloc.cli.app import _interrupt_cleanly
 
     class InterruptedFinaliser:
         def __del__(self) -> None:
@@ -1251,7 +1252,7 @@ def test_a_signal_the_parent_ignores_stays_ignored() -> None:
     handler takes SIGTERM and leaves that SIGINT alone, and restores both after."""
     import signal
 
-    from echoloc.cli.commands import _interrupt_cleanly
+    from echoloc.cli.app import _interrupt_cleanly
 
     before = signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:

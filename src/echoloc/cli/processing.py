@@ -1,0 +1,492 @@
+"""`echoloc echoes`, `locate`, `image`, `export`, `map`, `evaluate` and `calibrate`: recordings
+through the chain."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import click
+import numpy as np
+from rich.table import Table
+
+from echoloc.cli.app import (
+    Processing,
+    _check_writable,
+    _finite,
+    _json_safe,
+    _located,
+    _processing_options,
+    _progress,
+    _warn,
+    cli,
+    stdout,
+)
+from echoloc.cli.basics import _mm
+from echoloc.errors import EchoLocError
+from echoloc.io.output import echoes_record, json_line, objects_record
+from echoloc.localise.calibrate import fit_calibration, write_calibration
+from echoloc.localise.evaluation import Evaluation, evaluate
+from echoloc.localise.locate import FrameObjects
+from echoloc.pipeline import (
+    check_locatable,
+    frame_echoes,
+    learn_chain_echo_shape,
+    run,
+)
+from echoloc.tof.echoes import FrameEchoes, frame_time_s
+
+# --- echoes, locate, evaluate ------------------------------------------------------
+
+
+@cli.command()
+@_processing_options(locating=False)
+@click.option("--json", "as_json", is_flag=True, help="JSON Lines per docs/FORMATS.md instead of a table.")
+def echoes(processing: Processing, as_json: bool) -> None:
+    """Times of flight of the echoes in every frame of RECORDING, per receiver."""
+    recording, chain, frames = processing.open()
+    if as_json:
+        for index in frames:
+            click.echo(json_line(echoes_record(frame_echoes(chain, index))))
+        return
+    table = Table(
+        title=f"Echoes in {processing.recording_path} ({processing.estimator_name(recording)}, "
+        f"c = {chain.speed_of_sound_m_s:.2f} m/s)"
+    )
+    for column in ("frame", "receiver", "tof µs", "path m", "amplitude", "SNR dB"):
+        table.add_column(column, justify="right")
+    for index in frames:
+        _echo_rows(table, frame_echoes(chain, index))
+    stdout.print(table)
+
+
+def _echo_rows(table: Table, result: FrameEchoes) -> None:
+    for receiver, channel in enumerate(result.channels):
+        if len(channel.tof_s) == 0:
+            table.add_row(str(result.frame), str(receiver), "-", "-", "-", "-")
+        for tof, amplitude, snr in zip(channel.tof_s, channel.amplitude, channel.snr_db, strict=True):
+            table.add_row(
+                str(result.frame),
+                str(receiver),
+                f"{tof * 1e6:.3f}",
+                f"{tof * result.speed_of_sound_m_s:.5f}",
+                f"{amplitude:.4g}",
+                f"{snr:.1f}",
+            )
+
+
+@cli.command()
+@_processing_options(locating=True)
+@click.option("--json", "as_json", is_flag=True, help="JSON Lines per docs/FORMATS.md instead of a table.")
+def locate(processing: Processing, as_json: bool) -> None:
+    """3-D positions of the reflectors in every frame of RECORDING."""
+    recording, chain, frames = processing.open()
+    check_locatable(chain)
+    if as_json:
+        for objects in _located(processing, recording, chain, frames):
+            click.echo(json_line(objects_record(objects)))
+        return
+    table = Table(title=f"Objects in {processing.recording_path} ({processing.estimator_name(recording)})")
+    for column in ("frame", "x mm", "y mm", "z mm", "±σ x, y, z mm", "range mm", "rx", "score"):
+        table.add_column(column, justify="right")
+    for objects in _located(processing, recording, chain, frames):
+        _object_rows(table, objects)
+    stdout.print(table)
+
+
+def _object_rows(table: Table, result: FrameObjects) -> None:
+    if not result.objects:
+        table.add_row(str(result.frame), "-", "-", "-", "-", "-", "-", "-")
+    for obj in result.objects:
+        x, y, z = obj.position_m * 1e3
+        table.add_row(
+            str(result.frame),
+            f"{x:.1f}",
+            f"{y:.1f}",
+            f"{z:.1f}",
+            _mm(obj.std_m, digits=2),
+            f"{np.linalg.norm(obj.position_m) * 1e3:.1f}",
+            str(len(set(obj.receivers))),
+            f"{obj.score:.2f}",
+        )
+
+
+@cli.command(name="image")
+@_processing_options(locating=True)
+@click.option("--frame", "frame_index", type=int, default=0, show_default=True, help="Frame to image.")
+@click.option("--voxel-m", type=float, default=0.005, show_default=True, help="Voxel edge of the grid, m.")
+@click.option("-o", "--output", "output_path", required=True, type=click.Path(path_type=Path), help="PNG.")
+def image_command(processing: Processing, frame_index: int, voxel_m: float, output_path: Path) -> None:
+    """Back-project one frame of RECORDING onto the cubic metre in front and save the image.
+
+    Maximum-intensity projections and slices through the brightest voxel, with the
+    objects back-projection locates (crosses) and the recording's truth (circles).
+    """
+    from echoloc.localise.backprojection import (
+        backproject_frame,
+        default_grid,
+        frame_image,
+        prepare_backprojection,
+    )
+    from echoloc.plots.imaging import save_image_png
+
+    _finite("--voxel-m", voxel_m, positive=True)
+    if not 0.001 <= voxel_m <= 0.1:
+        raise EchoLocError(f"--voxel-m must be between 0.001 and 0.1 m, got {voxel_m:g}")
+    if output_path.suffix.lower() != ".png":
+        raise EchoLocError(f"{output_path}: the image is written as PNG (.png)")
+    recording, chain, _ = processing.open()
+    if not 0 <= frame_index < recording.n_frames:
+        raise EchoLocError(f"--frame {frame_index} is outside the recording's {recording.n_frames} frames")
+    if recording.transmitters_m.shape[1] != 3:
+        raise EchoLocError(f"{processing.recording_path}: images are drawn for 3-D recordings")
+    bp = prepare_backprojection(
+        recording,
+        default_grid(voxel_m),
+        speed_of_sound_m_s=chain.speed_of_sound_m_s,
+        conditioning=chain.conditioning,
+    )
+    objects = backproject_frame(bp, frame_index)
+    truth = None
+    if recording.truth_positions_m is not None:
+        rows = recording.truth_positions_m[frame_index]
+        truth = rows[np.all(np.isfinite(rows), axis=1)]
+    located = np.array([o.position_m for o in objects.objects]).reshape(-1, 3)
+    written = save_image_png(
+        frame_image(bp, frame_index),
+        output_path,
+        objects_m=located,
+        truth_m=truth,
+        title=f"{processing.recording_path.name}, frame {frame_index}: {len(located)} objects",
+    )
+    stdout.print(f"{len(located)} objects in frame {frame_index}; image written to {written}")
+
+
+@cli.command(name="export")
+@_processing_options(locating=True)
+@click.option(
+    "-o",
+    "--output",
+    "output_path",
+    required=True,
+    type=click.Path(path_type=Path),
+    help="OUT.mcap (ROS 2 Jazzy PointCloud2 + Range per receiver) or OUT.ply (points).",
+)
+@click.option("--start-time-s", type=float, default=0.0, show_default=True, help="ROS time of frame 0, s.")
+@click.option("--ascii", "ascii_ply", is_flag=True, help="PLY as text instead of binary.")
+@click.option("--per-frame", is_flag=True, help="PLY: one file per frame (OUT_000000.ply, ...).")
+def export_command(
+    processing: Processing, output_path: Path, start_time_s: float, ascii_ply: bool, per_frame: bool
+) -> None:
+    """Locate every frame of RECORDING and write the objects for robots: MCAP or PLY.
+
+    MCAP: sensor_msgs/msg/PointCloud2 on /echoloc/objects (x, y, z, intensity, the
+    covariance's diagonal) and sensor_msgs/msg/Range on /echoloc/range/rx{N}, in the
+    frame echoloc_sensor_optical_frame (REP 103), with /tf_static for the receivers.
+    """
+    from echoloc.io.export import write_mcap, write_ply
+
+    suffix = output_path.suffix.lower()
+    if suffix not in (".mcap", ".ply"):
+        raise EchoLocError(f"{output_path}: choose the format by extension, .mcap or .ply")
+    given = click.get_current_context().get_parameter_source
+    if suffix == ".mcap":
+        _finite("--start-time-s", start_time_s, minimum=0.0, maximum=2**31 - 1)  # ROS time: int32 seconds
+        if ply_only := [name for name, on in (("--ascii", ascii_ply), ("--per-frame", per_frame)) if on]:
+            verb = "is" if len(ply_only) == 1 else "are"
+            _warn(f"{' and '.join(ply_only)} {verb} for PLY; MCAP is binary, one file: ignored")
+    elif given("start_time_s") is not click.core.ParameterSource.DEFAULT:
+        _warn("--start-time-s sets MCAP's ROS times; PLY has no time stamps: ignored")
+    recording, chain, frames = processing.open()
+    check_locatable(chain)
+    results = []
+    with _progress(len(frames), "locating", True) as advance:
+        for objects in _located(processing, recording, chain, frames):
+            results.append(objects)
+            advance(1)
+    if suffix == ".mcap":
+        count = write_mcap(output_path, recording, results, start_time_s=start_time_s)
+        stdout.print(f"wrote {count} messages ({len(results)} frames) to {output_path}")
+    else:
+        written = write_ply(output_path, results, binary=not ascii_ply, per_frame=per_frame)
+        points = sum(len(r.objects) for r in results)
+        where = written[0] if len(written) == 1 else f"{len(written)} files like {written[0]}"
+        stdout.print(f"wrote {points} points ({len(results)} frames) to {where}")
+
+
+_MAP_FORMATS = (".png", ".npz", ".ply", ".bt", ".ot", ".mcap")
+
+
+_MAX_SAMPLE_RATE_HZ = 100e6
+"""The highest sample rate `waveform` takes: 100 MHz, far above any ultrasonic ADC's, where a
+millisecond's pulse is already 100 000 samples (at 1 THz it would be 10^9)."""
+
+
+def _extent_option(text: str | None, dims: int) -> list[tuple[float, float]] | None:
+    """``--extent-m``: "x0,x1,z0,z1" for a floor plan, "x0,x1,y0,y1,z0,z1" in 3-D."""
+    if text is None:
+        return None
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise EchoLocError(
+            f"--extent-m: expected {2 * dims} numbers separated by commas, got {text!r}"
+        ) from None
+    if len(values) != 2 * dims or not all(math.isfinite(v) for v in values):
+        raise EchoLocError(f"--extent-m: expected {2 * dims} finite numbers, got {text!r}")
+    pairs = [(values[2 * i], values[2 * i + 1]) for i in range(dims)]
+    if any(high <= low for low, high in pairs):
+        raise EchoLocError(f"--extent-m: every range must go from low to high, got {text!r}")
+    return pairs
+
+
+@cli.command(name="map")
+@_processing_options(locating=True)
+@click.option(
+    "-o",
+    "--output",
+    "output_path",
+    required=True,
+    type=click.Path(path_type=Path),
+    help="OUT.png (picture), .npz (arrays), .ply (occupied cells), .bt/.ot (OctoMap) "
+    "or .mcap (ROS 2: nav_msgs/OccupancyGrid or a cloud, /tf, objects).",
+)
+@click.option("--cell-m", type=float, default=0.02, show_default=True, help="Cell edge, m.")
+@click.option(
+    "--3d", "three_d", is_flag=True, help="A 3-D grid instead of the floor plan (x-z at one height)."
+)
+@click.option(
+    "--height-m",
+    type=float,
+    default=None,
+    help="Height (y) of the floor plan, m [default: the sensor's mean].",
+)
+@click.option(
+    "--extent-m",
+    "extent_text",
+    default=None,
+    help="Grid extent: x0,x1,z0,z1 (floor plan) or x0,x1,y0,y1,z0,z1 (3-D), m "
+    "[default: everywhere the sensor could hear].",
+)
+@click.option(
+    "--trajectory",
+    "trajectory_path",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="Sensor poses, TUM format (time x y z qx qy qz qw per line) "
+    "[default: the recording's sensor_poses].",
+)
+@click.option(
+    "--objects/--no-objects",
+    "with_objects",
+    default=True,
+    show_default=True,
+    help="Also add the located objects with their covariance.",
+)
+def map_command(
+    processing: Processing,
+    output_path: Path,
+    cell_m: float,
+    three_d: bool,
+    height_m: float | None,
+    extent_text: str | None,
+    trajectory_path: Path | None,
+    with_objects: bool,
+) -> None:
+    """Build an occupancy grid from every frame of RECORDING and write it; the format by extension.
+
+    Each receiver's echoes clear the beam before the first echo and mark the echo's
+    arc (ellipse with the transmitter and receiver as foci) occupied; located objects
+    add their covariance. The map frame is the frame of the sensor poses (the
+    recording's sensor_poses or --trajectory); without poses, the sensor frame.
+    """
+    from echoloc.maps.map_export import write_grid_npz, write_grid_ply, write_map_mcap, write_octomap
+    from echoloc.maps.mapping import chain_accumulator, choose_grid, frame_poses, integrate, read_trajectory
+    from echoloc.plots.maps import plot_grid
+
+    suffix = output_path.suffix.lower()
+    if suffix not in _MAP_FORMATS:
+        raise EchoLocError(f"{output_path}: choose the format by extension: {', '.join(_MAP_FORMATS)}")
+    _finite("--cell-m", cell_m, positive=True)
+    if not 0.001 <= cell_m <= 1.0:
+        raise EchoLocError(f"--cell-m must be between 0.001 and 1 m, got {cell_m:g}")
+    if height_m is not None:
+        _finite("--height-m", height_m)
+        if three_d:
+            raise EchoLocError(
+                "--height-m sets the floor plan's height; a --3d grid takes --extent-m instead"
+            )
+    _check_writable(output_path)
+    if processing.method != "association":
+        raise EchoLocError(
+            "map reads every receiver's echoes and the association's objects; "
+            "--method backprojection is for locate, evaluate, export and image"
+        )
+    extent = _extent_option(extent_text, 3 if three_d else 2)
+    trajectory = read_trajectory(trajectory_path) if trajectory_path is not None else None
+    recording, chain, frames = processing.open()
+    poses = frame_poses(recording, trajectory)
+    spec = choose_grid(
+        recording,
+        poses[list(frames)],
+        cell_m,
+        chain.speed_of_sound_m_s,
+        three_d=three_d,
+        extent_m=extent,
+        height_m=height_m,
+    )
+    accumulator = chain_accumulator(chain, spec, path_sigma_m=processing.path_sigma_m)
+    located: list[FrameObjects] = []
+
+    def results() -> Iterator[tuple[FrameEchoes, FrameObjects | None]]:
+        for echoes, objects in run(chain, frames):
+            located.append(objects)
+            yield echoes, objects if with_objects else None
+
+    started = time.perf_counter()
+    with _progress(len(frames), "mapping", True) as advance:
+        grid = integrate(accumulator, results(), poses, progress=advance)
+    elapsed = time.perf_counter() - started
+    if suffix == ".png":
+        written = plot_grid(grid, output_path, sensor_path_m=poses[list(frames), :3])
+    elif suffix == ".npz":
+        written = write_grid_npz(grid, output_path)
+    elif suffix == ".ply":
+        written = write_grid_ply(grid, output_path)
+    elif suffix in (".bt", ".ot"):
+        written = write_octomap(grid, output_path)
+    else:
+        times = np.array([frame_time_s(recording, i) for i in range(recording.n_frames)])
+        write_map_mcap(
+            output_path,
+            grid,
+            poses=poses,
+            frame_times_s=times,
+            frames=list(frames),
+            objects_per_frame=located,
+        )
+        written = output_path
+    n_cells = spec.n_cells
+    occupied = int(grid.occupied().sum())
+    free = int(grid.free().sum())
+    known = int(grid.known().sum())
+    shape = " x ".join(str(n) for n in spec.shape)
+    stdout.print(
+        f"{len(frames)} frames mapped in {elapsed:.1f} s "
+        f"({len(frames) / max(elapsed, 1e-9):.0f} frames/s, echoes and objects included) onto "
+        f"{shape} cells of {cell_m * 100:g} cm: {occupied} occupied, {free} free, "
+        f"{n_cells - known} unknown; written to {written}"
+    )
+
+
+@cli.command(name="evaluate")
+@_processing_options(locating=True)
+@click.option(
+    "--match-radius-m",
+    type=float,
+    default=0.02,
+    show_default=True,
+    help="Largest distance of a located object from its true reflector, m.",
+)
+@click.option("--json", "as_json", is_flag=True, help="One JSON object with the figures.")
+def evaluate_command(processing: Processing, match_radius_m: float, as_json: bool) -> None:
+    """Compare located objects with the recording's truth_positions: recall, false objects, RMSE."""
+    _finite("--match-radius-m", match_radius_m, positive=True)
+    recording, chain, frames = processing.open()
+    if recording.truth_positions_m is None:
+        raise EchoLocError(f"{processing.recording_path}: has no truth_positions to evaluate against")
+    check_locatable(chain)
+    results = []
+    with _progress(len(frames), "locating", not as_json) as advance:
+        for objects in _located(processing, recording, chain, frames):
+            results.append(objects)
+            advance(1)
+    report = evaluate(results, recording.truth_positions_m, match_radius_m)
+    if as_json:
+        click.echo(
+            json.dumps(
+                _json_safe(_evaluation_record(report, processing.estimator_name(recording))),
+                allow_nan=False,
+            )
+        )
+        return
+    _print_evaluation(report, processing.recording_path, processing.estimator_name(recording))
+
+
+def _evaluation_record(report: Evaluation, estimator: str) -> dict[str, Any]:
+    return {
+        "estimator": estimator,
+        "frames": report.n_frames,
+        "truth_objects": report.n_truth,
+        "located_objects": report.n_located,
+        "matched": report.n_matched,
+        "recall": report.recall,
+        "false_objects": report.n_false,
+        "false_rate": report.false_rate,
+        "rmse_m": [float(v) for v in report.rmse_m],
+        "bias_m": [float(v) for v in report.bias_m],
+        "mean_reported_std_m": [float(v) for v in report.mean_std_m],
+        "match_radius_m": report.match_radius_m,
+    }
+
+
+def _print_evaluation(report: Evaluation, path: Path, estimator: str) -> None:
+    table = Table(title=f"{path}: {report.n_frames} frames, {report.n_truth} true reflectors ({estimator})")
+    table.add_column("figure")
+    table.add_column("value", justify="right")
+    table.add_row("recall", f"{report.recall:.4f} ({report.n_matched}/{report.n_truth})")
+    table.add_row("false objects", f"{report.false_rate:.4f} ({report.n_false}/{report.n_located})")
+    for axis, rmse, bias, std in zip("xyz", report.rmse_m, report.bias_m, report.mean_std_m, strict=True):
+        table.add_row(
+            f"{axis}: RMSE / bias / reported σ (mm)",
+            f"{rmse * 1e3:.3f} / {bias * 1e3:+.3f} / {std * 1e3:.3f}",
+        )
+    table.add_row("match radius", f"{report.match_radius_m * 1e3:g} mm")
+    stdout.print(table)
+
+
+@cli.command(name="calibrate")
+@_processing_options(locating=False, calibrated=False)
+@click.option(
+    "-o", "--output", type=click.Path(path_type=Path), required=True, help="Calibration JSON to write."
+)
+def calibrate_command(processing: Processing, output: Path) -> None:
+    """Fit the speed of sound and a delay per receiver from frames with known targets (truth_positions).
+
+    The file also holds the path error measured from the fit's residuals, which `locate
+    --calibration` assumes, and, for envelope-peak (envelope or iq data without a
+    waveform), the echo shape learnt from these targets.
+    """
+    recording, chain, frames = processing.open()
+    if recording.truth_positions_m is None:
+        raise EchoLocError(f"{processing.recording_path}: has no truth_positions to calibrate against")
+    shape = None
+    if processing.estimator_name(recording) == "envelope-peak" and processing.template_path is None:
+        # No pulse is known: learn the echo's shape from these frames' known targets (the
+        # report's BALL template), then time the echoes with it.
+        shape = learn_chain_echo_shape(chain, frames, "truth", "learnt")
+        chain = processing.chain(recording, shape)
+    echoes = []
+    with _progress(len(frames), "finding echoes", True) as advance:
+        for index in frames:
+            echoes.append(frame_echoes(chain, index))
+            advance(1)
+    calibration = fit_calibration(
+        recording, echoes, speed_of_sound_m_s=chain.speed_of_sound_m_s, echo_shape=shape
+    )
+    written = write_calibration(calibration, output)
+    delays = ", ".join(f"{d * 1e6:+.3f}" for d in calibration.receiver_delays_s)
+    sigma = calibration.path_sigma_m or 0.0
+    learnt = "" if shape is None else "; the echo shape learnt from them"
+    how = "fitted; assumed" if calibration.speed_fitted else "kept: the targets do not determine it; assumed"
+    stdout.print(
+        f"speed of sound {calibration.speed_of_sound_m_s:.3f} m/s ({how} "
+        f"{chain.speed_of_sound_m_s:.3f}); "
+        f"receiver delays {delays} µs; {calibration.echoes_used} echoes from {len(frames)} frames, "
+        f"residual {calibration.residual_rms_s * 1e9:.1f} ns rms, path σ {sigma * 1e3:.2f} mm{learnt}. "
+        f"Written to {written}."
+    )

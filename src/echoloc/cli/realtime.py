@@ -1,0 +1,566 @@
+"""`echoloc send`, `stream`, `record` and `bench`: live frames."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import click
+import numpy as np
+from rich.table import Table
+
+from echoloc.cli.app import _WORKERS_OPTION, _finite, _interrupt_cleanly, _threshold_db, _warn, cli, stderr
+from echoloc.cli.basics import _mm
+from echoloc.errors import EchoLocError
+from echoloc.io.output import json_line, objects_record
+from echoloc.io.recording import Recording, read_recording
+from echoloc.localise.calibrate import read_calibration
+from echoloc.localise.locate import FrameObjects
+from echoloc.pipeline import (
+    Chain,
+    check_locatable,
+    prepare,
+)
+from echoloc.sim.simulation import simulate
+from echoloc.tof.echoes import EchoOptions
+from echoloc.tof.estimators import (
+    ESTIMATORS,
+)
+
+# --- real time: send, stream, record, bench ----------------------------------------
+
+
+def _listen_options(func: Callable[..., None]) -> Callable[..., None]:
+    """--listen, --udp, --geometry, --queue and the rest, shared by stream and record."""
+    from echoloc.realtime.transport import DEFAULT_HOST, DEFAULT_IDLE_TIMEOUT_S, DEFAULT_PORT
+
+    decorators = [
+        click.option(
+            "--listen",
+            "listen_text",
+            metavar="[HOST:]PORT",
+            default=f"{DEFAULT_HOST}:{DEFAULT_PORT}",
+            show_default=True,
+            help="Where to listen (127.0.0.1: this machine only; 0.0.0.0 for every interface).",
+        ),
+        click.option("--udp", is_flag=True, help="UDP (one datagram a frame) instead of TCP."),
+        click.option(
+            "--geometry",
+            "geometry_path",
+            type=click.Path(path_type=Path),
+            default=None,
+            help="Take the session (geometry, waveform, air) from this recording instead of the "
+            "sender's session message.",
+        ),
+        click.option(
+            "--queue",
+            "queue_frames",
+            type=click.IntRange(1, 1_000_000),
+            default=64,
+            show_default=True,
+            help="Frames held between the socket and the processor; when full the oldest is dropped.",
+        ),
+        click.option(
+            "--block",
+            is_flag=True,
+            help="Never drop a frame that arrived: make a TCP sender wait instead (replaying files).",
+        ),
+        click.option(
+            "--once", is_flag=True, help="Stop when the sender says it is done or (TCP) disconnects."
+        ),
+        click.option(
+            "--max-frames",
+            type=click.IntRange(1, None),
+            default=None,
+            help="Stop after this many frames.",
+        ),
+        click.option(
+            "--duration", "duration_s", type=float, default=None, help="Stop after this many seconds."
+        ),
+        click.option(
+            "--idle-timeout",
+            "idle_timeout_s",
+            type=float,
+            default=DEFAULT_IDLE_TIMEOUT_S,
+            show_default=True,
+            help="Close a TCP connection that sends nothing for this many seconds.",
+        ),
+    ]
+    for decorator in reversed(decorators):
+        func = decorator(func)
+    return func
+
+
+def _events(listener: Any, once: bool, max_frames: int | None, duration_s: float | None) -> Iterator[Any]:
+    """What the listener queued, until a stop condition (:func:`listener_events`); its errors
+    to stderr as warnings."""
+    from echoloc.realtime.session import listener_events
+
+    _finite("--duration", duration_s, positive=True)
+    deadline = None if duration_s is None else time.monotonic() + duration_s
+    return listener_events(listener, once=once, max_frames=max_frames, deadline_s=deadline, on_error=_warn)
+
+
+def _open_listener(
+    listen_text: str,
+    udp: bool,
+    geometry_path: Path | None,
+    queue_frames: int,
+    block: bool,
+    idle_timeout_s: float,
+    accept_session: Callable[[Recording], object] | None = None,
+) -> Any:
+    """The listener of `stream` and `record`; ``accept_session`` refuses (by raising) a session
+    they cannot use, before it reaches them (the sender is told, the stream goes on)."""
+    from echoloc.realtime.stream import FrameQueue
+    from echoloc.realtime.transport import Listener, parse_endpoint
+
+    endpoint = parse_endpoint(listen_text, "udp" if udp else "tcp")
+    _finite("--idle-timeout", idle_timeout_s, positive=True)
+    geometry = None if geometry_path is None else read_recording(geometry_path)
+    return Listener(
+        endpoint,
+        FrameQueue(queue_frames, block=block),
+        geometry=geometry,
+        idle_timeout_s=idle_timeout_s,
+        accept_session=accept_session,
+    )
+
+
+def _flush_listener_errors(listener: Any) -> None:
+    """The warnings a stopped listener still holds (counts of those rate-limited), to stderr."""
+    for message in listener.errors():
+        _warn(message)
+
+
+def _no_session_error(output: str, listener: Any) -> EchoLocError:
+    """Why nothing was streamed or recorded: no session arrived, or every one was refused (only
+    sessions count: a connection closed idle or refused as one too many is not a session)."""
+    refused = listener.sessions_refused
+    if refused:
+        return EchoLocError(
+            f"{output}no session accepted on {listener.address}: {refused} "
+            f"session{'' if refused == 1 else 's'} refused, the last: {listener.last_session_refusal}"
+        )
+    return EchoLocError(f"{output}no session arrived on {listener.address}")
+
+
+@cli.command(name="send")
+@click.argument("recording_path", metavar="RECORDING", type=click.Path(path_type=Path))
+@click.option(
+    "--to", "to_text", metavar="[HOST:]PORT", default="127.0.0.1:7447", show_default=True, help="Receiver."
+)
+@click.option("--udp", is_flag=True, help="UDP (one datagram a frame) instead of TCP.")
+@click.option(
+    "--speed",
+    type=float,
+    default=1.0,
+    show_default=True,
+    help="1: the recording's own pace; N: N times faster; 0: as fast as the receiver takes it.",
+)
+@click.option("--rate", "rate_hz", type=float, default=None, help="Frames per second instead of --speed.")
+@click.option(
+    "--loop", "loops", type=click.IntRange(0, None), default=1, show_default=True, help="Passes; 0: forever."
+)
+@click.option(
+    "--sample-format",
+    type=click.Choice(["auto", "float32", "float64", "int16"]),
+    default="auto",
+    show_default=True,
+    help="Samples on the wire. auto: float32 if that is exact, else float64 (float32 on UDP); "
+    "int16: rounded, as ADC counts; iq recordings are sent complex64.",
+)
+@click.option(
+    "--connect-timeout", "connect_timeout_s", type=float, default=5.0, show_default=True, help="TCP, s."
+)
+def send_command(
+    recording_path: Path,
+    to_text: str,
+    udp: bool,
+    speed: float,
+    rate_hz: float | None,
+    loops: int,
+    sample_format: str,
+    connect_timeout_s: float,
+) -> None:
+    """Replay RECORDING to a receiver in the stream protocol (docs/STREAM_PROTOCOL.md)."""
+    from echoloc.realtime.transport import parse_endpoint, send_recording
+
+    endpoint = parse_endpoint(to_text, "udp" if udp else "tcp")
+    recording = read_recording(recording_path)
+    try:
+        with _interrupt_cleanly():
+            report = send_recording(
+                recording,
+                endpoint,
+                speed=speed,
+                rate_hz=rate_hz,
+                loops=loops,
+                sample_format=sample_format,
+                connect_timeout_s=connect_timeout_s,
+            )
+    except KeyboardInterrupt:
+        stderr.print("echoloc: send: interrupted", markup=False)
+        return
+    stderr.print(f"echoloc: send: {report.summary(endpoint)}", markup=False, highlight=False)
+
+
+@cli.command(name="stream")
+@_listen_options
+@click.option("--json", "as_json", is_flag=True, help="JSON Lines of `echoloc locate --json`, one a frame.")
+@click.option(
+    "--record", "record_path", type=click.Path(path_type=Path), default=None, help="Also record to HDF5."
+)
+@click.option("--force", is_flag=True, help="Let --record replace an existing file.")
+@click.option("--view", is_flag=True, help="Serve the live view (Foxglove WebSocket) on 127.0.0.1.")
+@click.option(
+    "--view-port", type=click.IntRange(0, 65535), default=8765, show_default=True, help="Live view's port."
+)
+@click.option(
+    "--deadline-ms",
+    type=float,
+    default=100.0,
+    show_default=True,
+    help="Frames waiting longer than this before processing are counted as late.",
+)
+@click.option(
+    "--estimator",
+    type=click.Choice(sorted(ESTIMATORS)),
+    default="matched",
+    show_default=True,
+    help="Time-of-flight estimator.",
+)
+@click.option(
+    "--threshold-db",
+    type=float,
+    default=EchoOptions.threshold_db,
+    show_default=True,
+    help="Detection threshold on the echo's output SNR, dB.",
+)
+@click.option("--blanking-s", type=float, default=0.0, show_default=True, help="Ignore earlier echoes, s.")
+@click.option("--speed-of-sound", "speed_of_sound_m_s", type=float, default=None, help="Override, m/s.")
+@click.option(
+    "--calibration",
+    "calibration_path",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="From `echoloc calibrate`.",
+)
+@_WORKERS_OPTION
+def stream_command(
+    listen_text: str,
+    udp: bool,
+    geometry_path: Path | None,
+    queue_frames: int,
+    block: bool,
+    once: bool,
+    max_frames: int | None,
+    duration_s: float | None,
+    idle_timeout_s: float,
+    as_json: bool,
+    record_path: Path | None,
+    force: bool,
+    view: bool,
+    view_port: int,
+    deadline_ms: float,
+    estimator: str,
+    threshold_db: float,
+    blanking_s: float,
+    speed_of_sound_m_s: float | None,
+    calibration_path: Path | None,
+    workers: int,
+) -> None:
+    """Locate objects in frames arriving over the network, as they arrive.
+
+    Listens for the stream protocol (docs/STREAM_PROTOCOL.md; `echoloc send` replays a
+    recording in it), runs the chain of `echoloc locate` on every frame and shows
+    the latest objects (a live table on a terminal; with --json the lines of `locate
+    --json` on stdout). Lost, dropped and late frames are counted and reported at the
+    end; Ctrl-C or SIGTERM ends the stream cleanly.
+    """
+    from rich.live import Live
+
+    from echoloc.realtime.session import LiveSession
+    from echoloc.realtime.stream import warm_kernels
+    from echoloc.realtime.transport import Recorder
+
+    _finite("--deadline-ms", deadline_ms, positive=True)
+    _finite("--speed-of-sound", speed_of_sound_m_s, positive=True)
+    _finite("--blanking-s", blanking_s, minimum=0.0)
+    _threshold_db(threshold_db)
+    options = EchoOptions(threshold_db=threshold_db, blanking_s=blanking_s, workers=workers)
+    if calibration_path is not None:
+        read_calibration(calibration_path)  # a missing or broken file now, not when frames come
+
+    def make_chain(header: Recording) -> Chain:
+        calibration = (
+            None if calibration_path is None else read_calibration(calibration_path, header.n_receivers)
+        )
+        chain = prepare(
+            header,
+            estimator=estimator,
+            echo_options=options,
+            speed_of_sound_m_s=speed_of_sound_m_s,
+            calibration=calibration,
+        )
+        check_locatable(chain)
+        return chain
+
+    if record_path is not None:
+        Recorder.check_path(record_path, force=force)
+    _finite("--duration", duration_s, positive=True)
+    # A session is prepared as it arrives, in the listener: one the chain cannot use is refused
+    # to its sender, and the stream goes on serving.
+    listener = _open_listener(
+        listen_text, udp, geometry_path, queue_frames, block, idle_timeout_s, accept_session=make_chain
+    )
+    warm_kernels(estimator, workers)
+    printer = _StreamPrinter(as_json)
+    session = LiveSession(
+        listener,
+        make_chain,
+        deadline_ms / 1e3,
+        record_path,
+        on_result=printer.result,
+        on_message=printer.message,
+    )
+    printer.session = session
+    interrupted = False
+    try:
+        if view:
+            from echoloc.realtime.liveview import LiveView
+
+            session.view = LiveView(port=view_port)
+            stderr.print(
+                f"echoloc: stream: live view on {session.view.url} (Foxglove: open connection)", markup=False
+            )
+        listener.start()
+        stderr.print(f"echoloc: stream: listening on {listener.address}", markup=False, highlight=False)
+        table = not as_json and stderr.is_terminal
+        with (
+            _interrupt_cleanly(),
+            Live(console=stderr, refresh_per_second=4, transient=True)
+            if table
+            else contextlib.nullcontext() as live,
+        ):
+            printer.live = live
+            try:
+                for item in _events(listener, once, max_frames, duration_s):
+                    session.handle(item)
+            except KeyboardInterrupt:
+                interrupted = True
+    finally:
+        listener.stop()
+        _flush_listener_errors(listener)
+        session.close(interrupted)
+    if session.record_error is not None:
+        raise session.record_error
+    if session.processor is None and listener.sessions_refused:
+        raise _no_session_error("", listener)
+
+
+class _StreamPrinter:
+    """How `echoloc stream` shows a live session: JSON Lines, a live table on a terminal, or
+    a status line every STATUS_EVERY_S; its messages on stderr (or above the table)."""
+
+    STATUS_EVERY_S = 10.0
+
+    def __init__(self, as_json: bool) -> None:
+        self.as_json = as_json
+        self.session: Any = None
+        self.live: Any = None
+        self._last_status = time.monotonic()  # the first status line comes after STATUS_EVERY_S
+        self._last_table = 0.0
+
+    def result(self, frame: Any, result: Any) -> None:
+        if self.as_json:
+            click.echo(json_line(objects_record(result.objects)))
+        now = frame.arrival_s
+        if self.live is not None:
+            if now - self._last_table > 0.2:
+                self._last_table = now
+                self.live.update(_stream_table(result.objects, self.session.stats()))
+        elif now - self._last_status > self.STATUS_EVERY_S:
+            self._last_status = now
+            self.message(self.session.stats().summary())
+
+    def message(self, text: str) -> None:
+        (self.live.console if self.live is not None else stderr).print(
+            f"echoloc: stream: {text}", markup=False, highlight=False
+        )
+
+
+def _stream_table(objects: FrameObjects, stats: Any) -> Table:
+    """The live view on a terminal: the latest frame's objects and the stream's counters."""
+    table = Table(
+        title=f"frame {objects.frame} at {objects.time_s:.3f} s: {len(objects.objects)} objects",
+        caption=stats.summary(),
+    )
+    for column in ("x mm", "y mm", "z mm", "±σ x, y, z mm", "range mm", "rx", "score"):
+        table.add_column(column, justify="right")
+    for obj in objects.objects:
+        x, y, z = obj.position_m * 1e3
+        table.add_row(
+            f"{x:.1f}",
+            f"{y:.1f}",
+            f"{z:.1f}",
+            _mm(obj.std_m, digits=2),
+            f"{np.linalg.norm(obj.position_m) * 1e3:.1f}",
+            str(len(set(obj.receivers))),
+            f"{obj.score:.2f}",
+        )
+    return table
+
+
+@cli.command(name="record")
+@click.argument("output", metavar="OUT.h5", type=click.Path(path_type=Path))
+@_listen_options
+@click.option(
+    "--batch-frames",
+    type=click.IntRange(1, 1_000_000),
+    default=64,
+    show_default=True,
+    help="Frames appended and flushed at a time.",
+)
+@click.option(
+    "--batch-seconds", "batch_s", type=float, default=0.5, show_default=True, help="...or after this long."
+)
+@click.option("--force", is_flag=True, help="Replace OUT.h5 if it exists.")
+@click.option("-v", "--verbose", is_flag=True, help="One line on stderr per batch written.")
+def record_command(
+    output: Path,
+    listen_text: str,
+    udp: bool,
+    geometry_path: Path | None,
+    queue_frames: int,
+    block: bool,
+    once: bool,
+    max_frames: int | None,
+    duration_s: float | None,
+    idle_timeout_s: float,
+    batch_frames: int,
+    batch_s: float,
+    force: bool,
+    verbose: bool,
+) -> None:
+    """Record frames arriving over the network to OUT.h5, in batches flushed as they are written.
+
+    A recorder killed at any moment (even SIGKILL, or a power cut) leaves OUT.h5
+    readable, with every frame but at most those of the last batch. An existing OUT.h5
+    is replaced only with --force.
+    """
+    from echoloc.realtime.stream import rare_counts
+    from echoloc.realtime.transport import Recorder, SessionEvent
+
+    def progress(frames: int) -> None:
+        if verbose:
+            stderr.print(
+                f"echoloc: record: {frames} frames written to {output}", markup=False, highlight=False
+            )
+
+    Recorder.check_path(output, force=force)
+    _finite("--duration", duration_s, positive=True)
+    _finite("--batch-seconds", batch_s, positive=True)
+    listener = _open_listener(listen_text, udp, geometry_path, queue_frames, block, idle_timeout_s)
+    recorder: Recorder | None = None
+    interrupted = False
+    try:
+        listener.start()
+        stderr.print(f"echoloc: record: listening on {listener.address}", markup=False, highlight=False)
+        with _interrupt_cleanly():
+            try:
+                for item in _events(listener, once, max_frames, duration_s):
+                    if isinstance(item, SessionEvent):
+                        if recorder is not None:
+                            stderr.print(
+                                "echoloc: warning: the sender started a different session; "
+                                f"{output} keeps the first (start a new recording for the new one)",
+                                markup=False,
+                            )
+                            break
+                        recorder = Recorder(
+                            output, item.header, batch_frames=batch_frames, batch_s=batch_s, on_batch=progress
+                        )
+                    elif isinstance(item, list) and recorder is not None:  # the frames that queued up
+                        for frame in item:
+                            recorder.add(frame)
+            except KeyboardInterrupt:
+                interrupted = True
+    finally:
+        listener.stop()
+        _flush_listener_errors(listener)
+        counters = listener.counters()
+        if recorder is not None:
+            recorder.close()
+    if recorder is None:
+        error = _no_session_error(f"{output}: ", listener)
+        raise EchoLocError(f"{error}; nothing recorded")
+    dropped = counters["dropped"] + recorder.dropped
+    # Received and neither recorded nor dropped: still queued when recording stopped, or of a
+    # second session.
+    unrecorded = counters["received"] - recorder.frames - dropped
+    left = f", unrecorded {unrecorded}" if unrecorded else ""
+    end = " (interrupted)" if interrupted else ""
+    stderr.print(
+        f"echoloc: record: {recorder.frames} frames in {recorder.batches} "
+        f"batch{'' if recorder.batches == 1 else 'es'} to {output}; "
+        f"received {counters['received']}, lost {counters['lost']}, dropped {dropped}{left}, "
+        f"malformed {counters['malformed']}, rejected {counters['rejected']}"
+        f"{rare_counts(refused=counters['refused'], restarts=counters['restarts'])}{end}",
+        markup=False,
+        highlight=False,
+    )
+
+
+@cli.command(name="bench")
+@click.option(
+    "--reflectors",
+    type=click.IntRange(0, 50),
+    default=5,
+    show_default=True,
+    help="Random reflectors in the default scene (0: the report's three balls).",
+)
+@click.option("--frames", "n_frames", type=click.IntRange(2, 100_000), default=200, show_default=True)
+@click.option(
+    "--baseline-frames",
+    type=click.IntRange(1, 1000),
+    default=2,
+    show_default=True,
+    help="Frames for the scipy chain (its brute-force locate takes seconds a frame).",
+)
+@click.option(
+    "--workers",
+    type=click.IntRange(1, 1024),
+    default=1,
+    show_default=True,
+    help="Cores to pin the bench to, and threads for echoloc's echoes stage.",
+)
+@click.option(
+    "--rounds",
+    type=click.IntRange(1, 100),
+    default=3,
+    show_default=True,
+    help="Passes of echoloc's stream over the frames, each way; the median pass is reported.",
+)
+@click.option("--json", "as_json", is_flag=True, help="One JSON object with the figures.")
+def bench_command(
+    reflectors: int, n_frames: int, baseline_frames: int, workers: int, rounds: int, as_json: bool
+) -> None:
+    """Frames/s, latency p50/p99 and peak memory of the full chain, beside a plain scipy chain."""
+    from echoloc.benchmark import bench_chains, bench_scene, format_bench
+
+    cores = "one core" if workers == 1 else f"{workers} cores"
+    stderr.print(
+        f"echoloc: bench: simulating {n_frames} frames, then timing both chains on {cores}...",
+        markup=False,
+    )
+    recording = simulate(bench_scene(reflectors), n_frames)
+    report = bench_chains(recording, baseline_frames=baseline_frames, workers=workers, rounds=rounds)
+    if as_json:
+        click.echo(json.dumps(report, allow_nan=False))
+        return
+    click.echo(format_bench(report))
