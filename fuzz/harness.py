@@ -98,6 +98,7 @@ class Worker:
         self.memory_limit_bytes = memory_limit_bytes
         self.restarts = 0
         self.reruns = 0  # cases judged again alone in a fresh worker (their memory figure)
+        self.hang_reruns = 0  # cases that passed hang_s, judged again alone (a loaded machine)
         self._process: subprocess.Popen[str] | None = None
         self._answers: Any = None
 
@@ -170,6 +171,11 @@ class Worker:
             died = self._process.poll() is not None
             self.kill()
             self.restarts += 1
+            if not died and not alone:
+                # On a shared, loaded machine a slow case can pass the bound: a hang is a case
+                # that passes it again, alone in a fresh worker.
+                self.hang_reruns += 1
+                return self.run(argv, cwd, hang_s, alone=True)
             return Outcome(None, "worker died" if died else "", time.monotonic() - start, 0, hung=not died)
         answer = json.loads(line)
         outcome = Outcome(answer["exit"], answer["stderr"], answer["seconds"], answer["peak_rss_bytes"])

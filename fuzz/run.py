@@ -60,7 +60,7 @@ def main() -> int:
                 file=sys.stderr,
                 flush=True,
             )
-        restarts, reruns = worker.restarts, worker.reruns
+        restarts, reruns = worker.restarts, (worker.reruns, worker.hang_reruns)
     report = render(tally, args, time.monotonic() - started, restarts, reruns)
     print(report)
     if args.report:
@@ -68,14 +68,17 @@ def main() -> int:
     return 0 if tally.clean else 1
 
 
-def render(tally: harness.Tally, args: argparse.Namespace, seconds: float, restarts: int, reruns: int) -> str:
+def render(
+    tally: harness.Tally, args: argparse.Namespace, seconds: float, restarts: int, reruns: tuple[int, int]
+) -> str:
     """The counts as a Markdown report."""
     lines = [
         "# Fuzz run",
         "",
         f"`.venv/bin/python fuzz/run.py --seed {args.seed} --scale {args.scale:g}`: "
         f"{sum(tally.cases.values())} cases in {seconds / 60:.1f} min, worker restarts {restarts} "
-        f"(cases judged again alone for their memory: {reruns}), "
+        f"(cases judged again alone in a fresh worker: {reruns[0]} for their memory, "
+        f"{reruns[1]} past the time bound), "
         f"slowest case {tally.slowest_s:.2f} s, peak resident memory {tally.peak_rss_bytes / 2**20:.0f} MiB.",
         "",
         "| family | cases | exit 0 | exit 2 | hangs > 10 s | tracebacks | exit 1 | over 1 GiB | other |",
