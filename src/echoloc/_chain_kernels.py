@@ -5,7 +5,7 @@
 the association (:func:`echoloc.localise._locate_kernels.associate_frame`) on each frame whose channels
 it could all vouch for. Called from Python, the two stages made the echoes Python objects and
 flattened them again for a second call; here the one call hands the association the echoes'
-own arrays, 9-19 µs less a frame on one core (`benchmarks/bench_chain_kernel.py`). Frames
+own arrays, which saves that round trip (`benchmarks/bench_chain_kernel.py` measures it). Frames
 with a channel left to CLEAN come back unassociated: the caller runs CLEAN and the
 association as before.
 """

@@ -248,7 +248,7 @@ def bench_chains(
         base_wall = time.perf_counter() - base_start
         # The echoes stage alone, both ways, on every frame (the scipy locate is the slow part).
         # The stream finds echoes and objects in one compiled call: the echoes' own kernel is
-        # loaded first, untimed (loading it took 54 ms, which had more than doubled this figure).
+        # loaded first, untimed (its loading would otherwise swamp this figure).
         samples_echoes(chain, recording.frames[0], 0, 0.0)
         stage_start = time.perf_counter()
         for i in range(n):

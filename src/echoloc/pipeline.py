@@ -352,8 +352,8 @@ def combines_transmitters(chain: Chain) -> bool:
 
 RUN_BATCH_FRAMES = 32
 """Frames :func:`run` hands the estimator in one call: the matched filter's FFTs and compiled
-loops then take 128 channels at once, a quarter less time a frame than one frame a call
-(`benchmarks/bench_echoes.py`), for 2.5 MB of samples at 4 x 2400."""
+loops then take 128 channels at once, in less time a frame than one frame a call
+(`benchmarks/bench_echoes.py` measures it), for 2.5 MB of samples at 4 x 2400."""
 
 
 def run(
@@ -568,9 +568,9 @@ def samples_results_batch(
     answers of :func:`samples_echoes_batch` then :func:`transmitter_objects`.
 
     Where the chain allows (:attr:`Chain.one_call`), both stages run in one compiled call
-    (:func:`echoloc._chain_kernels.echoes_and_objects`): a stream's frame then costs 3-8 %
-    less (`benchmarks/bench_chain_kernel.py`). Frames with a channel left to CLEAN, or with
-    tied weights, finish as the stages do. Frames of another channel count than the
+    (:func:`echoloc._chain_kernels.echoes_and_objects`): a stream's frame then costs less
+    (`benchmarks/bench_chain_kernel.py` measures it). Frames with a channel left to CLEAN, or
+    with tied weights, finish as the stages do. Frames of another channel count than the
     recording's receivers are refused there (the kernel trusts its shapes).
     """
     raw, frames = _raw_and_conditioned(chain, samples, indices)

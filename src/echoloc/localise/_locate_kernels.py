@@ -1,21 +1,19 @@
 """Compiled inner loops of :mod:`echoloc.localise.locate` (numba): the whole association.
 
 Association touches hundreds of tiny systems per frame (3x3 solves, one per echo
-combination) and then packs a few dozen candidates into objects. As numpy calls
-and Python sets each cost microseconds of overhead, which kept a frame of five
-objects at ~2.5 ms, then ~0.6 ms with only the seeds and Gauss-Newton compiled;
-:func:`associate` runs every step (seeds, refinement, choice) in one call, about
-0.15 ms (0.065 ms against 0.085 before on the five-reflector bench scene, once
-without the reference counts below). The formulas are those documented in
+combination) and then packs a few dozen candidates into objects. Numpy calls and
+Python sets each cost microseconds of overhead, which dominated a frame even with only
+the seeds and Gauss-Newton compiled, so :func:`associate` runs every step (seeds,
+refinement, choice) in one call. The formulas are those documented in
 :mod:`echoloc.localise.locate`, whose numpy and Python references
 (``locate._COMPILED = False``; they share the seed search and Gauss-Newton kernels
 with the compiled path) the tests hold these loops to; this module holds only the loops,
 with the same arithmetic in the same order.
 Every function works in D = 2 or 3 dimensions. Small helpers are inlined
 (``inline="always"``): called, each passed its array views through reference
-counting, which cost a quarter of the seed loop. Inlined, a helper with loops still
+counting, which cost a sizeable share of the seed loop. Inlined, a helper with loops still
 counts references to its array arguments and to the views it takes (atomic
-operations, again a quarter of the seed loop): the larger helpers that allocate
+operations, again a sizeable share of the seed loop): the larger helpers that allocate
 nothing (:func:`_exact_work`, the Gauss-Newton row and fit, the prediction
 variance's solve) are compiled without the runtime (:func:`_without_runtime`) and
 called, at no count at all; hot loops read rows by index rather than through views.
@@ -23,7 +21,7 @@ In 3-D the hottest of them (the exact seed solve, the seed's conditioning and
 prediction gain, the Gauss-Newton row) run on local scalars instead of scratch rows
 (:func:`_solve3`, :func:`_det3`: the same operations in the same order, so the same
 bits), and the distance to a transmitter every channel shares is computed once a
-point: 0.045 ms a frame for the call on the five-reflector bench scene, 0.065 ms with rows.
+point, which makes the call faster than with scratch rows.
 
 ``cache=True`` keeps the machine code in ``__pycache__``: the first call in a fresh
 environment compiles (about half a minute), later processes load it (about 1 s). The

@@ -152,7 +152,7 @@ class LiveSession:
         for frame, result in zip(frames, self.processor.process_batch(frames), strict=True):
             self.on_result(frame, result)
             # The live map takes only the frames the view shows (at most 20 a second): it
-            # costs about twice the chain per frame, and the view must never slow the chain.
+            # costs more than the chain per frame, and the view must never slow the chain.
             if self.view is not None and self.view.publish(result, frame.samples, self.stats()):
                 self._map(result, frame.arrival_s)
 

@@ -1,20 +1,20 @@
 """Compiled inner loops of the matched filter (:func:`echoloc.tof.echoes.matched_filter_batch`).
 
 A frame of four channels holds a dozen echoes; written with numpy, each step of
-detection, fitting and checking is an array call of a few microseconds, and the
-batch path took ~600 µs a frame beside ~70 µs for the correlation itself. Compiled,
-the same arithmetic (per channel: candidates, sidelobe test, phase-refined fits,
-joint fits of clusters, residual checks) takes a few microseconds a channel. The
-formulas are those of :func:`echoloc.tof.echoes._isolated_echoes`, which stays as their
-readable statement (the tests hold the two to the same answers); this module holds
-only their loops. The same holds for CLEAN (:class:`echoloc.tof.echoes._Clean`): its
-whole run (:func:`clean_run`: noise power, extraction, merging, joint fits, the model
-choice's candidates, fits, checks and scores) is here, its Python statement there.
+detection, fitting and checking is an array call whose overhead outweighs its arithmetic,
+and the batch path took many times as long as the correlation itself. Compiled, the same
+arithmetic (per channel: candidates, sidelobe test, phase-refined fits, joint fits of
+clusters, residual checks) pays no per-call overhead. The formulas are those of
+:func:`echoloc.tof.echoes._isolated_echoes`, which stays as their readable statement
+(the tests hold the two to the same answers); this module holds only their loops. The
+same holds for CLEAN (:class:`echoloc.tof.echoes._Clean`): its whole run
+(:func:`clean_run`: noise power, extraction, merging, joint fits, the model choice's
+candidates, fits, checks and scores) is here, its Python statement there.
 
 Where a test on noisy data decides (the median's partitions, the local-maximum test
 above the threshold), the loops are written without branches: mispredicted branches
 cost more than the arithmetic. Call the kernels from Python with every argument:
-numba's dispatcher resolves a call that leaves defaults out on a slow path (~60 µs).
+numba's dispatcher resolves a call that leaves defaults out on a slow path.
 
 ``cache=True`` keeps the machine code in ``__pycache__``: the first call in a fresh
 environment compiles (some seconds), later processes load it.
@@ -96,7 +96,7 @@ def correlate_and_fit(
 ) -> None:  # pragma: no cover - compiled
     """:func:`correlate_rows` then :func:`batch_channels` on it, in one call: a stream's frame
     makes one call from Python for its echoes instead of four (two FFTs, the fold, the fits),
-    which saved 26-31 µs a frame (`benchmarks/bench_fft_kernel.py`)."""
+    which saves the overhead of three calls (`benchmarks/bench_fft_kernel.py` measures it)."""
     correlation = correlate_rows(frames, n_fft, n_ifft, weights, workers)
     batch_channels(parts, correlation.view(np.float32), n_lags, constants, finishing, out, kept, ok)
 
@@ -197,8 +197,8 @@ bits of a chosen exponent; and the most values it sorts among those sharing thei
 @njit(cache=True)
 def _noise_median(values: Any, counts: Any, scratch: Any) -> float:  # pragma: no cover - compiled
     """:func:`_median_in` of ``values`` (C-contiguous) by radix selection on their IEEE-754 bits:
-    the same value, in 0.57 of the time on a channel's 600 noise powers (1.40 against 2.47 µs,
-    `benchmarks/bench_noise_median.py`).
+    the same value, in less time on a channel's 600 noise powers (`benchmarks/bench_noise_median.py`
+    measures it).
 
     The bits of non-negative floats sort as the floats do. Counting the values per exponent
     finds the exponent of the middle rank, counting that exponent's values per next 8 bits its
@@ -449,8 +449,8 @@ def _joint_fit_into(
     new_amps: Any,
 ) -> float:  # pragma: no cover - compiled
     """:func:`joint_fit` with its scratch passed in (``work``: :func:`_fit_scratch_size` floats or
-    more; ``new_amps``: ``len(tofs)`` complex or more): an allocation costs ~100 ns, a fit
-    step ~1 µs, and CLEAN fits a few dozen candidate models a channel."""
+    more; ``new_amps``: ``len(tofs)`` complex or more): allocating them at every call would
+    add up, as CLEAN fits a few dozen candidate models a channel."""
     k = len(tofs)
     w = data.shape[0]
     p = k * (2 if real else 3)
@@ -593,7 +593,7 @@ def _lone_fit(
     """:func:`_joint_fit_into` of one echo with a real amplitude, ``iterations`` Levenberg-Marquardt
     steps (no convergence test), in scalars: the same steps, with the window's sums in another
     order (rounding of ~1e-16). The batch path steps every lone echo so; the general fit's
-    scratch arrays and loops over echoes took a fifth of the batch path's time for it.
+    scratch arrays and loops over echoes took a sizeable share of the batch path's time for it.
     Returns the delay (samples) and the amplitude."""
     ar, ai = amp.real, amp.imag
     cost, n00, n01, n11, g0, g1 = _lone_pass(table, u, half, data, lo, valid, tof, ar, ai, True)
@@ -635,7 +635,7 @@ def _products(jac: Any, residual: Any, normal: Any, gradient: Any) -> None:  # p
     imaginary parts side by side), the inner products of a fit step.
 
     The sums may be reassociated (``fastmath={"reassoc"}``), so that they run in SIMD lanes:
-    a fifth less time a complex-amplitude step, rounding differences of 1e-16.
+    faster complex-amplitude steps, at rounding differences of 1e-16.
     """
     p, n = jac.shape
     for a in range(p):
@@ -878,10 +878,10 @@ NO_PAIR, MERGED = -1, -2
 """What :func:`_split_echo` returns instead of a count: no plausible pair, or a pair too close to resolve."""
 
 # A split searches a grid of delays one lag apart: its gain varies over the envelope's scale (the
-# complex amplitudes take up the carrier phase), a main lobe of 8.5 lags. Half a lag cost half as
-# much again on the five-reflector bench frames (70 µs a channel split against 47) and kept 130 of
-# their 141 unexplained channels from CLEAN against 126. On whole lags every shape is the one
-# before it moved by a sample, which _split_echo's Gram matrix is built on.
+# complex amplitudes take up the carrier phase), a main lobe of 8.5 lags. Half a lag was slower
+# on the five-reflector bench frames and kept 130 of their 141 unexplained channels from CLEAN
+# against 126. On whole lags every shape is the one before it moved by a sample, which
+# _split_echo's Gram matrix is built on.
 _SPLIT_ITERATIONS = 200
 """Most Levenberg-Marquardt steps of a split's fits, each stopping once converged (as CLEAN's)."""
 _SPLIT_TOLERANCE = 1e-3
@@ -2072,7 +2072,7 @@ def clean_extract(
     # The search for the strongest sample keeps |c|^2 (0 where the dynamic range masks it) and
     # its maximum per block of samples, refreshed only where a subtraction changed the residual
     # (the template's reach around the echoes fitted, which holds the masks they changed): a
-    # scan of every sample per echo was half the extraction's time.
+    # scan of every sample per echo was a large share of the extraction's time.
     scan = max(first, 0)
     power = np.zeros(n)
     block = np.zeros(max((n - scan + _BLOCK - 1) // _BLOCK, 0))
@@ -2601,7 +2601,7 @@ def _select(a: Any, k: int, below: Any, above: Any) -> float:  # pragma: no cove
 
     The partitions are branch-free (every element is written, the write position advances
     by the comparison): on noise the comparisons are unpredictable, and a quickselect that
-    branches on them spends most of its time in mispredicted branches (5 us for 600 values).
+    branches on them spends most of its time in mispredicted branches.
     """
     lo, hi = 0, len(a)
     while True:
@@ -2630,7 +2630,7 @@ def _select(a: Any, k: int, below: Any, above: Any) -> float:  # pragma: no cove
 
 @njit(cache=True)
 def _median_sampled(values: Any) -> float:  # pragma: no cover - compiled
-    """:func:`_median`, exactly, in about half the time on thousands of values.
+    """:func:`_median`, exactly, in less time on thousands of values.
 
     Every 8th value brackets the median: its order statistics 1.5 sqrt(m) + 2 either side of
     its own median (m values; the median's rank among them strays by sqrt(m) / 2) are the
@@ -2673,7 +2673,7 @@ def _median_sampled(values: Any) -> float:  # pragma: no cover - compiled
 @njit(cache=True)
 def _clean_noise_power(residual: Any) -> float:  # pragma: no cover - compiled
     """_Clean._noise_power: ``median(re^2 + im^2) / ln 2``, at least the smallest normal float (the
-    median exact, and free of the mispredicted branches that make numpy's take 30 us on 2400 samples)."""
+    median exact, and free of the mispredicted branches that slow numpy's)."""
     n = len(residual)
     power = 0.0
     if n:

@@ -289,8 +289,8 @@ class MatchedFilter:
         """The product of the frames' spectrum (..., bins) and ``weights``, its bins summed
         modulo N/D (zero-padded to N/D when shorter), in the precision of the two: the inverse
         FFT of N/D points then gives every D-th lag. One compiled pass
-        (:func:`echoloc.tof._echoes_kernels.weigh_and_fold`): numpy's product, fold and copy took
-        7.7 µs a four-channel frame against 2.7."""
+        (:func:`echoloc.tof._echoes_kernels.weigh_and_fold`): numpy's product, fold and copy, each
+        a pass over the spectrum with its own call, took longer."""
         from echoloc.tof import _echoes_kernels as kernels  # numba: imported (and compiled) on first use
 
         folded = np.empty((*spectrum.shape[:-1], self.n_ifft), dtype=np.result_type(spectrum, weights))
@@ -331,11 +331,12 @@ class MatchedFilter:
 
         Row j holds R(m - j/U) for m = -H..H (in lags), with R(0) = 1 for j = 0.
 
-        Building it takes ~12 ms for the default head (256 phase ramps and inverse FFTs), the
-        most of preparing a stream's session, so the tables last built are kept (up to
+        Building it (256 phase ramps and inverse FFTs for the default head) is the most of
+        preparing a stream's session, so the tables last built are kept (up to
         :data:`_ACF_TABLES_BYTES`) by what defines them (the template, the FFT length, the
         oversampling, the decimation): a sender that starts its session again, or the head
-        ``warm_kernels`` prepared, finds its table made. Each filter gets its own copy (0.1 ms).
+        ``warm_kernels`` prepared, finds its table made. Each filter gets its own copy (cheap
+        beside building it).
         """
         key = (self.template.tobytes(), self.template.dtype.str, self.n_fft, self.oversample, self.decimation)
         with _ACF_TABLES_LOCK:
@@ -425,7 +426,7 @@ class MatchedFilter:
         return np.asarray(full[..., : self.n_lags])
 
     def correlate_single(self, frames: NDArray[np.floating]) -> NDArray[np.complex64]:
-        """:meth:`correlate` in single precision: three times faster, for detection and fits.
+        """:meth:`correlate` in single precision: faster, for detection and fits.
 
         Rounding errors are ~1e-7 of the frame's strongest correlation, spread over every
         lag like white noise: 1e-3 of an echo 80 dB weaker. They stay far below the noise of
@@ -640,7 +641,7 @@ class _Clean:
         )
         rate = self.mf.phase_rate_rad_per_lag
         amplitudes = amplitudes.copy()
-        # Every argument given: numba's dispatcher takes a slow path (~60 us) for omitted defaults.
+        # Every argument given: numba's dispatcher takes a slow path for omitted defaults.
         complex_stop = (_CLEAN_COMPLEX_ITERATIONS, True, rate, _CLEAN_COMPLEX_TOLERANCE, _CLEAN_COMPLEX_GAIN)
         kernels.joint_fit(*args, tofs, amplitudes, False, *complex_stop)
         amplitudes = np.where(amplitudes.real >= 0, np.abs(amplitudes), -np.abs(amplitudes)) + 0j
@@ -858,7 +859,7 @@ class _Clean:
 
     def _noise_power(self, residual: NDArray[np.complex128]) -> float:
         """:func:`noise_power`, the power of each sample as ``re^2 + im^2`` (as the batch path
-        takes it: the magnitude's ``hypot`` cost CLEAN's compiled run ~15 µs a call)."""
+        takes it: the magnitude's ``hypot`` slowed CLEAN's compiled run)."""
         powers = residual.real**2 + residual.imag**2
         power = float(np.median(powers)) / _LN2 if len(powers) else 0.0
         return power if power > 0 else float(np.finfo(float).tiny)
@@ -1130,7 +1131,7 @@ def with_clean(
     if hard:
         clean = _Clean(mf, options)
         # The double-precision correlation of every hard channel in one call (the same values
-        # as one call a channel, a third less time).
+        # as one call a channel, in less time).
         exact = mf.correlate(frames.reshape(n_frames * n_rx, -1)[hard], threads)
         for index, (components, power) in zip(hard, clean.run_rows(exact, threads), strict=True):
             tof = np.array([c.tof_samples for c in components])
@@ -1144,8 +1145,8 @@ def with_clean(
 
 _FFT_ROWS_PER_WORKER = 32
 """scipy.fft's threads pay off from about this many rows a thread. On fewer they cost more
-than they save: rows of 2400 samples on two cores, the correlation of 2 rows took 101 µs
-with ``workers=-1`` against 43 with one thread, of 4 rows 181 against 78."""
+than they save: on two cores, correlating 2 or 4 rows of 2400 samples was slower with
+``workers=-1`` than with one thread."""
 
 
 def fft_workers(threads: int, rows: int) -> int:
@@ -1490,7 +1491,7 @@ def _channel_echoes(
     """The channels of :func:`echoloc.tof._echoes_kernels.batch_channels`' outputs (None: left to CLEAN)."""
     tof_s, amplitude, snr_db = out[0], out[1], out[2]
     # The counts and flags as Python ints and bools: indexing the arrays element by element
-    # made numpy scalars, half of this list's 9 us a four-channel frame.
+    # made numpy scalars, a large part of what building this list cost.
     return [
         _channel(tof_s[c, :k], amplitude[c, :k], snr_db[c, :k]) if good else None
         for c, (k, good) in enumerate(zip(kept.tolist(), ok.tolist(), strict=True))
@@ -1501,8 +1502,8 @@ def _channel(
     tof_s: NDArray[np.float64], amplitude: NDArray[np.float64], snr_db: NDArray[np.float64]
 ) -> ChannelEchoes:
     """``ChannelEchoes(tof_s, amplitude, snr_db)`` as its ``__init__`` builds it, in one dict
-    update instead of the frozen class's three ``object.__setattr__`` calls (0.32 against
-    0.46 µs; every channel of every frame)."""
+    update instead of the frozen class's three ``object.__setattr__`` calls (cheaper, and it
+    runs for every channel of every frame)."""
     channel: ChannelEchoes = _new(ChannelEchoes)
     channel.__dict__.update(tof_s=tof_s, amplitude=amplitude, snr_db=snr_db)
     return channel
@@ -1532,8 +1533,8 @@ def _fixed_kernel_arguments(
 ) -> tuple[Any, ...]:
     """:func:`echo_kernel_arguments` between the rows and the outputs, made once for each set of
     options, thread count and channel count (a stream's frames repeat them; a memo keyed by the
-    options' identity, which it holds, so the key cannot be reused: half the 2.3 µs a frame of
-    making them). With threads, numba's thread count is still set every call."""
+    options' identity, which it holds, so the key cannot be reused; it spares a frame much of
+    the cost of making them). With threads, numba's thread count is still set every call."""
     memo = mf.kernel_arguments_memo
     key = (id(options), threads, n_ch)
     found = memo.get(key)
@@ -1852,8 +1853,8 @@ _CLEAN_COMPLEX_GAIN = 1e-2
 """CLEAN's complex-amplitude fits also stop once an accepted step lowers the cost by less than
 this fraction of it (the real-amplitude fits: never): there they crawl along the valley floor
 of their basin (Gauss-Newton steps on the table's piecewise-linear slopes zig-zag by a hundredth
-of a sample) or drift a faint echo outward. On the bench scenes' CLEAN channels this cuts the
-candidate fits' time by two fifths and moves no answer by more than 1e-9 samples."""
+of a sample) or drift a faint echo outward. On the bench scenes' CLEAN channels this shortens
+the candidate fits and moves no answer by more than 1e-9 samples."""
 _LONE_ITERATIONS = 1
 """Levenberg-Marquardt steps (real amplitude) of the batch path's fit of an echo with no
 neighbour within two main lobes, from its phase-refined estimate. The carrier phase at
