@@ -35,6 +35,7 @@ from mcap_ros2.writer import Writer as Ros2Writer
 from numpy.typing import NDArray
 
 from echoloc.errors import EchoLocError, open_input
+from echoloc.extras import missing_extra
 from echoloc.io.export import (
     _HEADER_MSG,
     _QUATERNION_MSG,
@@ -187,8 +188,12 @@ def voxel_centres_m(spec: GridSpec, cells: NDArray[np.int64]) -> NDArray[np.floa
 
 
 def octree(grid: OccupancyGrid) -> Any:
-    """A ``pyoctomap.OcTree`` at the grid's resolution holding every observed cell's log-odds."""
-    import pyoctomap
+    """A ``pyoctomap.OcTree`` at the grid's resolution holding every observed cell's log-odds
+    (pyoctomap is the ``octomap`` extra)."""
+    try:
+        import pyoctomap
+    except ImportError:
+        raise missing_extra("octomap", "an OctoMap file") from None
 
     tree = pyoctomap.OcTree(grid.spec.cell_m)
     low, high = grid.model.clamp_probability

@@ -31,33 +31,38 @@ from __future__ import annotations
 import time
 from typing import Any
 
-import foxglove
 import numpy as np
-from foxglove.channels import GridChannel, PointCloudChannel, SceneUpdateChannel
-from foxglove.messages import (
-    Color,
-    Grid,
-    PackedElementField,
-    PackedElementFieldNumericType,
-    PointCloud,
-    Pose,
-    Quaternion,
-    SceneEntity,
-    SceneUpdate,
-    SpherePrimitive,
-    TextPrimitive,
-    Timestamp,
-    Vector3,
-)
 from numpy.typing import NDArray
 from scipy import signal
 
 from echoloc.errors import EchoLocError
+from echoloc.extras import missing_extra
 from echoloc.io.export import SENSOR_FRAME_ID
 from echoloc.io.output import objects_record
 from echoloc.io.recording import Recording
 from echoloc.realtime.stream import StreamResult, StreamStats
 from echoloc.tof.echoes import MatchedFilter
+
+try:
+    import foxglove
+    from foxglove.channels import GridChannel, PointCloudChannel, SceneUpdateChannel
+    from foxglove.messages import (
+        Color,
+        Grid,
+        PackedElementField,
+        PackedElementFieldNumericType,
+        PointCloud,
+        Pose,
+        Quaternion,
+        SceneEntity,
+        SceneUpdate,
+        SpherePrimitive,
+        TextPrimitive,
+        Timestamp,
+        Vector3,
+    )
+except ImportError:
+    raise missing_extra("live", "the live view (--view)") from None
 
 DEFAULT_VIEW_PORT = 8765
 TOPICS = (

@@ -1,0 +1,26 @@
+"""The optional parts of echoloc and what they need installed.
+
+The core (recordings, the simulator, time of flight, localisation, maps, the wire
+protocol, MCAP and PLY exports) installs with numpy, scipy, h5py, numba and the command
+line's click and rich. Three parts need more, each an extra of the package:
+
+- ``plot``: every picture (``--plot``, ``image``, a ``map`` as PNG, ``design -o``): matplotlib;
+- ``live``: the live view of ``stream --view`` (Foxglove WebSocket): foxglove-sdk;
+- ``octomap``: maps written as OctoMap (``.bt``, ``.ot``): pyoctomap.
+
+``pip install 'echoloc[all]'`` installs all three.
+"""
+
+from __future__ import annotations
+
+from echoloc.errors import EchoLocError
+
+EXTRAS = {"plot": "matplotlib", "live": "foxglove-sdk", "octomap": "pyoctomap"}
+"""Each extra and the distribution it installs."""
+
+
+def missing_extra(extra: str, purpose: str) -> EchoLocError:
+    """The error for ``purpose`` (what the user asked for) when ``extra`` is not installed."""
+    return EchoLocError(
+        f"{purpose} needs {EXTRAS[extra]}, which is not installed: pip install 'echoloc[{extra}]'"
+    )
