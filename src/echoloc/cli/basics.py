@@ -172,6 +172,21 @@ def _mm(values: Any, digits: int = 1) -> str:
     return ", ".join(f"{v * 1e3:.{digits}f}" for v in np.asarray(values))
 
 
+def _object_cells(obj: Any) -> list[str]:
+    """A located object as the tables of `locate` and `stream` show it: x, y, z, ±σ and
+    range in mm, receivers, score."""
+    x, y, z = obj.position_m * 1e3
+    return [
+        f"{x:.1f}",
+        f"{y:.1f}",
+        f"{z:.1f}",
+        _mm(obj.std_m, digits=2),
+        f"{np.linalg.norm(obj.position_m) * 1e3:.1f}",
+        str(len(set(obj.receivers))),
+        f"{obj.score:.2f}",
+    ]
+
+
 # --- simulate ----------------------------------------------------------------------
 
 

@@ -486,13 +486,6 @@ def design_command(
     ):
         _finite(name, value, positive=True)
     _finite("--offset-m", offset_m)
-    if path_m is not None and range_m is not None:
-        raise EchoLocError("give --path-m or --range-m, not both")
-    if path_m is None and range_m is None:
-        path_m = 1.0
-    if path_m is not None and spacing_m is not None and spacing_m >= path_m:
-        raise EchoLocError(f"--spacing-m {spacing_m:g} must be below the path --path-m {path_m:g}")
-    held = f"path l = {path_m:g} m" if path_m is not None else f"range r = {range_m:g} m"
     array = load_scene(scene_path).array if scene_path is not None else None
     study = design_study(
         path_error_m,
@@ -506,6 +499,7 @@ def design_command(
         plane=plane,  # type: ignore[arg-type]
         offset_m=offset_m,
     )
+    held = f"path l = {study.path_m:g} m" if study.path_m is not None else f"range r = {study.range_m:g} m"
     rec, spacing, rows, area = study.recommendation, study.spacing_m, study.table, study.area
     array_name, at_point, area_path = study.array_name, study.on_boresight, study.area_path_m
     record = design_record(study)

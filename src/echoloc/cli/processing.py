@@ -26,7 +26,7 @@ from echoloc.cli.app import (
     cli,
     stdout,
 )
-from echoloc.cli.basics import _mm
+from echoloc.cli.basics import _object_cells
 from echoloc.errors import EchoLocError
 from echoloc.io.output import echoes_record, json_line, objects_record
 from echoloc.localise.calibrate import fit_calibration, write_calibration
@@ -102,17 +102,7 @@ def _object_rows(table: Table, result: FrameObjects) -> None:
     if not result.objects:
         table.add_row(str(result.frame), "-", "-", "-", "-", "-", "-", "-")
     for obj in result.objects:
-        x, y, z = obj.position_m * 1e3
-        table.add_row(
-            str(result.frame),
-            f"{x:.1f}",
-            f"{y:.1f}",
-            f"{z:.1f}",
-            _mm(obj.std_m, digits=2),
-            f"{np.linalg.norm(obj.position_m) * 1e3:.1f}",
-            str(len(set(obj.receivers))),
-            f"{obj.score:.2f}",
-        )
+        table.add_row(str(result.frame), *_object_cells(obj))
 
 
 @cli.command(name="image")

@@ -10,11 +10,10 @@ from pathlib import Path
 from typing import Any
 
 import click
-import numpy as np
 from rich.table import Table
 
 from echoloc.cli.app import _WORKERS_OPTION, _finite, _interrupt_cleanly, _threshold_db, _warn, cli, stderr
-from echoloc.cli.basics import _mm
+from echoloc.cli.basics import _object_cells
 from echoloc.errors import EchoLocError
 from echoloc.io.output import json_line, objects_record
 from echoloc.io.recording import Recording, read_recording
@@ -403,16 +402,7 @@ def _stream_table(objects: FrameObjects, stats: Any) -> Table:
     for column in ("x mm", "y mm", "z mm", "±σ x, y, z mm", "range mm", "rx", "score"):
         table.add_column(column, justify="right")
     for obj in objects.objects:
-        x, y, z = obj.position_m * 1e3
-        table.add_row(
-            f"{x:.1f}",
-            f"{y:.1f}",
-            f"{z:.1f}",
-            _mm(obj.std_m, digits=2),
-            f"{np.linalg.norm(obj.position_m) * 1e3:.1f}",
-            str(len(set(obj.receivers))),
-            f"{obj.score:.2f}",
-        )
+        table.add_row(*_object_cells(obj))
     return table
 
 

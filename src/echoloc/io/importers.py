@@ -30,20 +30,15 @@ from __future__ import annotations
 import math
 import os
 import re
-import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any, BinaryIO
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # Python 3.10: the same parser, as the tomli backport
-    import tomli as tomllib
-
 import numpy as np
 from numpy.typing import NDArray
 
+from echoloc._toml import tomllib
 from echoloc.errors import EchoLocError, open_input, read_text_input
 from echoloc.io.recording import (
     MAX_RECORDING_BYTES,

@@ -14,21 +14,16 @@ out.h5`` simulates the CH101-like head.
 from __future__ import annotations
 
 import math
-import sys
 from collections.abc import Mapping
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # Python 3.10: the same parser, as the tomli backport
-    import tomli as tomllib
-
 import numpy as np
 from numpy.typing import NDArray
 
+from echoloc._toml import tomllib
 from echoloc.errors import EchoLocError, SceneError, read_text_input
 from echoloc.io.recording import MAX_EXTENT_M
 from echoloc.physics.transducer import PRESETS
