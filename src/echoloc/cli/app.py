@@ -11,7 +11,7 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import click
 import numpy as np
@@ -157,6 +157,15 @@ class Processing:
 
 _PROCESSING_FIELDS = [f.name for f in fields(Processing)]
 
+
+_Decorated = TypeVar("_Decorated", bound=Callable[..., Any])
+
+
+def _path_option(*names: str, **settings: Any) -> Callable[[_Decorated], _Decorated]:
+    """A click option whose value is a :class:`~pathlib.Path` (``None`` when not given)."""
+    return click.option(*names, type=click.Path(path_type=Path), **settings)
+
+
 _WORKERS_OPTION = click.option(
     "--workers",
     type=int,
@@ -262,11 +271,9 @@ def _processing_options(
                 help="Replace NaN or infinite samples by 0 (with a warning) instead of refusing the file.",
             ),
             _WORKERS_OPTION,
-            click.option(
+            _path_option(
                 "--template",
                 "template_path",
-                type=click.Path(path_type=Path),
-                default=None,
                 help="Template from `echoloc template`: the matched filter's (DIRECT, a recorded echo; "
                 "default: the recording's waveform, SENT) or envelope-peak's learnt echo shape "
                 "(default: the calibration's).",
@@ -274,11 +281,9 @@ def _processing_options(
         ]
         if calibrated:
             decorators.append(
-                click.option(
+                _path_option(
                     "--calibration",
                     "calibration_path",
-                    type=click.Path(path_type=Path),
-                    default=None,
                     help="Speed of sound and receiver delays from `echoloc calibrate`.",
                 )
             )
@@ -560,10 +565,6 @@ def _one_line(message: str) -> str:
 _BARE_GROUP: Any = getattr(click.exceptions, "NoArgsIsHelpError", ())
 """What click (8.2 on) raises for ``echoloc`` without a command: its help, not an error
 (click 8.1 printed the help and exited 0 itself)."""
-
-from echoloc.cli.importing import import_group  # noqa: E402  (registered beside its use)
-
-cli.add_command(import_group, name="import")
 
 
 def main(argv: list[str] | None = None) -> None:

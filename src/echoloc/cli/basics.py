@@ -19,7 +19,7 @@ from rich.progress import (
 )
 from rich.table import Table
 
-from echoloc.cli.app import _check_plot, _finite, _frames_option, _progress, cli, stderr, stdout
+from echoloc.cli.app import _check_plot, _finite, _frames_option, _path_option, _progress, cli, stderr, stdout
 from echoloc.errors import EchoLocError
 from echoloc.io.recording import Recording, read_recording, write_recording
 from echoloc.localise.evaluation import evaluate, match
@@ -82,18 +82,15 @@ DEMO_MATCH_RADIUS_M = 0.001
 
 
 @cli.command()
-@click.option(
+@_path_option(
     "-o",
     "--output",
-    type=click.Path(path_type=Path),
     default=Path("echoloc-demo.h5"),
     show_default=True,
     help="Where to write the demo recording.",
 )
 @click.option("--frames", "n_frames", type=click.IntRange(1, 100_000), default=20, show_default=True)
-@click.option(
-    "--plot", type=click.Path(path_type=Path), default=None, help="Also draw the first frame to this PNG."
-)
+@_path_option("--plot", default=None, help="Also draw the first frame to this PNG.")
 def demo(output: Path, n_frames: int, plot: Path | None) -> None:
     """Simulate the report's set-up (three balls), locate them and compare with the truth."""
     _check_plot(plot)
@@ -192,9 +189,7 @@ def _object_cells(obj: Any) -> list[str]:
 
 @cli.command(name="simulate")
 @click.argument("scene_path", metavar="SCENE.toml", type=click.Path(path_type=Path))
-@click.option(
-    "-o", "--output", type=click.Path(path_type=Path), required=True, help="Recording to write (.h5 or .npz)."
-)
+@_path_option("-o", "--output", required=True, help="Recording to write (.h5 or .npz).")
 @click.option("--frames", "n_frames", type=click.IntRange(1, 10_000_000), default=1, show_default=True)
 @click.option("--seed", type=int, default=None, help="Override the scene's random seed.")
 def simulate_command(scene_path: Path, output: Path, n_frames: int, seed: int | None) -> None:
@@ -216,7 +211,7 @@ def simulate_command(scene_path: Path, output: Path, n_frames: int, seed: int | 
 
 @cli.command(name="template")
 @click.argument("recording_path", metavar="RECORDING", type=click.Path(path_type=Path))
-@click.option("-o", "--output", type=click.Path(path_type=Path), required=True, help="Template file (.npz).")
+@_path_option("-o", "--output", required=True, help="Template file (.npz).")
 @click.option(
     "--arrival",
     default="truth",

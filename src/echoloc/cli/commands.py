@@ -8,5 +8,8 @@ internal error.
 
 from echoloc.cli import basics, physics, processing, realtime  # noqa: F401  (register their commands)
 from echoloc.cli.app import cli, main
+from echoloc.cli.importing import import_group
+
+cli.add_command(import_group, name="import")
 
 __all__ = ["cli", "main"]

@@ -15,6 +15,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from echoloc.cli.app import _path_option
 from echoloc.errors import EchoLocError, unwritable
 from echoloc.io.importers import read_head, read_samples, read_spiel
 from echoloc.io.recording import Recording, write_recording
@@ -46,10 +47,9 @@ def _write(recording: Recording, output: Path, what: str) -> None:
     click.echo(f"echoloc: import: wrote {written} from {what}: {'; '.join(parts)}", err=True)
 
 
-_output_option = click.option(
+_output_option = _path_option(
     "-o",
     "--output",
-    type=click.Path(path_type=Path),
     required=True,
     help="Recording to write (.h5, or .npz).",
 )
@@ -64,11 +64,9 @@ def import_group() -> None:
 @import_group.command(name="spiel")
 @click.argument("folder", metavar="FOLDER", type=click.Path(path_type=Path))
 @_output_option
-@click.option(
+@_path_option(
     "--head",
     "head_path",
-    type=click.Path(path_type=Path),
-    default=None,
     help="Sensor-head TOML overriding the CH101 head (positions, rate, air).",
 )
 @click.option(
@@ -94,10 +92,9 @@ def spiel_command(
 
 @import_group.command(name="samples")
 @click.argument("samples_path", metavar="FILE", type=click.Path(path_type=Path))
-@click.option(
+@_path_option(
     "--head",
     "head_path",
-    type=click.Path(path_type=Path),
     required=True,
     help="Sensor-head TOML: sample rate, signal kind, positions, ...",
 )

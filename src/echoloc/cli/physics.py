@@ -12,7 +12,7 @@ import click
 import numpy as np
 from rich.table import Table
 
-from echoloc.cli.app import _check_plot, _finite, _json_safe, cli, stderr, stdout
+from echoloc.cli.app import _check_plot, _finite, _json_safe, _path_option, cli, stderr, stdout
 from echoloc.cli.processing import _MAX_SAMPLE_RATE_HZ
 from echoloc.errors import EchoLocError
 from echoloc.physics.air import (
@@ -70,9 +70,7 @@ def _metrics_record(metrics: WaveformMetrics) -> dict[str, float]:
     "--speed-of-sound", "speed_of_sound_m_s", type=float, default=343.2, show_default=True, help="m/s."
 )
 @click.option("--json", "as_json", is_flag=True, help="One JSON object with the figures.")
-@click.option(
-    "--plot", type=click.Path(path_type=Path), default=None, help="Draw pulse, spectrum and correlation."
-)
+@_path_option("--plot", default=None, help="Draw pulse, spectrum and correlation.")
 def waveform_command(
     name: str,
     carrier_hz: float,
@@ -196,9 +194,7 @@ def waveform_command(
     help="Frequencies for absorption, Hz (repeat the option for several).",
 )
 @click.option("--json", "as_json", is_flag=True, help="One JSON object with the figures.")
-@click.option(
-    "--plot", type=click.Path(path_type=Path), default=None, help="Draw absorption and speed of sound."
-)
+@_path_option("--plot", default=None, help="Draw absorption and speed of sound.")
 def air_command(
     temperature_c: float,
     relative_humidity: float,
@@ -309,7 +305,7 @@ def air_command(
     "--fov-deg", type=float, default=90.0, show_default=True, help="Field of view to cover, degrees."
 )
 @click.option("--json", "as_json", is_flag=True, help="One JSON object with the figures.")
-@click.option("--plot", type=click.Path(path_type=Path), default=None, help="Draw the beam pattern (polar).")
+@_path_option("--plot", help="Draw the beam pattern (polar).")
 def beam_command(
     transducer_name: str,
     radius_m: float | None,
@@ -438,12 +434,10 @@ def beam_command(
 @click.option(
     "--max-range-error-m", type=float, default=None, help="Range error allowed, m: an upper spacing limit."
 )
-@click.option(
+@_path_option(
     "--scene",
     "scene_path",
     metavar="SCENE.toml",
-    type=click.Path(path_type=Path),
-    default=None,
     help="Array for the GDOP map [default: the report's cross with spacing d].",
 )
 @click.option("--plane", type=click.Choice(["xz", "yz", "xy"]), default="xz", show_default=True)
@@ -453,9 +447,7 @@ def beam_command(
     default=None,
     help="Third coordinate of the plane, m [default: 0, or the study's range for the xy plane].",
 )
-@click.option(
-    "-o", "--output", type=click.Path(path_type=Path), default=None, help="Directory for the three PNGs."
-)
+@_path_option("-o", "--output", default=None, help="Directory for the three PNGs.")
 @click.option("--json", "as_json", is_flag=True, help="One JSON object with the figures.")
 def design_command(
     path_m: float | None,

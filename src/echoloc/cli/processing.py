@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -17,9 +17,11 @@ from rich.table import Table
 from echoloc.cli.app import (
     Processing,
     _check_writable,
+    _Decorated,
     _finite,
     _json_safe,
     _located,
+    _path_option,
     _processing_options,
     _progress,
     _warn,
@@ -98,6 +100,11 @@ def locate(processing: Processing, as_json: bool) -> None:
     stdout.print(table)
 
 
+def _output_option(help_text: str) -> Callable[[_Decorated], _Decorated]:
+    """``-o/--output OUT``, required: the file a command writes, its format by extension."""
+    return _path_option("-o", "--output", "output_path", required=True, help=help_text)
+
+
 def _object_rows(table: Table, result: FrameObjects) -> None:
     if not result.objects:
         table.add_row(str(result.frame), "-", "-", "-", "-", "-", "-", "-")
@@ -109,7 +116,7 @@ def _object_rows(table: Table, result: FrameObjects) -> None:
 @_processing_options(locating=True)
 @click.option("--frame", "frame_index", type=int, default=0, show_default=True, help="Frame to image.")
 @click.option("--voxel-m", type=float, default=0.005, show_default=True, help="Voxel edge of the grid, m.")
-@click.option("-o", "--output", "output_path", required=True, type=click.Path(path_type=Path), help="PNG.")
+@_path_option("-o", "--output", "output_path", required=True, help="PNG.")
 def image_command(processing: Processing, frame_index: int, voxel_m: float, output_path: Path) -> None:
     """Back-project one frame of RECORDING onto the cubic metre in front and save the image.
 
@@ -158,14 +165,7 @@ def image_command(processing: Processing, frame_index: int, voxel_m: float, outp
 
 @cli.command(name="export")
 @_processing_options(locating=True)
-@click.option(
-    "-o",
-    "--output",
-    "output_path",
-    required=True,
-    type=click.Path(path_type=Path),
-    help="OUT.mcap (ROS 2 Jazzy PointCloud2 + Range per receiver) or OUT.ply (points).",
-)
+@_output_option("OUT.mcap (ROS 2 Jazzy PointCloud2 + Range per receiver) or OUT.ply (points).")
 @click.option("--start-time-s", type=float, default=0.0, show_default=True, help="ROS time of frame 0, s.")
 @click.option("--ascii", "ascii_ply", is_flag=True, help="PLY as text instead of binary.")
 @click.option("--per-frame", is_flag=True, help="PLY: one file per frame (OUT_000000.ply, ...).")
@@ -236,13 +236,8 @@ def _extent_option(text: str | None, dims: int) -> list[tuple[float, float]] | N
 
 @cli.command(name="map")
 @_processing_options(locating=True)
-@click.option(
-    "-o",
-    "--output",
-    "output_path",
-    required=True,
-    type=click.Path(path_type=Path),
-    help="OUT.png (picture), .npz (arrays), .ply (occupied cells), .bt/.ot (OctoMap) "
+@_output_option(
+    "OUT.png (picture), .npz (arrays), .ply (occupied cells), .bt/.ot (OctoMap) "
     "or .mcap (ROS 2: nav_msgs/OccupancyGrid or a cloud, /tf, objects).",
 )
 @click.option("--cell-m", type=float, default=0.02, show_default=True, help="Cell edge, m.")
@@ -262,11 +257,9 @@ def _extent_option(text: str | None, dims: int) -> list[tuple[float, float]] | N
     help="Grid extent: x0,x1,z0,z1 (floor plan) or x0,x1,y0,y1,z0,z1 (3-D), m "
     "[default: everywhere the sensor could hear].",
 )
-@click.option(
+@_path_option(
     "--trajectory",
     "trajectory_path",
-    type=click.Path(path_type=Path),
-    default=None,
     help="Sensor poses, TUM format (time x y z qx qy qz qw per line) "
     "[default: the recording's sensor_poses].",
 )
@@ -441,9 +434,7 @@ def _print_evaluation(report: Evaluation, path: Path, estimator: str) -> None:
 
 @cli.command(name="calibrate")
 @_processing_options(locating=False, calibrated=False)
-@click.option(
-    "-o", "--output", type=click.Path(path_type=Path), required=True, help="Calibration JSON to write."
-)
+@_path_option("-o", "--output", required=True, help="Calibration JSON to write.")
 def calibrate_command(processing: Processing, output: Path) -> None:
     """Fit the speed of sound and a delay per receiver from frames with known targets (truth_positions).
 

@@ -12,7 +12,16 @@ from typing import Any
 import click
 from rich.table import Table
 
-from echoloc.cli.app import _WORKERS_OPTION, _finite, _interrupt_cleanly, _threshold_db, _warn, cli, stderr
+from echoloc.cli.app import (
+    _WORKERS_OPTION,
+    _finite,
+    _interrupt_cleanly,
+    _path_option,
+    _threshold_db,
+    _warn,
+    cli,
+    stderr,
+)
 from echoloc.cli.basics import _object_cells
 from echoloc.errors import EchoLocError
 from echoloc.io.output import json_line, objects_record
@@ -47,11 +56,9 @@ def _listen_options(func: Callable[..., None]) -> Callable[..., None]:
             help="Where to listen (127.0.0.1: this machine only; 0.0.0.0 for every interface).",
         ),
         click.option("--udp", is_flag=True, help="UDP (one datagram a frame) instead of TCP."),
-        click.option(
+        _path_option(
             "--geometry",
             "geometry_path",
-            type=click.Path(path_type=Path),
-            default=None,
             help="Take the session (geometry, waveform, air) from this recording instead of the "
             "sender's session message.",
         ),
@@ -211,9 +218,7 @@ def send_command(
 @cli.command(name="stream")
 @_listen_options
 @click.option("--json", "as_json", is_flag=True, help="JSON Lines of `echoloc locate --json`, one a frame.")
-@click.option(
-    "--record", "record_path", type=click.Path(path_type=Path), default=None, help="Also record to HDF5."
-)
+@_path_option("--record", "record_path", default=None, help="Also record to HDF5.")
 @click.option("--force", is_flag=True, help="Let --record replace an existing file.")
 @click.option("--view", is_flag=True, help="Serve the live view (Foxglove WebSocket) on 127.0.0.1.")
 @click.option(
@@ -242,11 +247,9 @@ def send_command(
 )
 @click.option("--blanking-s", type=float, default=0.0, show_default=True, help="Ignore earlier echoes, s.")
 @click.option("--speed-of-sound", "speed_of_sound_m_s", type=float, default=None, help="Override, m/s.")
-@click.option(
+@_path_option(
     "--calibration",
     "calibration_path",
-    type=click.Path(path_type=Path),
-    default=None,
     help="From `echoloc calibrate`.",
 )
 @_WORKERS_OPTION

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -79,38 +79,38 @@ def live_mapper(header: Recording, chain: Chain) -> Any:
     return chain_accumulator(chain, spec)
 
 
+def _ignore_result(frame: StreamFrame, result: StreamResult) -> None:
+    del frame, result
+
+
+def _ignore_message(text: str) -> None:
+    del text
+
+
+@dataclass(eq=False)
 class LiveSession:
     """Sessions and frames from a listener, through the chain, to the caller and the view.
 
     ``make_chain`` prepares a session's chain when the listener did not (``--geometry``);
     ``deadline_s`` is each frame's processing deadline; ``record_path``: record the first
     session's frames there; ``view``: a :class:`~echoloc.realtime.liveview.LiveView`.
+    The fields after those are its state: the processor (from the first session on), the
+    recorder, the current session's header and live map, and a recorder's failure.
     """
 
-    def __init__(
-        self,
-        listener: Any,
-        make_chain: Callable[[Recording], Chain],
-        deadline_s: float,
-        record_path: Path | None = None,
-        *,
-        view: Any = None,
-        on_result: Callable[[StreamFrame, StreamResult], None] = lambda frame, result: None,
-        on_message: Callable[[str], None] = lambda text: None,
-    ) -> None:
-        self.listener = listener
-        self.make_chain = make_chain
-        self.deadline_s = deadline_s
-        self.record_path = record_path
-        self.view = view
-        self.on_result = on_result
-        self.on_message = on_message
-        self.processor: StreamProcessor | None = None
-        self.recorder: Any = None
-        self.header: Recording | None = None
-        self.mapper: Any = None
-        self.record_error: BaseException | None = None
-        self._last_map = 0.0
+    listener: Any
+    make_chain: Callable[[Recording], Chain]
+    deadline_s: float
+    record_path: Path | None = None
+    view: Any = field(default=None, kw_only=True)
+    on_result: Callable[[StreamFrame, StreamResult], None] = field(default=_ignore_result, kw_only=True)
+    on_message: Callable[[str], None] = field(default=_ignore_message, kw_only=True)
+    processor: StreamProcessor | None = field(default=None, init=False)
+    recorder: Any = field(default=None, init=False)
+    header: Recording | None = field(default=None, init=False)
+    mapper: Any = field(default=None, init=False)
+    record_error: BaseException | None = field(default=None, init=False)
+    _last_map: float = field(default=0.0, init=False)
 
     def stats(self) -> Any:
         """The stream's counters: the listener's and the processor's, over every session."""
