@@ -4,7 +4,7 @@ Echoes and objects of the room scene (examples/mapping/room.toml) are computed f
 and not timed; what is timed is the map update alone: every channel's inverse sensor
 model and the frame's combination, by :class:`echoloc.maps.mapping.MapAccumulator`
 (compiled loops) and by the same model written in numpy
-(:func:`echoloc.maps._mapping_kernels.channel_update_reference`), in alternating rounds of
+(``channel_update_reference`` of ``tests/mapping_oracle.py``), in alternating rounds of
 one run (the machine is shared). Grids: the issue's 200 x 200 x 100 cells of 1 cm
 (x and z 2 m, y 1 m: 4 M cells) and floor plans at 1 and 2 cm.
 
@@ -18,6 +18,7 @@ import math
 import os
 import resource
 import statistics
+import sys
 import time
 import tracemalloc
 from pathlib import Path
@@ -27,7 +28,6 @@ from scipy.spatial.transform import Rotation
 
 from echoloc import pipeline
 from echoloc.io.recording import Recording
-from echoloc.maps import _mapping_kernels as kernels
 from echoloc.maps.mapping import (
     GridSpec,
     MapAccumulator,
@@ -39,6 +39,9 @@ from echoloc.maps.mapping import (
 from echoloc.sim.scenefile import load_scene
 from echoloc.sim.simulation import simulate
 from echoloc.tof.echoes import FrameEchoes
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from mapping_oracle import channel_update_reference
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results" / "mapping_speed.md"
@@ -76,7 +79,7 @@ def _numpy_map(spec: GridSpec, recording: Recording, frames: list[FrameEchoes]) 
             if np.any(upper <= lower):
                 continue
             parts.append(
-                kernels.channel_update_reference(
+                channel_update_reference(
                     spec.origin_m,
                     spec.cell_m,
                     shape,

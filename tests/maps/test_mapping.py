@@ -35,6 +35,7 @@ from echoloc.sim.reflectors import Edge, Plane, surface_points_m
 from echoloc.sim.scene import Array, Scene, SensorMotion
 from echoloc.sim.simulation import simulate
 from echoloc.tof.echoes import ChannelEchoes, FrameEchoes
+from mapping_oracle import channel_update_reference
 
 C = 343.0
 FS = 200e3
@@ -480,7 +481,7 @@ def test_compiled_channel_update_equals_its_numpy_statement(
     head = (spec.origin_m, spec.cell_m, shape)
     geometry = (tx, rx, tx_axis, rx_axis)
     clear_cos = math.cos(math.radians(7.4))
-    cells, ref_occupied, ref_free, ref_arc, ref_central = kernels.channel_update_reference(
+    cells, ref_occupied, ref_free, ref_arc, ref_central = channel_update_reference(
         *head, np.zeros(3, np.int64), shape, *geometry, *model, hit_axes, clear_cos, 0.05
     )
     if bounds is None:
