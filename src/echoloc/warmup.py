@@ -4,17 +4,17 @@ The kernels (``tof/_echoes_kernels.py``, ``localise/_locate_kernels.py``,
 ``maps/_mapping_kernels.py``, ``_chain_kernels.py``) compile on their first call and are
 cached on disk beside their module (or in ``NUMBA_CACHE_DIR``). That first compilation
 takes minutes on a small machine; later runs load the cache in about a second.
-:func:`warm_up` makes the calls that compile them, one stage at a time, so that a user
-can do it once with progress (``echoloc warmup``) instead of meeting it, silent, inside
-the first command. :func:`kernels_cold` tells from the on-disk cache whether that first
-compilation is still ahead.
+The steps of :func:`warm_up_steps` make the calls that compile them, one stage at a
+time, so that a user can do it once with progress (``echoloc warmup``) instead of
+meeting it, silent, inside the first command. :func:`kernels_cold` tells from the
+on-disk cache whether that first compilation is still ahead.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import importlib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -46,20 +46,10 @@ def kernels_cold() -> bool:
 
 @dataclasses.dataclass(frozen=True)
 class WarmUpStep:
-    """One stage of :func:`warm_up`: its name and the calls that compile its kernels."""
+    """One stage of :func:`warm_up_steps`: its name and the calls that compile its kernels."""
 
     name: str
     run: Callable[[], Any]
-
-
-def _matched_chain(workers: int = 1) -> Any:
-    from echoloc.pipeline import prepare, run
-    from echoloc.sim.scene import default_scene
-    from echoloc.sim.simulation import simulate
-    from echoloc.tof.echoes import EchoOptions
-
-    recording = simulate(default_scene(), 4)
-    return list(run(prepare(recording, echo_options=EchoOptions(workers=workers))))
 
 
 def _crowded_chain() -> Any:
@@ -110,21 +100,19 @@ def _occupancy_map() -> Any:
 
 
 def warm_up_steps(workers: int = 2) -> tuple[WarmUpStep, ...]:
-    """The stages :func:`warm_up` compiles, in order (``workers``: also the threaded
+    """The stages ``echoloc warmup`` compiles, in order (``workers``: also the threaded
     matched filter, as ``--workers N`` runs it, when above 1)."""
+    from echoloc.realtime.stream import warm_kernels  # a stream's own warm-up: the same kernels
+
     steps = [
-        WarmUpStep("matched filter and association", _matched_chain),
+        WarmUpStep("matched filter and association", lambda: warm_kernels("matched", 1)),
         WarmUpStep("overlapping echoes (CLEAN, shared echoes)", _crowded_chain),
         WarmUpStep("envelope chips (CH101 preset)", _envelope_chain),
         WarmUpStep("occupancy maps", _occupancy_map),
     ]
     if workers > 1:
-        steps.insert(1, WarmUpStep(f"matched filter on {workers} threads", lambda: _matched_chain(workers)))
+        threaded = WarmUpStep(
+            f"matched filter on {workers} threads", lambda: warm_kernels("matched", workers)
+        )
+        steps.insert(1, threaded)
     return tuple(steps)
-
-
-def warm_up(workers: int = 2) -> Iterator[str]:
-    """Compile (or load) every stage's kernels; yields each step's name as it starts."""
-    for step in warm_up_steps(workers):
-        yield step.name
-        step.run()
