@@ -1,6 +1,6 @@
 """Back-projection of 1 m^3 at 5 mm per frame: coarse-to-fine against the brute-force full grid.
 
-Scene: ``examples/random-1m3.toml`` (the report's array: T at the origin, four
+Scene: ``random-1m3`` (the report's array: T at the origin, four
 receivers 0.25 m away on x and y) with 1 to 6 point reflectors per frame. Grid: x, y
 in +-0.5 m, z 0.2-1.2 m, 5 mm voxels (200^3 = 8 million voxels, 4 channels).
 
@@ -85,7 +85,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=17)
     args = parser.parse_args()
 
-    data = tomllib.loads((ROOT / "examples" / "random-1m3.toml").read_text())
+    data = tomllib.loads((ROOT / "src" / "echoloc" / "scenes" / "random-1m3.toml").read_text())
     data["random_reflectors"]["count"] = [1, 6]
     data["seed"] = args.seed
     recording = simulate(scene_from_dict(data, "random-1m3.toml (1-6 reflectors)"), args.frames)
@@ -145,7 +145,7 @@ def main() -> None:
         f"--brute-frames {args.brute_frames}` on {date.today()}, this project's shared 2-core machine "
         "(other people's jobs ran at the same time; the ratios matter more than the absolute times).",
         "",
-        f"Scene: examples/random-1m3.toml with 1-6 reflectors ({counts.mean():.1f} per frame on average), "
+        f"Scene: random-1m3 with 1-6 reflectors ({counts.mean():.1f} per frame on average), "
         f"{recording.n_frames} frames. Grid {table.grid.shape[0]} x {table.grid.shape[1]} x "
         f"{table.grid.shape[2]} voxels of {table.grid.voxel_m * 1e3:g} mm (x, y in +-0.5 m, z 0.2-1.2 m), "
         f"4 channels, image = 4th-largest channel SNR, threshold {fine_options.threshold_db:g} dB.",

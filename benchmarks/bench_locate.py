@@ -1,6 +1,6 @@
 """Localisation on the issue's scene: accuracy over 1000 frames and time per frame by object count.
 
-The scene is ``examples/random-1m3-six.toml``: 1 to 6 point reflectors per frame in the
+The scene is ``random-1m3-six``: 1 to 6 point reflectors per frame in the
 cubic metre in front of the report's array (0.5 mm of random error on every path,
 strengths 0.5-2). The echoes of every frame are found
 once; then, on the same echoes:
@@ -54,7 +54,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=None, help="another draw of the scene")
     args = parser.parse_args()
 
-    data = tomllib.loads((ROOT / "examples" / "random-1m3-six.toml").read_text())
+    data = tomllib.loads((ROOT / "src" / "echoloc" / "scenes" / "random-1m3-six.toml").read_text())
     if args.seed is not None:
         data["seed"] = args.seed
     recording = simulate(scene_from_dict(data, "random-1m3-six.toml"), args.frames)

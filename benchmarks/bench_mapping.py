@@ -1,6 +1,6 @@
 """Mapping throughput: frames/s and memory of the occupancy grid, compiled beside numpy.
 
-Echoes and objects of the room scene (examples/mapping/room.toml) are computed first
+Echoes and objects of the room scene (mapping/room) are computed first
 and not timed; what is timed is the map update alone: every channel's inverse sensor
 model and the frame's combination, by :class:`echoloc.maps.mapping.MapAccumulator`
 (compiled loops) and by the same model written in numpy
@@ -147,7 +147,9 @@ def main() -> None:
     args = parser.parse_args()
 
     load = os.getloadavg()[0]
-    recording = simulate(load_scene(ROOT / "examples" / "mapping" / "room.toml"), args.frames)
+    recording = simulate(
+        load_scene(ROOT / "src" / "echoloc" / "scenes" / "mapping" / "room.toml"), args.frames
+    )
     chain = pipeline.prepare(recording)
     frames = [echoes for echoes, _ in pipeline.run(chain)]
     grids = {
@@ -189,7 +191,7 @@ def main() -> None:
         "",
         f"Load average at start: {load:.2f} on {os.cpu_count()} cores (the machine is shared).",
         "",
-        f"Room scene (examples/mapping/room.toml), {args.frames} frames x 4 receivers, echoes computed "
+        f"Room scene (mapping/room), {args.frames} frames x 4 receivers, echoes computed "
         "beforehand; the map update alone, one core, median of alternating rounds "
         f"(numpy on the first {args.numpy_frames} frames).",
         "",

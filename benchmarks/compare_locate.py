@@ -89,7 +89,7 @@ def main() -> None:
 
     base = _base_locate(args.base)
     if args.reflectors is None:
-        data = tomllib.loads((ROOT / "examples" / "random-1m3-six.toml").read_text())
+        data = tomllib.loads((ROOT / "src" / "echoloc" / "scenes" / "random-1m3-six.toml").read_text())
         scene = scene_from_dict(data, "random-1m3-six.toml")
     else:
         scene = bench_scene(args.reflectors)

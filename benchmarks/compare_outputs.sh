@@ -9,8 +9,8 @@ BEFORE=$1; AFTER=$2
 HERE=$(cd "$(dirname "$0")/.." && pwd)
 REAL=${3:-$HERE/../shared/data/ch101-spiel/dev.h5}
 WORK=$(mktemp -d)
-"$BEFORE" simulate "$HERE/examples/random-1m3.toml" -o "$WORK/rf.h5" --frames 20 >/dev/null
-"$BEFORE" simulate "$HERE/examples/random-1m3-six.toml" -o "$WORK/six.h5" --frames 10 >/dev/null
+"$BEFORE" simulate "$HERE/src/echoloc/scenes/random-1m3.toml" -o "$WORK/rf.h5" --frames 20 >/dev/null
+"$BEFORE" simulate "$HERE/src/echoloc/scenes/random-1m3-six.toml" -o "$WORK/six.h5" --frames 10 >/dev/null
 (cd "$WORK" && "$BEFORE" simulate ch101 -o "$WORK/env.h5" --frames 20 >/dev/null)
 run() {  # run ECHOLOC OUTDIR
     E=$1; O=$2; mkdir -p "$O"

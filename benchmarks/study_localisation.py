@@ -1,6 +1,6 @@
 """Peaks to points against points to peaks: association and back-projection on the same recordings.
 
-The issue's scene: ``examples/random-1m3.toml`` with 1 to 6 point reflectors per frame
+The issue's scene: ``random-1m3`` with 1 to 6 point reflectors per frame
 at random in the cubic metre in front of the report's array, σ_path 0.5 mm, SNR
 20 dB. Every approach sees the same frames:
 
@@ -74,7 +74,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=29)
     args = parser.parse_args()
 
-    data = tomllib.loads((ROOT / "examples" / "random-1m3.toml").read_text())
+    data = tomllib.loads((ROOT / "src" / "echoloc" / "scenes" / "random-1m3.toml").read_text())
     data["random_reflectors"]["count"] = [1, 6]
     data["seed"] = args.seed
     recording = simulate(scene_from_dict(data, "random-1m3.toml (1-6 reflectors)"), args.frames)
@@ -136,7 +136,7 @@ def main() -> None:
         f"`python benchmarks/study_localisation.py --frames {args.frames} --raw-frames {args.raw_frames}` "
         f"on {date.today()}, this project's shared 2-core machine.",
         "",
-        f"{recording.n_frames} frames of examples/random-1m3.toml with 1-6 point reflectors "
+        f"{recording.n_frames} frames of random-1m3 with 1-6 point reflectors "
         f"({int(counts.sum())} in all), σ_path 0.5 mm, SNR 20 dB, strengths 0.5-2. Back-projection grid: "
         f"{bp.table.grid.shape} voxels of {bp.table.grid.voxel_m * 1e3:g} mm, support rule: "
         f"4 of 4 channels ({BackprojectionOptions().threshold_db:g} dB each).",

@@ -1,6 +1,6 @@
 """Mapping study: a simulated room mapped by a moving, spinning sensor, and what a pan scan adds.
 
-1. **Room** (examples/mapping/room.toml): four walls, a box and a pole, double
+1. **Room** (mapping/room): four walls, a box and a pole, double
    reflections on; the head drives diagonally and spins at 30 deg/s for one turn
    (1200 frames). The floor plan at 2 cm (and 1 cm) is scored against the true
    surfaces (:func:`echoloc.maps.mapping.map_accuracy`):
@@ -14,7 +14,7 @@
    - *ghosts in free space*: occupied cells in the room's interior, farther than 1.5
      cells from every surface, as a fraction of the observed interior and as area.
 
-2. **Mechanical scanning** (examples/mapping/pan-scan.toml): the head standing still
+2. **Mechanical scanning** (mapping/pan-scan): the head standing still
    with a fixed boresight, then panning +-45 degrees (period 4 s), 400 frames each:
    the area it observes and the poles and wall it hears.
 
@@ -51,8 +51,8 @@ from echoloc.sim.simulation import simulate
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
-ROOM = ROOT / "examples" / "mapping" / "room.toml"
-SCAN = ROOT / "examples" / "mapping" / "pan-scan.toml"
+ROOM = ROOT / "src" / "echoloc" / "scenes" / "mapping" / "room.toml"
+SCAN = ROOT / "src" / "echoloc" / "scenes" / "mapping" / "pan-scan.toml"
 # The room's interior and the box, from room.toml.
 ROOM_X, ROOM_Z = (-1.4, 1.6), (-1.0, 2.0)
 BOX_X, BOX_Z = (0.2, 0.6), (1.1, 1.5)

@@ -1,6 +1,6 @@
 """Accuracy of every registered time-of-flight estimator against the report and the Cramér-Rao bound.
 
-In simulation, with the report's set-up (``examples/report/*.toml``: Polaroid-like
+In simulation, with the report's set-up (``report/*``: Polaroid-like
 50 kHz electrostatic pair, Barker-13 x 4 cycles, 200 kHz, 9 mm balls):
 
 1. the report's tables 4.1 (one ball at 0.577 m), 4.2 (0.3-1.0 m) and 4.3 (two and
@@ -67,7 +67,7 @@ from echoloc.tof.echoes import (
 from echoloc.tof.estimators import ESTIMATORS, Estimator, EstimatorInfo
 
 ROOT = Path(__file__).resolve().parent.parent
-REPORT = ROOT / "examples" / "report"
+REPORT = ROOT / "src" / "echoloc" / "scenes" / "report"
 TARGET_SNR = 13.0
 """Per-sample SNR of the report's ball echo at 0.577 m ("2 Vpp against 150 mV")."""
 BALL_RADIUS_M = 0.0045
@@ -682,7 +682,7 @@ def section_tables_41_42(md: Markdown, budget: Budget, out: Path) -> dict[str, f
 
     md("## 1. The report's tables in simulation\n")
     md(
-        "Set-up: `examples/report/ball-fixed.toml` (transmitter and receiver 4 cm apart, "
+        "Set-up: `report/ball-fixed` (transmitter and receiver 4 cm apart, "
         "`electrostatic50` pair, Barker-13 × 4 cycles at 50 kHz, ADC at 5 MHz decimated to 200 kHz, "
         "12 bits, 40 dB gain, ring-down), the ball a `Sphere(radius 0.0045)` on the boresight. "
         f"The scene file gives the ball's echo at 0.577 m a per-sample SNR (peak of the echo's envelope / "
@@ -999,7 +999,7 @@ def why_ours_differ(
 def section_table_43(md: Markdown, budget: Budget) -> None:
     md("### Table 4.3: two and three balls (per ball: detection rate and error, mm of range)\n")
     md(
-        "Set-ups: `examples/report/two-balls.toml` and `three-balls.toml` (transmitter at the centre, four "
+        "Set-ups: `report/two-balls` and `three-balls.toml` (transmitter at the centre, four "
         "receivers 0.25 m out, all aimed at the balls). The noise is scaled so that the first ball's echo "
         "has "
         f"per-sample SNR {TARGET_SNR:g} (mean over receivers); each ball's own SNR is listed. Every receiver "

@@ -419,10 +419,8 @@ position_m = [-0.08, 0.03, 0.7]
 
 
 def scene_seeds() -> list[Path]:
-    """Every scene file shipped with echoloc (examples and presets)."""
-    paths = sorted((ROOT / "examples").rglob("*.toml")) + sorted(
-        (ROOT / "src" / "echoloc" / "scenes").glob("*.toml")
-    )
+    """Every scene preset shipped with echoloc."""
+    paths = sorted((ROOT / "src" / "echoloc" / "scenes").rglob("*.toml"))
     return [path for path in paths if "sweep" not in path.name]
 
 

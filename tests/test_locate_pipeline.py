@@ -12,13 +12,13 @@ from echoloc.sim.scenefile import load_scene
 from echoloc.sim.simulation import simulate
 from repo_paths import REPO
 
-EXAMPLES = REPO / "examples"
+SCENES = REPO / "src" / "echoloc" / "scenes"
 
 
 def test_two_transmitters_fired_in_turn_are_located_together() -> None:
-    """examples/two-transmitters.toml: from the second frame on every object rests on
+    """two-transmitters: from the second frame on every object rests on
     eight ellipsoids (2 transmitters x 4 receivers) and is tighter than on four."""
-    recording = simulate(load_scene(EXAMPLES / "two-transmitters.toml"), 6)
+    recording = simulate(load_scene(SCENES / "two-transmitters.toml"), 6)
     chain = pipeline.prepare(recording)
     assert pipeline.combines_transmitters(chain)
     results = [objects for _, objects in pipeline.run(chain)]
@@ -41,7 +41,7 @@ def test_the_transducers_beam_bounds_what_locate_accepts() -> None:
     """With the 50 kHz preset the recording carries the piston's first-null half-angle,
     sin(theta) = 3.8317 / (k a) (Kinsler, section 7.4), and locate uses it: the third
     ball, outside two receivers' beams, is not invented from other balls' echoes."""
-    scene = load_scene(EXAMPLES / "report-three-balls-transducers.toml")
+    scene = load_scene(SCENES / "report-three-balls-transducers.toml")
     recording = simulate(scene, 4)
     model = PRESETS[scene.transducer or ""]
     ka = 2 * np.pi * scene.pulse.carrier_hz / scene.speed_of_sound_m_s * model.radius_m

@@ -38,7 +38,7 @@ from echoloc.sim.simulation import path_lengths_m, simulate
 from raw_files import write_raw
 from repo_paths import REPO
 
-EXAMPLES = REPO / "examples"
+SCENES = REPO / "src" / "echoloc" / "scenes"
 ECHOLOC = Path(sys.executable).parent / "echoloc"
 COMMANDS = ("demo", "simulate", "echoes", "locate", "evaluate")
 N_FRAMES = 2
@@ -448,9 +448,9 @@ def test_bad_frames_is_a_usage_error(
 
 
 def test_simulate_then_evaluate_random_scene(capsys: pytest.CaptureFixture[str], in_tmp: Path) -> None:
-    """User expectation (examples/random-1m3.toml, the acceptance scene): 30 simulated
+    """User expectation (random-1m3, the acceptance scene): 30 simulated
     frames are evaluated with recall >= 0.95 and a false rate <= 0.05."""
-    result = run(capsys, "simulate", EXAMPLES / "random-1m3.toml", "-o", "random.h5", "--frames", 30)
+    result = run(capsys, "simulate", SCENES / "random-1m3.toml", "-o", "random.h5", "--frames", 30)
     assert result.code == 0, result
     assert result.out == ""
     assert "Traceback" not in result.err
@@ -955,8 +955,8 @@ def test_backprojection_locates_two_transmitters_reflectors(
     capsys: pytest.CaptureFixture[str], in_tmp: Path
 ) -> None:
     """`--method backprojection` ("points to peaks") finds the three reflectors of
-    examples/two-transmitters.toml within 5 mm in every frame, and nothing else."""
-    scene = REPO / "examples" / "two-transmitters.toml"
+    two-transmitters within 5 mm in every frame, and nothing else."""
+    scene = REPO / "src" / "echoloc" / "scenes" / "two-transmitters.toml"
     assert run(capsys, "simulate", scene, "-o", "two.h5", "--frames", "3").code == 0
     result = run(
         capsys, "evaluate", "two.h5", "--method", "backprojection", "--json", "--match-radius-m", "0.005"
@@ -1101,13 +1101,13 @@ def test_messages_name_the_real_problem(
     assert_bad_input(run(capsys, "echoes", "folder"), "folder", "is a directory")
     shutil.copy(good_h5, in_tmp / "good.h5")
     assert_bad_input(
-        run(capsys, "simulate", EXAMPLES / "report-three-balls.toml", "-o", "good.h5/x.h5", "--frames", "1"),
+        run(capsys, "simulate", SCENES / "report-three-balls.toml", "-o", "good.h5/x.h5", "--frames", "1"),
         "'good.h5' is not a directory",
     )
     result = run(capsys, "record", "r.txt", "--duration", "1")
     assert_bad_input(result, "r.txt", "HDF5")
     assert ".npz" not in result.err
-    scene = (EXAMPLES / "report-three-balls.toml").read_text()
+    scene = (SCENES / "report-three-balls.toml").read_text()
     (in_tmp / "zero.toml").write_text(re.sub(r"carrier_hz\s*=\s*[0-9.e]+", "carrier_hz = 0", scene))
     assert_bad_input(run(capsys, "simulate", "zero.toml", "-o", "z.h5"), "zero.toml", "pulse.carrier_hz")
 
@@ -1168,7 +1168,7 @@ def test_sigterm_removes_a_half_written_recording_and_keeps_the_old_one(in_tmp: 
     target = in_tmp / "keep.h5"
     shutil.copy(good_h5, target)
     before = target.read_bytes()
-    scene = EXAMPLES / "report-three-balls.toml"
+    scene = SCENES / "report-three-balls.toml"
     process = subprocess.Popen(
         [str(ECHOLOC), "simulate", str(scene), "--frames", "200000", "-o", str(target)],
         cwd=in_tmp,

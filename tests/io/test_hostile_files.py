@@ -36,7 +36,7 @@ from echoloc.localise.calibrate import read_calibration
 from echoloc.sim.scenefile import load_scene, scene_from_dict
 from repo_paths import REPO
 
-SCENE = REPO / "examples" / "report-three-balls.toml"
+SCENE = REPO / "src" / "echoloc" / "scenes" / "report-three-balls.toml"
 
 
 def small_recording() -> Recording:

@@ -386,7 +386,7 @@ def test_design_command_bad_values_give_one_line_and_exit_2(
 
 def test_design_command_maps_a_scene_files_array(capsys: pytest.CaptureFixture[str]) -> None:
     """--scene: the GDOP figures are those of the scene's array, here the report's head (d = 0.25 m)."""
-    scene = REPO / "examples" / "report-three-balls.toml"
+    scene = REPO / "src" / "echoloc" / "scenes" / "report-three-balls.toml"
     with pytest.raises(SystemExit) as exit_info:
         main(["design", "--scene", str(scene), "--plane", "xy", "--json"])
     assert exit_info.value.code == 0

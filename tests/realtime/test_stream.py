@@ -41,7 +41,7 @@ from echoloc.sim.scenefile import load_scene
 from echoloc.sim.simulation import recording_header, simulate
 from repo_paths import REPO
 
-EXAMPLES = REPO / "examples"
+SCENES = REPO / "src" / "echoloc" / "scenes"
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +51,7 @@ def recording():
 
 @pytest.fixture(scope="module")
 def two_tx():
-    return simulate(load_scene(EXAMPLES / "two-transmitters.toml"), 6)
+    return simulate(load_scene(SCENES / "two-transmitters.toml"), 6)
 
 
 def _records(pairs):
@@ -362,7 +362,7 @@ def test_a_sender_written_from_the_protocol_page_alone_is_located_right():
     import subprocess
     import sys
 
-    script = EXAMPLES / "minimal_sender.py"
+    script = REPO / "examples" / "minimal_sender.py"
     assert "echoloc" not in {
         line.split()[1].split(".")[0]
         for line in script.read_text().splitlines()

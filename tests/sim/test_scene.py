@@ -1,8 +1,8 @@
 """Tests of echoloc.sim.scene: the report's set-up and the validated TOML scene files.
 
 Sources: docs/METHOD.md (report ch. 4, table 4.3: balls at 580, 596 and 665 mm; Barker-13,
-50 kHz, decimated to 200 kHz; four receivers 0.25 m from the transmitter), the
-examples/ scene files, and errors.py (messages name the file, the field, the value).
+50 kHz, decimated to 200 kHz; four receivers 0.25 m from the transmitter), the scene presets, and errors.py
+(messages name the file, the field, the value).
 """
 
 from __future__ import annotations
@@ -17,13 +17,30 @@ import pytest
 
 from echoloc.errors import EchoLocError, SceneError
 from echoloc.sim.scene import Array, Scene, SensorMotion, default_scene
-from echoloc.sim.scenefile import load_scene
+from echoloc.sim.scenefile import load_scene, preset_names, preset_path
 from repo_paths import REPO
 
-EXAMPLES = REPO / "examples"
-REPORT_TOML = EXAMPLES / "report-three-balls.toml"
-RANDOM_TOML = EXAMPLES / "random-1m3.toml"
+SCENES = REPO / "src" / "echoloc" / "scenes"
+REPORT_TOML = SCENES / "report-three-balls.toml"
+RANDOM_TOML = SCENES / "random-1m3.toml"
 ONE_REFLECTOR = "[[reflectors]]\nposition_m = [0.0, 0.0, 1.0]\n"
+
+
+def test_every_scene_file_shipped_is_a_preset_by_its_name(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each TOML under echoloc/scenes loads by its name (folder/file without .toml) from any
+    directory, as that file; a file of that name in the working directory wins."""
+    files = sorted(SCENES.rglob("*.toml"))
+    names = [path.relative_to(SCENES).with_suffix("").as_posix() for path in files]
+    assert list(preset_names()) == sorted(names)
+    assert {"ch101", "random-1m3", "report/ball-fixed", "mapping/room"} <= set(names)
+    monkeypatch.chdir(tmp_path)
+    for name, path in zip(names, files, strict=True):
+        assert preset_path(name) == path
+        assert repr(load_scene(name)) == repr(load_scene(path))  # (arrays inside: no ==)
+    (tmp_path / "random-1m3").write_text("[[reflectors]]\nposition_m = [0.0, 0.0, 2.0]\n")
+    assert load_scene("random-1m3").reflector_positions_m.tolist() == [[0.0, 0.0, 2.0]]
 
 
 def test_default_scene_array_is_the_reports() -> None:
@@ -84,7 +101,7 @@ def test_default_scene_snr_matches_the_report() -> None:
 
 
 def test_report_example_file_equals_default_scene() -> None:
-    """examples/report-three-balls.toml is default_scene(): same array, pulse, air, noise, balls (1 µm)."""
+    """report-three-balls is default_scene(): same array, pulse, air, noise, balls (1 µm)."""
     loaded = load_scene(REPORT_TOML)
     scene = default_scene()
     assert np.array_equal(loaded.array.transmitters_m, scene.array.transmitters_m)
@@ -101,7 +118,7 @@ def test_report_example_file_equals_default_scene() -> None:
 
 
 def test_random_example_file_loads() -> None:
-    """examples/random-1m3.toml: 1-5 reflectors in the cubic metre ahead, 0.5 mm path jitter, SNR 20 dB."""
+    """random-1m3: 1-5 reflectors in the cubic metre ahead, 0.5 mm path jitter, SNR 20 dB."""
     scene = load_scene(RANDOM_TOML)
     assert scene.random is not None
     assert scene.random.count == (1, 5)

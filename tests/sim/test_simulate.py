@@ -24,7 +24,7 @@ from echoloc.sim.simulation import path_lengths_m, simulate
 from echoloc.sim.synthesis import synthesize_frames
 from repo_paths import REPO
 
-RANDOM_TOML = REPO / "examples" / "random-1m3.toml"
+RANDOM_TOML = REPO / "src" / "echoloc" / "scenes" / "random-1m3.toml"
 FS = 200e3
 FC = 50e3
 # Gaussian-windowed 50 kHz tone: spectral std fs / (2 pi sigma) = 4 kHz, so its energy

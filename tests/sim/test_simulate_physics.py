@@ -46,7 +46,7 @@ FloatArray = NDArray[np.float64]
 FS = 200e3
 FC = 50e3
 C20 = float(speed_of_sound_m_s(20.0, 0.0))
-EXAMPLES = REPO / "examples"
+SCENES = REPO / "src" / "echoloc" / "scenes"
 
 
 # --- helpers -------------------------------------------------------------------------
@@ -973,12 +973,12 @@ def test_simulate_to_file_memory_does_not_grow_with_frames(tmp_path: Path) -> No
 
 # --- (17) example scene files ---------------------------------------------------------------------------
 
-EXAMPLE_FILES = sorted(EXAMPLES.glob("**/*.toml"))
+SCENE_FILES = sorted(SCENES.glob("**/*.toml"))
 
 
-@pytest.mark.parametrize("path", EXAMPLE_FILES, ids=[str(p.relative_to(EXAMPLES)) for p in EXAMPLE_FILES])
+@pytest.mark.parametrize("path", SCENE_FILES, ids=[str(p.relative_to(SCENES)) for p in SCENE_FILES])
 def test_example_scene_simulates_and_round_trips(path: Path, tmp_path: Path) -> None:
-    """Every examples/**/*.toml loads and simulates 2 frames without a warning; the recording carries
+    """Every **/* loads and simulates 2 frames without a warning; the recording carries
     the scene's shape, rate and frame times, and survives a write / read round trip."""
     with warnings.catch_warnings():
         warnings.simplefilter("error")

@@ -31,7 +31,7 @@ from echoloc.tof.echoes import EchoOptions, FrameEchoes, MatchedFilter
 from echoloc.tof.estimators import MatchedEstimator
 from repo_paths import REPO
 
-EXAMPLE = REPO / "examples" / "random-1m3.toml"
+EXAMPLE = REPO / "src" / "echoloc" / "scenes" / "random-1m3.toml"
 
 
 def _noise(rng: np.random.Generator, n_frames: int = 8, n_rx: int = 4, n: int = 2400) -> np.ndarray:

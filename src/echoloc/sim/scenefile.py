@@ -2,13 +2,14 @@
 
 Every key is checked: an unknown key, a missing one or a value of the wrong kind
 raises :class:`~echoloc.errors.SceneError` naming the file, the key and the value.
-The README's "Scene files" section lists every key; ``examples/`` has a file for
-each test set-up of the report's chapter 4.
+The README's "Scene files" section lists every key.
 
-Scene presets ship with the package as ``echoloc/scenes/NAME.toml``
-(:func:`preset_names`, :func:`preset_path`): :func:`load_scene` takes such a name
-(``ch101``) wherever no file of that name exists, so ``echoloc simulate ch101 -o
-out.h5`` simulates the CH101-like head.
+Scene presets ship with the package as ``echoloc/scenes/NAME.toml``, some in folders
+(``report/ball-fixed``: a scene for each test set-up of the report's chapter 4;
+``mapping/room``): :func:`preset_names`, :func:`preset_path`. :func:`load_scene` takes
+such a name wherever no file of that name exists, so ``echoloc simulate ch101 -o
+out.h5`` simulates the CH101-like head and ``echoloc simulate report/three-balls -o
+out.h5`` the report's three balls.
 """
 
 from __future__ import annotations
@@ -462,31 +463,37 @@ def _scene_from_dict(data: Mapping[str, Any], source: str) -> Scene:
 
 
 def preset_names() -> tuple[str, ...]:
-    """Names of the scene presets shipped in ``echoloc/scenes`` (file names without ``.toml``), sorted."""
+    """Names of the scene presets shipped in ``echoloc/scenes``, sorted: their paths there
+    without ``.toml``, ``/`` between folder and file (``ch101``, ``report/ball-fixed``)."""
     folder = resources.files("echoloc") / "scenes"
     if not folder.is_dir():
         return ()
-    return tuple(sorted(item.name[:-5] for item in folder.iterdir() if item.name.endswith(".toml")))
+    names = [item.name[:-5] for item in folder.iterdir() if item.name.endswith(".toml")]
+    for sub in folder.iterdir():
+        if sub.is_dir():
+            names += [f"{sub.name}/{item.name[:-5]}" for item in sub.iterdir() if item.name.endswith(".toml")]
+    return tuple(sorted(names))
 
 
 def preset_path(name: str) -> Path:
     """Path of the shipped scene preset ``name`` (``ch101`` or ``ch101.toml``); SceneError if none."""
-    stem = name[:-5] if name.endswith(".toml") else name
+    stem = name.removesuffix(".toml")
     if stem not in preset_names():
         presets = ", ".join(preset_names()) or "none"
         raise SceneError(f"{name}: no scene preset of that name (presets: {presets})")
-    return Path(str(resources.files("echoloc") / "scenes" / f"{stem}.toml"))
+    *folders, file = stem.split("/")
+    return Path(str(resources.files("echoloc").joinpath("scenes", *folders, f"{file}.toml")))
 
 
 def load_scene(path: str | Path) -> Scene:
     """Read and validate a scene TOML file, or a shipped preset by name (:func:`preset_names`).
 
-    A bare name (no folder) that is not an existing file but names a preset loads the
-    preset; an existing file always wins.
+    A name that is not an existing file but names a preset loads the preset; an existing
+    file always wins.
     """
     path = Path(path)
-    if not path.exists() and path.parent == Path(".") and str(path).removesuffix(".toml") in preset_names():
-        path = preset_path(str(path))
+    if not path.exists() and path.as_posix().removesuffix(".toml") in preset_names():
+        path = preset_path(path.as_posix())
     text = read_text_input(path, what="scene file", max_bytes=MAX_SCENE_FILE_BYTES, error=SceneError)
     try:
         data = tomllib.loads(text)
