@@ -14,17 +14,16 @@ from __future__ import annotations
 
 from typing import Any
 
-import numba
 import numpy as np
-from numba import njit
 
+from echoloc._jit import launch_threading_layer, njit
 from echoloc.localise._locate_kernels import associate_frame
 from echoloc.tof._echoes_kernels import correlate_and_fit
 
 # The kernel's cached machine code holds batch_echoes_parallel's, which calls numba's threading
 # layer. Loaded from the cache before that layer was launched it crashed the process (numba
 # 0.68: nothing launches it for a caller of a parallel kernel); this launches it.
-numba.get_num_threads()
+launch_threading_layer()
 
 LEFT_TO_CLEAN = -1
 """A frame's status when some channel of it is left to CLEAN (no association run)."""

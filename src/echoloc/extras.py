@@ -1,21 +1,24 @@
 """The optional parts of echoloc and what they need installed.
 
 The core (recordings, the simulator, time of flight, localisation, maps, the wire
-protocol, MCAP and PLY exports) installs with numpy, scipy, h5py, numba and the command
-line's click and rich. Three parts need more, each an extra of the package:
+protocol, MCAP and PLY exports) installs with numpy, scipy, h5py, mcap and the command
+line's click and rich. The rest are extras of the package:
 
+- ``fast``: the kernels compiled (numba, rocket-fft). Without it they run as plain Python,
+  the same answers about 5-20 times slower a frame, and echoloc says so once
+  (:mod:`echoloc._jit`);
 - ``plot``: every picture (``--plot``, ``image``, a ``map`` as PNG, ``design -o``): matplotlib;
 - ``live``: the live view of ``stream --view`` (Foxglove WebSocket): foxglove-sdk;
 - ``octomap``: maps written as OctoMap (``.bt``, ``.ot``): pyoctomap.
 
-``pip install 'echoloc[all]'`` installs all three.
+``pip install 'echoloc[all]'`` installs all four.
 """
 
 from __future__ import annotations
 
 from echoloc.errors import EchoLocError
 
-EXTRAS = {"plot": "matplotlib", "live": "foxglove-sdk", "octomap": "pyoctomap"}
+EXTRAS = {"fast": "numba", "plot": "matplotlib", "live": "foxglove-sdk", "octomap": "pyoctomap"}
 """Each extra and the distribution it installs."""
 
 

@@ -30,7 +30,12 @@ _ENTRY_KERNELS = (
 
 def kernels_cold() -> bool:
     """True when the entry kernels have no valid on-disk cache (the next chain compiles
-    them); False when they have one, or when numba's cache cannot be inspected."""
+    them); False when they have one, when numba is not installed (nothing compiles), or
+    when numba's cache cannot be inspected."""
+    from echoloc._jit import HAVE_NUMBA
+
+    if not HAVE_NUMBA:
+        return False
     for module_name, function_name in _ENTRY_KERNELS:
         dispatcher = getattr(importlib.import_module(module_name), function_name)
         try:

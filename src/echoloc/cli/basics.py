@@ -31,7 +31,7 @@ from echoloc.pipeline import (
     recording_speed_of_sound_m_s,
 )
 from echoloc.sim.scene import default_scene
-from echoloc.sim.scenefile import load_scene
+from echoloc.sim.scenefile import load_scene, preset_names
 from echoloc.sim.simulation import recording_header, simulate, simulate_to_file
 from echoloc.tof.envelope_peaks import peak_delay_s
 from echoloc.tof.templates import cut_template, write_template
@@ -49,7 +49,12 @@ from echoloc.tof.templates import cut_template, write_template
 )
 def warmup_command(workers: int) -> None:
     """Compile the numba kernels now, once, with progress; later runs load them from the cache."""
+    from echoloc._jit import HAVE_NUMBA
     from echoloc.warmup import kernels_cold, warm_up_steps
+
+    if not HAVE_NUMBA:
+        click.echo("nothing to compile: numba is not installed (pip install 'echoloc[fast]')")
+        return
 
     steps = warm_up_steps(workers)
     cold = kernels_cold()
@@ -187,13 +192,14 @@ def _object_cells(obj: Any) -> list[str]:
 # --- simulate ----------------------------------------------------------------------
 
 
-@cli.command(name="simulate")
-@click.argument("scene_path", metavar="SCENE.toml", type=click.Path(path_type=Path))
+@cli.command(name="simulate", epilog=f"Presets: {', '.join(preset_names())}.")
+@click.argument("scene_path", metavar="SCENE", type=click.Path(path_type=Path))
 @_path_option("-o", "--output", required=True, help="Recording to write (.h5 or .npz).")
 @click.option("--frames", "n_frames", type=click.IntRange(1, 10_000_000), default=1, show_default=True)
 @click.option("--seed", type=int, default=None, help="Override the scene's random seed.")
 def simulate_command(scene_path: Path, output: Path, n_frames: int, seed: int | None) -> None:
-    """Simulate a scene file and write the recording, with truth_positions per frame."""
+    """Simulate a scene (a TOML file, or a preset shipped with echoloc by name) and write
+    the recording, with truth_positions per frame."""
     scene = load_scene(scene_path)
     if seed is not None:
         scene = replace(scene, seed=seed)

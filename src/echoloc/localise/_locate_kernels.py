@@ -34,7 +34,8 @@ from collections.abc import Callable
 from typing import Any, TypeVar, cast
 
 import numpy as np
-from numba import njit
+
+from echoloc._jit import njit
 
 OWN, SHARED, NONE = 0, 1, 2
 
@@ -1685,10 +1686,12 @@ def first_of_each(echo: Any, use: Any, count: int) -> Any:  # pragma: no cover -
     first = np.empty(count, dtype=np.int64)
     n_first = 0
     for row in range(count):
-        h = 1469598103934665603
+        # FNV-1a, 32-bit, masked every step: no product overflows int64 (numba wraps
+        # silently; numpy scalars, when the kernel runs uncompiled, warn).
+        h = 2166136261
         for c in range(n_ch):
-            h = (h ^ (echo[row, c] + 1)) * 1099511628211
-            h = (h ^ use[row, c]) * 1099511628211
+            h = ((h ^ (echo[row, c] + 1)) * 16777619) & 0xFFFFFFFF
+            h = ((h ^ use[row, c]) * 16777619) & 0xFFFFFFFF
         slot = h & (size - 1)
         while True:
             other = table[slot]

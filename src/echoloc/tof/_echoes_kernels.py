@@ -32,8 +32,8 @@ from typing import Any
 
 import numpy as np
 import scipy.fft
-from numba import njit, prange
 
+from echoloc._jit import njit, prange
 from echoloc.tof.echoes import _PRECISION_AMPLITUDE, _PRECISION_POWER
 
 

@@ -1173,14 +1173,9 @@ def run_kernel(parts: int, kernel: Callable[..., Any], *arguments: Any) -> Any:
 
 def _kernel_threads(threads: int, tasks: int) -> int:
     """Threads for a compiled parallel loop over ``tasks``, set as numba's count for the call."""
-    if threads <= 1 or tasks <= 1:
-        return 1
-    import numba
+    from echoloc._jit import set_threads
 
-    count = max(1, min(threads, tasks, int(numba.config.NUMBA_NUM_THREADS)))  # type: ignore[attr-defined]
-    if count > 1:
-        numba.set_num_threads(count)
-    return count
+    return set_threads(threads, tasks)
 
 
 _FastResult = tuple[NDArray[np.float64], NDArray[np.float64], float]
