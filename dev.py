@@ -6,6 +6,7 @@ Needs only python3 (>= 3.10) on the machine:
     python3 dev.py demo     # install, then run `echoloc demo` on the default scene
     python3 dev.py test     # install, then ruff, mypy and pytest
     python3 dev.py bench    # install, then the speed benchmarks
+    python3 dev.py docs     # install, then build the API reference (docs/api/_build/html), warnings as errors
     python3 dev.py shell    # print how to activate the environment
     python3 dev.py oldest   # the oldest supported Python and numpy: install, demo, quick tests
 
@@ -27,6 +28,8 @@ VENV = ROOT / ".venv"
 BIN = VENV / ("Scripts" if os.name == "nt" else "bin")
 PYTHON = BIN / ("python.exe" if os.name == "nt" else "python")
 STAMP = VENV / ".echoloc-installed"
+DOCS_SOURCE = Path("docs") / "api"
+DOCS_OUTPUT = DOCS_SOURCE / "_build" / "html"
 
 
 def _run(*args: str | Path) -> None:
@@ -126,7 +129,7 @@ def main(argv: list[str]) -> None:
     if job == "oldest":
         oldest(rest)
         return
-    if job not in {"demo", "test", "bench", "shell"}:
+    if job not in {"demo", "test", "bench", "docs", "shell"}:
         print(__doc__)
         sys.exit(0 if job in {"help", "-h", "--help"} else 2)
     ensure_environment()
@@ -140,6 +143,10 @@ def main(argv: list[str]) -> None:
     elif job == "bench":
         for script in sorted((ROOT / "benchmarks").glob("bench_*.py")):
             _run(PYTHON, script, *rest)
+    elif job == "docs":
+        # -E: read every page afresh; an incremental build does not repeat the warnings of
+        # pages it does not read again, so a second run would pass where the first failed.
+        _run(BIN / "sphinx-build", "-W", "--keep-going", "-E", "-b", "html", *rest, DOCS_SOURCE, DOCS_OUTPUT)
     else:
         print(f"source {BIN / 'activate'}")
 

@@ -532,7 +532,7 @@ def channel_window(
     With echoes, cells are cleared below the first echo less ``arc_sigmas`` of the
     cell's own sigma (its path's and its spread of paths', the arc's half-width), and
     nothing is touched beyond the last echo plus that many of the largest such sigma,
-    ``sqrt(σ² + h²)`` (|∇L| <= 2). Without echoes, cells are cleared up to
+    ``sqrt(σ² + h²)`` (``|∇L| <= 2``). Without echoes, cells are cleared up to
     ``clear_m`` and nothing beyond.
     """
     if len(paths_m) == 0:

@@ -380,7 +380,7 @@ def chirp_waveform(
     ``n = 0 .. round(duration_s * sample_rate_hz) - 1`` and ``t1 = duration_s``:
 
     - ``"linear"`` (LFM): ``f(t) = f0 + (f1 - f0) t / T``. Its matched-filter envelope
-      is close to ``|sinc(B tau)|`` with B = |f1 - f0| when B T >> 1, so the -3 dB
+      is close to ``|sinc(B tau)|`` with ``B = |f1 - f0|`` when B T >> 1, so the -3 dB
       main lobe is about 0.886 / B wide (N. Levanon and E. Mozeson, "Radar Signals",
       Wiley 2004, ch. 4).
     - ``"hyperbolic"`` (HFM, linear-period modulation): ``f(t) = f0 f1 T / ((f0 - f1) t

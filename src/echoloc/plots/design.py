@@ -118,8 +118,8 @@ def plot_spacing_study(
 ) -> Path:
     """Figure 4.13: (a) angle error and (b) range error against spacing, per path error dl1.
 
-    One colour per |dl1|, solid for +dl1 and dashed for -dl1; dotted black the
-    first-order values. Panel (a) is |dtheta| on a log axis, with the criterion of
+    One colour per ``|dl1|``, solid for +dl1 and dashed for -dl1; dotted black the
+    first-order values. Panel (a) is ``|dtheta|`` on a log axis, with the criterion of
     :func:`~echoloc.localise.uncertainty.recommended_spacing` (``r |dtheta| = tolerance``) as a
     grey curve: the recommended spacing is where the largest error meets it.
     """

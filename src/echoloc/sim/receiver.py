@@ -129,6 +129,7 @@ class GainSpec:
     Attributes
     ----------
     kind : {"none", "continuous", "stepped"}
+
     gain_db : float
         Gain at t = 0, dB; at most ``max_gain_db``.
     slope_db_per_ms : float

@@ -704,15 +704,23 @@ class EchoPaths:
 
     Attributes
     ----------
-    path_m : total length transmitter -> reflection(s) -> receiver, m.
-    first_leg_m : transmitter -> first reflection point, m.
-    last_leg_m : last reflection point -> receiver, m.
-    gain : linear amplitude factor: spreading, reflection coefficients, strengths;
+    path_m
+        total length transmitter -> reflection(s) -> receiver, m.
+    first_leg_m
+        transmitter -> first reflection point, m.
+    last_leg_m
+        last reflection point -> receiver, m.
+    gain
+        linear amplitude factor: spreading, reflection coefficients, strengths;
         not transducer directivity nor air absorption.
-    departure : unit vector from the transmitter towards the first reflection point.
-    arrival : unit vector from the receiver towards the last reflection point.
-    order : (n_paths,) int, 1 or 2.
-    labels : (n_paths,) what each path meets, in travel order, e.g. ``"point 0"``,
+    departure
+        unit vector from the transmitter towards the first reflection point.
+    arrival
+        unit vector from the receiver towards the last reflection point.
+    order
+        (n_paths,) int, 1 or 2.
+    labels
+        (n_paths,) what each path meets, in travel order, e.g. ``"point 0"``,
         ``"plane 1 > sphere 0"``; None if unknown.
     """
 
@@ -1039,7 +1047,9 @@ def echo_paths(
     Parameters
     ----------
     transmitter_m : array_like (3,)
+
     receivers_m : array_like (n_rx, 3)
+
     states : ReflectorStates
         In the same frame of reference as the transducers.
     max_order : int

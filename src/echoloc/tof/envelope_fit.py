@@ -536,8 +536,11 @@ class EnvelopeFitter:
     ----------
     template : ndarray
         The recording's ``waveform``: real RF, complex IQ, or a non-negative envelope.
+
     sample_rate_hz : float
+
     signal_kind : {"rf", "iq", "envelope"}
+
     carrier_hz : float or None
         Carrier of the IQ convention; RF data is demodulated with it. Without it,
         IQ delays stay at the envelope level (no carrier-phase refinement), and RF
