@@ -324,6 +324,11 @@ def rms_bandwidth_hz(
 # --- bounds ------------------------------------------------------------------------
 
 
+_CONDITION_LIMIT = 1e12
+"""Largest condition number of the normalised Fisher matrix still read as identifiable:
+beyond it the bound's variance holds fewer than ~4 significant digits in float64."""
+
+
 def _fisher(columns: list[NDArray[np.generic]], noise_sigma: float) -> NDArray[np.float64]:
     """``F_ij = Re(Σ conj(∂μ/∂θ_i) ∂μ/∂θ_j) / σ²`` for white Gaussian noise [K, eq. 3.31].
 
@@ -337,10 +342,16 @@ def _fisher(columns: list[NDArray[np.generic]], noise_sigma: float) -> NDArray[n
 
 def _bound(fisher: NDArray[np.float64], parameters: tuple[str, ...]) -> TofBound:
     singular = EchoLocError("the Fisher matrix is singular: the delay is not identifiable from this pulse")
-    try:
-        covariance = np.linalg.inv(fisher)
-    except np.linalg.LinAlgError:  # exactly singular: numpy 1.x raises where 2.x may not
-        raise singular from None
+    # Judge singularity on the correlation form D^-1/2 F D^-1/2 (units drop out): two
+    # parameters whose derivatives are proportional give a condition number near 1/eps,
+    # whatever LAPACK build and numpy version round the inverse.
+    diagonal = np.diag(fisher)
+    if not np.all(diagonal > 0):
+        raise singular
+    scale = 1.0 / np.sqrt(diagonal)
+    if not np.linalg.cond(fisher * np.outer(scale, scale)) < _CONDITION_LIMIT:
+        raise singular
+    covariance = np.linalg.inv(fisher)
     variance = float(covariance[0, 0])
     if not variance > 0:
         raise singular
