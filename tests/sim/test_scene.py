@@ -37,7 +37,7 @@ def test_every_scene_file_shipped_is_a_preset_by_its_name(
     assert {"ch101", "random-1m3", "report/ball-fixed", "mapping/room"} <= set(names)
     monkeypatch.chdir(tmp_path)
     for name, path in zip(names, files, strict=True):
-        assert preset_path(name) == path
+        assert preset_path(name).read_bytes() == path.read_bytes()  # (the installed copy, in CI's oldest job)
         assert repr(load_scene(name)) == repr(load_scene(path))  # (arrays inside: no ==)
     (tmp_path / "random-1m3").write_text("[[reflectors]]\nposition_m = [0.0, 0.0, 2.0]\n")
     assert load_scene("random-1m3").reflector_positions_m.tolist() == [[0.0, 0.0, 2.0]]
