@@ -26,6 +26,7 @@ from echoloc.localise.locate import (
     FrameLocator,
     FrameObjects,
     LocatedObject,
+    LocateKernelArguments,
     LocateOptions,
     LocateWarning,
     combine_frames,
@@ -138,7 +139,7 @@ class Chain:
         return found
 
     @property
-    def one_call(self) -> tuple[MatchedEstimator, FrameLocator, tuple[Any, ...]] | None:
+    def one_call(self) -> tuple[MatchedEstimator, FrameLocator, LocateKernelArguments] | None:
         """What :func:`samples_results_batch` takes to find frames' echoes and objects in one
         compiled call: the matched estimator, the locator and its kernel's arguments. None
         where that path does not apply and the stages run one after the other: another
@@ -155,7 +156,7 @@ class Chain:
             locator = self.locators[0]
             arguments = locator.kernel_arguments(self.speed_of_sound_m_s)
             self._by_receivers[key] = None if arguments is None else (estimator, locator, arguments)
-        found: tuple[MatchedEstimator, FrameLocator, tuple[Any, ...]] | None = self._by_receivers[key]
+        found: tuple[MatchedEstimator, FrameLocator, LocateKernelArguments] | None = self._by_receivers[key]
         return found
 
 
@@ -662,7 +663,7 @@ def _excusing_clipped(
 
 def _one_call_results(
     chain: Chain,
-    one_call: tuple[MatchedEstimator, FrameLocator, tuple[Any, ...]],
+    one_call: tuple[MatchedEstimator, FrameLocator, LocateKernelArguments],
     frames: NDArray[Any],
     indices: Sequence[int],
     times_s: Sequence[float],
@@ -676,8 +677,8 @@ def _one_call_results(
     options = estimator.options
     echo_arguments = echo_kernel_arguments(frames, estimator.mf, options, options.threads)
     status, found_rows, echo_use, positions, covariances, chi2 = run_kernel(
-        echo_arguments[5], kernels.echoes_and_objects, echo_arguments, n_rx, locate_arguments
-    )  # [5]: the echoes' parallel parts
+        echo_arguments.parts, kernels.echoes_and_objects, echo_arguments, n_rx, locate_arguments
+    )
     channels = with_clean(frames, kernel_channels(echo_arguments), estimator.mf, options)
     statuses: list[int] = status.tolist()
     rows: list[int] = found_rows.tolist()

@@ -414,6 +414,60 @@ def _gates(probability: float, dim: int, n_channels: int) -> NDArray[np.float64]
     return np.array([_chi2_gate(probability, k - dim) for k in range(n_channels + 1)])
 
 
+class KernelGeometry(NamedTuple):
+    """The first six arguments of every compiled association kernel
+    (:mod:`echoloc.localise._locate_kernels`), named as its parameters are: the channels'
+    transmitters and receivers (C, D), m, their axes (C, D), the array's boresight (D,) and
+    the channels where an object must show an echo (C,). Passed as ``*geometry``; a test
+    holds the fields' names and order to the kernels' parameters."""
+
+    transmitters: NDArray[np.float64]
+    receivers: NDArray[np.float64]
+    transmitter_axes: NDArray[np.float64]
+    receiver_axes: NDArray[np.float64]
+    boresight: NDArray[np.float64]
+    required: NDArray[np.bool_]
+
+
+class AssociationTail(NamedTuple):
+    """The compiled association's arguments between a frame's echoes and its limits
+    (:func:`echoloc.localise._locate_kernels.associate`), named as its parameters are: the
+    seed sets (S, D) of channel indices, the path window (m), the field of view's cosine,
+    the one-path gate (sigmas), the merge reach and sigma (m; sigma -1: no merging), the
+    chi-square gates by count of echoes, whether beams are checked, the fewest own echoes,
+    the rounds of echo sharing and the amplitude check's log sigma."""
+
+    seeds: NDArray[np.int64]
+    window_low: float
+    window_high: float
+    cos_fov: float
+    k_gate: float
+    merge_reach: float
+    merge_sigma: float
+    gates: NDArray[np.float64]
+    check_beams: bool
+    min_own: int
+    sharing_rounds: int
+    amplitude_log_sigma: float
+
+
+class LocateKernelArguments(NamedTuple):
+    """What the compiled association of one frame's flat echoes
+    (:func:`echoloc.localise._locate_kernels.associate_frame`) takes besides the echoes: the
+    geometry, the speed of sound (m/s), the prior path variance (m^2), the carrier (rad/s),
+    the seeds and options, the search's node and row limits, and the origin of the objects'
+    order (D,), m."""
+
+    geometry: KernelGeometry
+    speed_of_sound_m_s: float
+    prior_variance_m2: float
+    omega_rad_s: float
+    tail: AssociationTail
+    node_limit: int
+    max_rows: int
+    origin: NDArray[np.float64]
+
+
 @dataclass(frozen=True, eq=False)
 class _Geometry:
     """The channels of one association: transmitter and receiver of each, and their axes."""
@@ -436,10 +490,10 @@ class _Geometry:
         return int(self.receivers_m.shape[1])
 
     @property
-    def kernel_arguments(self) -> tuple[Any, Any, Any, Any, Any, Any]:
+    def kernel_arguments(self) -> KernelGeometry:
         """The first six arguments of every compiled association kernel
         (:mod:`echoloc.localise._locate_kernels`), in their order."""
-        return (
+        return KernelGeometry(
             self.transmitters_m,
             self.receivers_m,
             self.transmitter_axes,
@@ -687,7 +741,7 @@ class _Setup(NamedTuple):
     # leaks from one frame to the next): _support per use of the channels, and the
     # compiled association's seeds and options per options (_kernel_tail).
     supports: dict[tuple[int, ...], _Support]
-    kernel_tails: dict[LocateOptions, tuple[Any, ...]]
+    kernel_tails: dict[LocateOptions, AssociationTail]
 
 
 _SETUPS: dict[tuple[Any, ...], _Setup] = {}
@@ -869,7 +923,7 @@ def _associate_compiled(
     return echo_use, position, covariance, chi2, status == 0
 
 
-def _kernel_tail(setup: _Setup, options: LocateOptions) -> tuple[Any, ...]:
+def _kernel_tail(setup: _Setup, options: LocateOptions) -> AssociationTail:
     """The compiled association's arguments between the echoes and the limits: the seeds and
     the options (memo per options)."""
     try:
@@ -884,8 +938,8 @@ def _kernel_tail(setup: _Setup, options: LocateOptions) -> tuple[Any, ...]:
     return tail
 
 
-def _make_kernel_tail(geometry: _Geometry, options: LocateOptions) -> tuple[Any, ...]:
-    return (_seed_array(geometry), *_kernel_options(options, geometry.dim, geometry.n))
+def _make_kernel_tail(geometry: _Geometry, options: LocateOptions) -> AssociationTail:
+    return AssociationTail(_seed_array(geometry), *_kernel_options(options, geometry.dim, geometry.n))
 
 
 def _kernel_options(options: LocateOptions, dim: int, n_channels: int) -> tuple[Any, ...]:
@@ -1533,7 +1587,7 @@ class FrameLocator:
         self.options = options
         self.usable = usable
         self._setup: _Setup | None = None
-        self._flat_arguments: tuple[Any, ...] = ()
+        self._flat_arguments: tuple[float, float, AssociationTail] | None = None
         receivers = np.asarray(receivers_m, dtype=float)
         n_ch, dim = receivers.shape
         # Every channel usable and enough of them: each frame goes straight to its flat echoes.
@@ -1608,38 +1662,34 @@ class FrameLocator:
 
         arguments = self.kernel_arguments(speed_of_sound_m_s)
         assert arguments is not None
-        geometry, speed, prior_variance, omega, tail, node_limit, max_rows, origin = arguments
         kernel: Any = kernels.associate_frame
         status, echo_use, position, covariance, chi2 = kernel(
-            *geometry,
+            *arguments.geometry,
             tof_s,
-            speed,
+            arguments.speed_of_sound_m_s,
             snr_db,
-            prior_variance,
-            omega,
+            arguments.prior_variance_m2,
+            arguments.omega_rad_s,
             amplitudes,
             offset,
-            *tail,
-            node_limit,
-            max_rows,
-            origin,
+            *arguments.tail,
+            arguments.node_limit,
+            arguments.max_rows,
+            arguments.origin,
         )
         return self.kernel_objects(
             status, echo_use, position, covariance, chi2, len(offset) - 1, stacklevel=4
         )
 
-    def kernel_arguments(self, speed_of_sound_m_s: float) -> tuple[Any, ...] | None:
-        """What the compiled association (:func:`echoloc.localise._locate_kernels.associate_frame`) takes
-        besides a frame's echoes, grouped: (the geometry's six arrays, the speed of sound
-        (m/s), the prior path variance (m^2), the carrier (rad/s), the seeds and options, the
-        node and row limits, the origin). None when this locator has no compiled path (some
-        receiver unusable, no carrier, or numba missing): :meth:`__call__` then takes the
-        reference."""
+    def kernel_arguments(self, speed_of_sound_m_s: float) -> LocateKernelArguments | None:
+        """What the compiled association (:func:`echoloc.localise._locate_kernels.associate_frame`)
+        takes besides a frame's echoes. None when this locator has no compiled path (some
+        receiver unusable, or no carrier): :meth:`__call__` then takes the reference."""
         setup = self._setup
-        if setup is None or not _COMPILED or not self._flat_arguments:
+        if setup is None or not _COMPILED or self._flat_arguments is None:
             return None
         prior_variance, omega, tail = self._flat_arguments
-        return (
+        return LocateKernelArguments(
             setup.geometry.kernel_arguments,
             float(speed_of_sound_m_s),
             prior_variance,

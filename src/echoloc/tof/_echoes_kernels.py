@@ -1430,29 +1430,27 @@ def batch_echoes(
     ``corr`` is the complex correlation (n_ch, >= n) viewed as (n_ch, >= 2 n) reals, of
     which the first ``n`` samples of each row are read (the rows of a longer FFT output can
     be passed as they are). ``constants`` are the arguments that stay the same from frame to
-    frame (echoes._kernel_constants): ``table`` (the sub-sample autocorrelation table) to
-    ``noise_step``, unpacked here. Scratch is allocated once a call, not once a channel.
+    frame (echoes.BatchConstants, a named tuple), read here by name. Scratch is allocated
+    once a call, not once a channel.
     """
-    (
-        table,
-        u,
-        half,
-        rate,
-        dilated,
-        mainlobe,
-        acf_energy,
-        threshold_factor,
-        dynamic_range,
-        first,
-        max_candidates,
-        residue,
-        max_joint,
-        complex_iterations,
-        real_iterations,
-        lone_iterations,
-        max_splits,
-        noise_step,
-    ) = constants
+    table = constants.table
+    u = constants.oversample
+    half = constants.half_width
+    rate = constants.phase_rate_rad_per_lag
+    dilated = constants.sidelobe_envelope
+    mainlobe = constants.mainlobe_lags
+    acf_energy = constants.acf_energy
+    threshold_factor = constants.threshold_factor
+    dynamic_range = constants.dynamic_range
+    first = constants.first_lag
+    max_candidates = constants.max_candidates
+    residue = constants.residue_lags
+    max_joint = constants.max_joint
+    complex_iterations = constants.complex_iterations
+    real_iterations = constants.real_iterations
+    lone_iterations = constants.lone_iterations
+    max_splits = constants.max_splits
+    noise_step = constants.noise_step
     n_ch = corr.shape[0]
     fit_half = max(1, int(np.round(mainlobe / 2)))
     span = math.ceil(mainlobe)
@@ -1885,12 +1883,11 @@ def batch_channels(
     two, for a stream's one-frame calls (each call from Python costs its arguments' unboxing
     and its outputs' allocation).
 
-    ``constants`` are batch_echoes' arguments from ``table`` to ``noise_step``, ``finishing``
-    finish_channels' from ``lag_rate_hz`` to ``support_s``; ``out`` (3, n_ch, slots) takes the
+    ``constants`` are batch_echoes' (echoes.BatchConstants), ``finishing``
+    finish_channels' (echoes.FinishingConstants); ``out`` (3, n_ch, slots) takes the
     delays (s), amplitudes and SNRs (dB), ``kept`` their counts and ``ok`` False for the channels
     left to CLEAN.
     """
-    lag_rate_hz, arrival_s, blanking_s, threshold_db, floor_ratio, support_s = finishing
     n_ch = corr.shape[0]
     slots = out.shape[2]
     out_tof = np.zeros((n_ch, slots))
@@ -1910,12 +1907,12 @@ def batch_channels(
         out_count,
         out_power,
         ok,
-        lag_rate_hz,
-        arrival_s,
-        blanking_s,
-        threshold_db,
-        floor_ratio,
-        support_s,
+        finishing.lag_rate_hz,
+        finishing.arrival_s,
+        finishing.blanking_s,
+        finishing.threshold_db,
+        finishing.floor_ratio,
+        finishing.support_s,
         out[0],
         out[1],
         out[2],

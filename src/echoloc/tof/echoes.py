@@ -59,7 +59,7 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property, partial
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import scipy.fft
@@ -1397,7 +1397,65 @@ class _BatchOutput:
     ok: NDArray[np.bool_]  # False: the channel goes to CLEAN
 
 
-_KernelConstants = tuple[tuple[Any, ...], tuple[float, float, float, float, float, float]]
+class BatchConstants(NamedTuple):
+    """What :func:`echoloc.tof._echoes_kernels.batch_echoes` takes that stays the same from
+    frame to frame (a named tuple: numba reads its fields by name, so none is taken by position)."""
+
+    table: NDArray[np.complex128]  # the autocorrelation at sub-sample shifts (MatchedFilter.acf_table)
+    oversample: int  # table rows per lag
+    half_width: int  # lags each side of the table's centre
+    phase_rate_rad_per_lag: float
+    sidelobe_envelope: NDArray[np.float64]  # the template's sidelobes' reach, per lag
+    mainlobe_lags: float
+    acf_energy: float
+    threshold_factor: float  # the detection threshold as a power ratio
+    dynamic_range: float  # the dynamic range as a power ratio (< 1)
+    first_lag: int  # the first lag past the blanking time
+    max_candidates: int
+    residue_lags: int
+    max_joint: int  # most echoes in one joint fit
+    complex_iterations: int
+    real_iterations: int
+    lone_iterations: int
+    max_splits: int  # most splits of an unexplained echo, a channel
+    noise_step: int  # lags between the noise estimate's samples
+
+
+class FinishingConstants(NamedTuple):
+    """What :func:`echoloc.tof._echoes_kernels.finish_channels` takes that stays the same from
+    frame to frame: the lag rate, the arrival offset (s), the blanking (s), the threshold (dB),
+    the floor as an amplitude ratio below the strongest echo and the template's support (s)."""
+
+    lag_rate_hz: float
+    arrival_s: float
+    blanking_s: float
+    threshold_db: float
+    floor_ratio: float
+    support_s: float
+
+
+class EchoKernelArguments(NamedTuple):
+    """The arguments of :func:`echoloc.tof._echoes_kernels.correlate_and_fit`, in its order:
+    the rows of samples, the FFT sizes, the template's spectrum, the FFT's threads, the fits'
+    parallel parts, the lags, the two bundles of constants, then the outputs it writes:
+    ``out`` (3, rows, slots: delays s, amplitudes, SNRs dB), ``kept`` (their counts) and
+    ``ok`` (False: the row is left to CLEAN)."""
+
+    frames: NDArray[np.float64]
+    n_fft: int
+    n_ifft: int
+    weights: NDArray[np.complex64]
+    workers: int
+    parts: int
+    n_lags: int
+    constants: BatchConstants
+    finishing: FinishingConstants
+    out: NDArray[np.float64]
+    kept: NDArray[np.int64]
+    ok: NDArray[np.bool_]
+
+
+_KernelConstants = tuple[BatchConstants, FinishingConstants]
 
 
 def _kernel_constants(
@@ -1418,7 +1476,7 @@ def _kernel_constants(
     memo = mf.kernel_constants_memo
     found = memo.get(key)
     if found is None:
-        batch = (
+        batch = BatchConstants(
             mf.acf_table,
             mf.oversample,
             mf.half_width,
@@ -1438,7 +1496,7 @@ def _kernel_constants(
             max_splits,
             max(1, noise_step // mf.decimation),
         )
-        finishing = (
+        finishing = FinishingConstants(
             mf.lag_rate_hz,
             mf.arrival_s,
             options.blanking_s,
@@ -1515,17 +1573,18 @@ def _float_rows(frames: NDArray[Any]) -> NDArray[np.float64]:
 
 def echo_kernel_arguments(
     frames: NDArray[Any], mf: MatchedFilter, options: EchoOptions, threads: int = 1
-) -> tuple[Any, ...]:
+) -> EchoKernelArguments:
     """The arguments of :func:`echoloc.tof._echoes_kernels.correlate_and_fit` for ``frames`` (...,
     samples), its outputs last: fresh ``out``, ``kept`` and ``ok`` (:func:`_batch_outputs`)."""
     rows = _float_rows(frames)
     n_ch = rows.shape[0]
-    return (rows, *_fixed_kernel_arguments(mf, options, threads, n_ch), *_batch_outputs(n_ch, options))
+    out, kept, ok = _batch_outputs(n_ch, options)
+    return EchoKernelArguments(rows, *_fixed_kernel_arguments(mf, options, threads, n_ch), out, kept, ok)
 
 
 def _fixed_kernel_arguments(
     mf: MatchedFilter, options: EchoOptions, threads: int, n_ch: int
-) -> tuple[Any, ...]:
+) -> tuple[int, int, NDArray[np.complex64], int, int, int, BatchConstants, FinishingConstants]:
     """:func:`echo_kernel_arguments` between the rows and the outputs, made once for each set of
     options, thread count and channel count (a stream's frames repeat them; a memo keyed by the
     options' identity, which it holds, so the key cannot be reused; it spares a frame much of
@@ -1546,10 +1605,10 @@ def _fixed_kernel_arguments(
     return found[1]
 
 
-def kernel_channels(arguments: tuple[Any, ...]) -> list[ChannelEchoes | None]:
+def kernel_channels(arguments: EchoKernelArguments) -> list[ChannelEchoes | None]:
     """The channels :func:`echoloc.tof._echoes_kernels.correlate_and_fit` wrote into the outputs of
     its ``arguments`` (:func:`echo_kernel_arguments`); None: left to CLEAN."""
-    return _channel_echoes(*arguments[-3:])
+    return _channel_echoes(arguments.out, arguments.kept, arguments.ok)
 
 
 def _correlated_channels(
@@ -1562,7 +1621,7 @@ def _correlated_channels(
     from echoloc.tof import _echoes_kernels as kernels
 
     arguments = echo_kernel_arguments(frames, mf, options, threads)
-    run_kernel(arguments[5], kernels.correlate_and_fit, *arguments)  # [5]: its parallel parts
+    run_kernel(arguments.parts, kernels.correlate_and_fit, *arguments)
     return kernel_channels(arguments)
 
 
