@@ -102,7 +102,10 @@ def oldest(rest: list[str]) -> None:
     print(f"oldest: installed, core only: {_site_packages_mib(OLDEST_VENV):.0f} MiB", flush=True)
     demo_dir = OLDEST_VENV / "demo"
     demo_dir.mkdir(exist_ok=True)
+    # Without numba (the [fast] extra) the kernels run as plain Python: the demo still works.
     _run(bin_dir / "echoloc", "demo", "-o", demo_dir / "echoloc-demo.h5")
+    # The scene presets are in the wheel, those in folders too.
+    _run(bin_dir / "echoloc", "simulate", "report/ball-fixed", "-o", demo_dir / "ball.h5", "--frames", "2")
     _run(
         bin_dir / "python", "-m", "pip", "install", "--quiet", ".[all]", OLDEST_NUMPY, "pytest", "hypothesis"
     )
