@@ -12,13 +12,24 @@ association as before.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import NDArray
 
 from echoloc._jit import launch_threading_layer, njit
 from echoloc.localise._locate_kernels import associate_frame
 from echoloc.tof._echoes_kernels import correlate_and_fit
+
+if TYPE_CHECKING:
+    from echoloc.localise.locate import LocateKernelArguments
+    from echoloc.tof.echoes import EchoKernelArguments
+
+_Rows = NDArray[np.int64] | NDArray[np.float64]
+"""What :func:`_with_room` grows, and returns grown or as it was: the objects' echo use (int64,
+2-D), positions (float64, 2-D), covariances (3-D) and chi-square (1-D); numba compiles it for
+each (a TypeVar would say that it returns the type it takes, but numba's Dispatcher stub drops
+a generic function's type variables)."""
 
 # The kernel's cached machine code holds batch_echoes_parallel's, which calls numba's threading
 # layer. Loaded from the cache before that layer was launched it crashed the process (numba
@@ -30,7 +41,7 @@ LEFT_TO_CLEAN = -1
 
 
 @njit(cache=True, inline="always")
-def _with_room(rows: Any, used: int, needed: int) -> Any:  # pragma: no cover - compiled
+def _with_room(rows: _Rows, used: int, needed: int) -> _Rows:  # pragma: no cover - compiled
     """``rows`` (n, ...), or a copy of its first ``used`` rows with room for ``needed`` more."""
     if used + needed <= rows.shape[0]:
         return rows
@@ -40,7 +51,16 @@ def _with_room(rows: Any, used: int, needed: int) -> Any:  # pragma: no cover - 
 
 
 @njit(cache=True, nogil=True)
-def echoes_and_objects(echo_arguments: Any, n_rx: int, locate_arguments: Any) -> Any:  # pragma: no cover
+def echoes_and_objects(
+    echo_arguments: EchoKernelArguments, n_rx: int, locate_arguments: LocateKernelArguments
+) -> tuple[
+    NDArray[np.int64],  # status (n_frames,)
+    NDArray[np.int64],  # found (n_frames + 1,)
+    NDArray[np.int64],  # echo_use (n_objects, 2 n_rx)
+    NDArray[np.float64],  # positions (n_objects, D), m
+    NDArray[np.float64],  # covariances (n_objects, D, D)
+    NDArray[np.float64],  # chi2 (n_objects,)
+]:  # pragma: no cover
     """Echoes of every channel of a batch of frames and the objects of each frame, in one call.
 
     ``echo_arguments`` are :func:`correlate_and_fit`'s (echoes.EchoKernelArguments): the

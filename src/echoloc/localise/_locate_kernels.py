@@ -34,6 +34,7 @@ from collections.abc import Callable
 from typing import Any, TypeVar, cast
 
 import numpy as np
+from numpy.typing import NDArray
 
 from echoloc._jit import njit
 
@@ -50,7 +51,9 @@ def _without_runtime(function: _Function) -> _Function:
 
 
 @njit(cache=True, inline="always")
-def _solve_in_place(m: Any, v: Any, x: Any) -> bool:  # pragma: no cover - compiled
+def _solve_in_place(
+    m: NDArray[np.float64], v: NDArray[np.float64], x: NDArray[np.float64]
+) -> bool:  # pragma: no cover - compiled
     """Solve the small system m x = v by Gaussian elimination with partial pivoting, overwriting
     ``m`` and ``v`` (no allocation: called per echo combination); False if singular."""
     n = m.shape[0]
@@ -134,14 +137,16 @@ def _solve3(
 
 
 @_without_runtime
-def _solve(m: Any, v: Any, x: Any) -> bool:  # pragma: no cover - compiled
+def _solve(
+    m: NDArray[np.float64], v: NDArray[np.float64], x: NDArray[np.float64]
+) -> bool:  # pragma: no cover - compiled
     """:func:`_solve_in_place`, called: inlined in the seed loop it counted references to its
     three arrays (atomic operations), which cost more than the call."""
     return _solve_in_place(m, v, x)
 
 
 @njit(cache=True, inline="always")
-def _copy(source: Any, target: Any) -> None:  # pragma: no cover - compiled
+def _copy(source: NDArray[np.float64], target: NDArray[np.float64]) -> None:  # pragma: no cover - compiled
     """``target[:, :] = source`` in loops: the slice assignment checks the two views for
     overlap, which needs the runtime (unavailable in the ``_nrt=False`` helpers)."""
     for i in range(source.shape[0]):
@@ -150,7 +155,7 @@ def _copy(source: Any, target: Any) -> None:  # pragma: no cover - compiled
 
 
 @njit(cache=True, inline="always")
-def _det(a: Any) -> float:  # pragma: no cover - compiled
+def _det(a: NDArray[np.float64]) -> float:  # pragma: no cover - compiled
     """Determinant of a 1x1, 2x2 or 3x3 matrix."""
     n = a.shape[0]
     if n == 1:
@@ -173,7 +178,7 @@ def _det3(
 
 
 @njit(cache=True, inline="always")
-def _well_conditioned(normal: Any) -> bool:  # pragma: no cover - compiled
+def _well_conditioned(normal: NDArray[np.float64]) -> bool:  # pragma: no cover - compiled
     """det > 1e-12 x product of the diagonal (Hadamard's bound): not near-singular."""
     bound = 1.0
     for i in range(normal.shape[0]):
@@ -184,7 +189,12 @@ def _well_conditioned(normal: Any) -> bool:  # pragma: no cover - compiled
 
 
 @njit(cache=True)
-def _exact(t: Any, receivers: Any, paths: Any, points: Any) -> int:  # pragma: no cover - compiled
+def _exact(
+    t: NDArray[np.float64],  # (D,), m
+    receivers: NDArray[np.float64],  # (D, D), m
+    paths: NDArray[np.float64],  # (D,), m
+    points: NDArray[np.float64],  # (2, D) out
+) -> int:  # pragma: no cover - compiled
     """Points meeting D paths exactly (locate.exact_solutions for one row); returns how many (0-2)."""
     d = paths.shape[0]
     work = np.empty((5 * d + 5, d + 1))
@@ -193,7 +203,9 @@ def _exact(t: Any, receivers: Any, paths: Any, points: Any) -> int:  # pragma: n
 
 
 @_without_runtime
-def _exact_prepare(t: Any, receivers: Any, work: Any) -> None:  # pragma: no cover - compiled
+def _exact_prepare(
+    t: NDArray[np.float64], receivers: NDArray[np.float64], work: NDArray[np.float64]
+) -> None:  # pragma: no cover - compiled
     """What :func:`_exact_work` computes from ``t`` and the D ``receivers`` alone, into ``work``
     (5 D + 5, D + 1), once for all the combinations of their paths: the receivers' columns
     of M, their squared distances from ``t``, the last component of the null vector and
@@ -224,7 +236,9 @@ def _exact_prepare(t: Any, receivers: Any, work: Any) -> None:  # pragma: no cov
 
 
 @_without_runtime
-def _exact_work(t: Any, paths: Any, points: Any, work: Any) -> int:  # pragma: no cover - compiled
+def _exact_work(
+    t: NDArray[np.float64], paths: NDArray[np.float64], points: NDArray[np.float64], work: NDArray[np.float64]
+) -> int:  # pragma: no cover - compiled
     """:func:`_exact` in the scratch rows ``work`` (5 D + 5, D + 1) that :func:`_exact_prepare`
     filled for ``t`` and the receivers: no allocation per combination of paths."""
     if paths.shape[0] == 3:
@@ -233,7 +247,9 @@ def _exact_work(t: Any, paths: Any, points: Any, work: Any) -> int:  # pragma: n
 
 
 @_without_runtime
-def _exact_work_3d(t: Any, paths: Any, points: Any, work: Any) -> int:  # pragma: no cover - compiled
+def _exact_work_3d(
+    t: NDArray[np.float64], paths: NDArray[np.float64], points: NDArray[np.float64], work: NDArray[np.float64]
+) -> int:  # pragma: no cover - compiled
     """:func:`_exact_work_any` for D = 3 in scalars (registers, not the scratch rows): the same
     operations in the same order, so the same bits."""
     d = paths.shape[0]
@@ -308,9 +324,11 @@ def _exact_work_3d(t: Any, paths: Any, points: Any, work: Any) -> int:  # pragma
 
 
 @_without_runtime
-def _exact_work_any(t: Any, paths: Any, points: Any, work: Any) -> int:  # pragma: no cover - compiled
+def _exact_work_any(
+    t: NDArray[np.float64], paths: NDArray[np.float64], points: NDArray[np.float64], work: NDArray[np.float64]
+) -> int:  # pragma: no cover - compiled
     """:func:`_exact_work` in any dimension, through the scratch rows."""
-    d = paths.shape[0]
+    d: int = paths.shape[0]  # typed: an index of NDArray's Any shape types its items as arrays
     m = work[:d, :]
     b = work[d, :d]
     v = work[d + 1, :]
@@ -393,7 +411,7 @@ def _exact_work_any(t: Any, paths: Any, points: Any, work: Any) -> int:  # pragm
 
 
 @njit(cache=True, inline="always")
-def _one_transmitter(transmitters: Any) -> bool:  # pragma: no cover - compiled
+def _one_transmitter(transmitters: NDArray[np.float64]) -> bool:  # pragma: no cover - compiled
     """Whether every channel's transmitter is the first's, bit for bit (zeros' signs too):
     then each distance to it, and its direction, is the same number for every channel."""
     for c in range(1, transmitters.shape[0]):
@@ -405,7 +423,13 @@ def _one_transmitter(transmitters: Any) -> bool:  # pragma: no cover - compiled
 
 
 @njit(cache=True, inline="always")
-def _in_beam(point: Any, origins: Any, axes: Any, c: int, cos_fov: float) -> bool:  # pragma: no cover
+def _in_beam(
+    point: NDArray[np.float64],  # (D,), m
+    origins: NDArray[np.float64],  # (C, D), m
+    axes: NDArray[np.float64],  # (C, D), unit
+    c: int,
+    cos_fov: float,
+) -> bool:  # pragma: no cover
     """Whether ``point`` is inside the beam of channel c's ``origins``/``axes`` (rows, not row
     views: a view in the seed loop costs two atomic reference counts)."""
     along = 0.0
@@ -418,7 +442,9 @@ def _in_beam(point: Any, origins: Any, axes: Any, c: int, cos_fov: float) -> boo
 
 
 @njit(cache=True, inline="always")
-def _insertion(values: Any, lo: int, hi: int, value: float) -> int:  # pragma: no cover - compiled
+def _insertion(
+    values: NDArray[np.float64], lo: int, hi: int, value: float
+) -> int:  # pragma: no cover - compiled
     """``lo + np.searchsorted(values[lo:hi], value)`` (NaN last) without the slice's view."""
     while lo < hi:
         mid = lo + ((hi - lo) >> 1)
@@ -430,7 +456,9 @@ def _insertion(values: Any, lo: int, hi: int, value: float) -> int:  # pragma: n
 
 
 @njit(cache=True, inline="always")
-def _seed_conditioned_3d(jac: Any, seed: Any) -> bool:  # pragma: no cover - compiled
+def _seed_conditioned_3d(
+    jac: NDArray[np.float64], seed: NDArray[np.int64]
+) -> bool:  # pragma: no cover - compiled
     """For D = 3, whether the seed channels' Jacobian rows ``jac[seed]`` (J_s) give a
     well-conditioned J_s^T J_s: the seed loop's normal matrix and :func:`_well_conditioned`
     in scalars, the same sums in the same order."""
@@ -457,7 +485,9 @@ def _seed_conditioned_3d(jac: Any, seed: Any) -> bool:  # pragma: no cover - com
 
 
 @njit(cache=True, inline="always")
-def _seed_gain_3d(jac: Any, seed: Any, channel: int) -> Any:  # pragma: no cover - compiled
+def _seed_gain_3d(
+    jac: NDArray[np.float64], seed: NDArray[np.int64], channel: int
+) -> Any:  # pragma: no cover - compiled
     """For D = 3, (solved, g) with J_s^T g = the Jacobian row of ``channel``: the seed loop's
     solve in scalars (:func:`_solve3`)."""
     a, b, c = seed[0], seed[1], seed[2]
@@ -479,25 +509,25 @@ def _seed_gain_3d(jac: Any, seed: Any, channel: int) -> Any:  # pragma: no cover
 
 @njit(cache=True)
 def seed_candidates(
-    transmitters: Any,
-    receivers: Any,
-    transmitter_axes: Any,
-    receiver_axes: Any,
-    boresight: Any,
-    required: Any,
-    flat_paths: Any,
-    flat_sigmas: Any,
-    offset: Any,
-    sorted_paths: Any,
-    sorted_index: Any,
-    seeds: Any,
+    transmitters: NDArray[np.float64],  # (C, D), m
+    receivers: NDArray[np.float64],  # (C, D), m
+    transmitter_axes: NDArray[np.float64],  # (C, D), unit
+    receiver_axes: NDArray[np.float64],  # (C, D), unit
+    boresight: NDArray[np.float64],  # (D,)
+    required: NDArray[np.bool_],  # (C,)
+    flat_paths: NDArray[np.float64],  # (E,) every channel's echoes, m
+    flat_sigmas: NDArray[np.float64],  # (E,), m
+    offset: NDArray[np.int64],  # (C + 1,) channel c's echoes at offset[c]:offset[c + 1]
+    sorted_paths: NDArray[np.float64],  # (E,) sorted within each channel, m
+    sorted_index: NDArray[np.int64],  # (E,) their echo indices within the channel
+    seeds: NDArray[np.int64],  # (S, D) channel indices
     window_low: float,
     window_high: float,
     cos_fov: float,
     k_gate: float,
     merge_reach: float,
     min_own: int,
-    capacity: Any,
+    capacity: int | np.int64,  # Python int (locate) or np.int64 (candidates): int64
 ) -> Any:  # pragma: no cover - compiled
     """Steps 1-2 of locate.associate for every seed: (echo, use, points, count, overflow).
 
@@ -707,7 +737,12 @@ def seed_candidates(
 
 @njit(cache=True)
 def gauss_newton(
-    transmitters: Any, receivers: Any, paths: Any, weights: Any, start: Any, iterations: int
+    transmitters: NDArray[np.float64],  # (C, D), m
+    receivers: NDArray[np.float64],  # (C, D), m
+    paths: NDArray[np.float64],  # (n, C), m
+    weights: NDArray[np.float64],  # (n, C), 0: channel unused
+    start: NDArray[np.float64],  # (n, D), m
+    iterations: int,
 ) -> Any:  # pragma: no cover - compiled
     """Weighted Gauss-Newton per row on l_c = |p - T_c| + |p - R_c| (locate.solve_positions).
 
@@ -738,15 +773,15 @@ def gauss_newton(
 
 @_without_runtime
 def _gauss_newton_row(
-    transmitters: Any,
-    receivers: Any,
-    paths: Any,
-    weights: Any,
-    start: Any,
-    iterations: Any,
-    position: Any,
-    covariance: Any,
-    work: Any,
+    transmitters: NDArray[np.float64],  # (C, D), m
+    receivers: NDArray[np.float64],  # (C, D), m
+    paths: NDArray[np.float64],  # (C,), m
+    weights: NDArray[np.float64],  # (C,)
+    start: NDArray[np.float64],  # (D,), m
+    iterations: int | np.int64,  # Python int (gauss_newton) or np.int64 (choose, refine): int64
+    position: NDArray[np.float64],  # (D,) out
+    covariance: NDArray[np.float64],  # (D, D) out
+    work: NDArray[np.float64],  # (2 D + 6, D) scratch
 ) -> Any:  # pragma: no cover - compiled
     """One row of :func:`gauss_newton` into ``position`` (D,) and ``covariance`` (D, D), which
     stay as given (NaN) when the system is singular; returns (chi2, converged).
@@ -762,14 +797,14 @@ def _gauss_newton_row(
 
 @_without_runtime
 def _gauss_newton_row_3d(
-    transmitters: Any,
-    receivers: Any,
-    paths: Any,
-    weights: Any,
-    start: Any,
-    iterations: Any,
-    position: Any,
-    covariance: Any,
+    transmitters: NDArray[np.float64],  # (C, D), m
+    receivers: NDArray[np.float64],  # (C, D), m
+    paths: NDArray[np.float64],  # (C,), m
+    weights: NDArray[np.float64],  # (C,)
+    start: NDArray[np.float64],  # (D,), m
+    iterations: int | np.int64,  # Python int (gauss_newton) or np.int64 (choose, refine): int64
+    position: NDArray[np.float64],  # (D,) out
+    covariance: NDArray[np.float64],  # (D, D) out
 ) -> Any:  # pragma: no cover - compiled
     """:func:`_gauss_newton_row_any` for D = 3 in scalars (registers, not scratch rows): the same
     operations in the same order, so the same bits. A covariance column whose solve fails
@@ -864,15 +899,15 @@ def _gauss_newton_row_3d(
 
 @_without_runtime
 def _gauss_newton_row_any(
-    transmitters: Any,
-    receivers: Any,
-    paths: Any,
-    weights: Any,
-    start: Any,
-    iterations: Any,
-    position: Any,
-    covariance: Any,
-    work: Any,
+    transmitters: NDArray[np.float64],  # (C, D), m
+    receivers: NDArray[np.float64],  # (C, D), m
+    paths: NDArray[np.float64],  # (C,), m
+    weights: NDArray[np.float64],  # (C,)
+    start: NDArray[np.float64],  # (D,), m
+    iterations: int | np.int64,  # Python int (gauss_newton) or np.int64 (choose, refine): int64
+    position: NDArray[np.float64],  # (D,) out
+    covariance: NDArray[np.float64],  # (D, D) out
+    work: NDArray[np.float64],  # (2 D + 6, D) scratch
 ) -> Any:  # pragma: no cover - compiled
     """:func:`_gauss_newton_row` in any dimension, through the scratch rows ``work``."""
     n_ch = paths.shape[0]
@@ -940,27 +975,27 @@ def _gauss_newton_row_any(
 
 @_without_runtime
 def _fit_row(
-    transmitters: Any,
-    receivers: Any,
-    transmitter_axes: Any,
-    receiver_axes: Any,
-    boresight: Any,
-    paths: Any,
-    sigmas: Any,
-    offset: Any,
-    echo: Any,
-    use: Any,
-    start: Any,
+    transmitters: NDArray[np.float64],  # (C, D), m
+    receivers: NDArray[np.float64],  # (C, D), m
+    transmitter_axes: NDArray[np.float64],  # (C, D), unit
+    receiver_axes: NDArray[np.float64],  # (C, D), unit
+    boresight: NDArray[np.float64],  # (D,)
+    paths: NDArray[np.float64],  # (E,) every channel's echoes, m
+    sigmas: NDArray[np.float64],  # (E,), m
+    offset: NDArray[np.int64],  # (C + 1,) channel c's echoes at offset[c]:offset[c + 1]
+    echo: NDArray[np.int64],  # (C,) echo index per channel
+    use: NDArray[np.int8],  # (C,) OWN, SHARED or NONE
+    start: NDArray[np.float64],  # (D,), m
     merge_sigma: float,
-    gates: Any,
+    gates: NDArray[np.float64],  # (C + 1,) chi-square gate by echo count
     check_beams: bool,
     cos_fov: float,
-    iterations: Any,
-    measured: Any,
-    weights: Any,
-    position: Any,
-    covariance: Any,
-    work: Any,
+    iterations: int | np.int64,  # as refine's: int64
+    measured: NDArray[np.float64],  # (C,) scratch
+    weights: NDArray[np.float64],  # (C,) scratch
+    position: NDArray[np.float64],  # (D,) out
+    covariance: NDArray[np.float64],  # (D, D) out
+    work: NDArray[np.float64],  # (2 D + 6, D) scratch
 ) -> Any:  # pragma: no cover - compiled
     """locate._fit_and_gate for one candidate: (chi2, converged, passes the gate and is in view).
 
@@ -989,25 +1024,25 @@ def _fit_row(
 
 @njit(cache=True)
 def refine(
-    transmitters: Any,
-    receivers: Any,
-    transmitter_axes: Any,
-    receiver_axes: Any,
-    boresight: Any,
-    required: Any,
-    paths: Any,
-    sigmas: Any,
-    amplitudes: Any,
-    offset: Any,
-    echo: Any,
-    use: Any,
-    start: Any,
+    transmitters: NDArray[np.float64],  # (C, D), m
+    receivers: NDArray[np.float64],  # (C, D), m
+    transmitter_axes: NDArray[np.float64],  # (C, D), unit
+    receiver_axes: NDArray[np.float64],  # (C, D), unit
+    boresight: NDArray[np.float64],  # (D,)
+    required: NDArray[np.bool_],  # (C,)
+    paths: NDArray[np.float64],  # (E,) every channel's echoes, m
+    sigmas: NDArray[np.float64],  # (E,), m
+    amplitudes: NDArray[np.float64],  # (E,) or (0,): none
+    offset: NDArray[np.int64],  # (C + 1,) channel c's echoes at offset[c]:offset[c + 1]
+    echo: NDArray[np.int64],  # (n, C) echo index per channel, -1 none
+    use: NDArray[np.int8],  # (n, C) OWN, SHARED or NONE
+    start: NDArray[np.float64],  # (n, D), m
     merge_sigma: float,
-    gates: Any,
+    gates: NDArray[np.float64],  # (C + 1,) chi-square gate by echo count
     check_beams: bool,
     cos_fov: float,
     min_own: int,
-    iterations: Any,
+    iterations: int | np.int64,  # Python int (locate) or np.int64 (candidates, choose): int64
     amplitude_log_sigma: float,
 ) -> Any:  # pragma: no cover - compiled
     """Step 3 of locate.associate (locate._refine_reference): every candidate fitted and gated,
@@ -1120,7 +1155,13 @@ def refine(
 
 
 @njit(cache=True)
-def _weights(use: Any, chi2: Any, amplitude_chi2: Any, gates: Any, out: Any) -> bool:  # pragma: no cover
+def _weights(
+    use: NDArray[np.int8],  # (n, C)
+    chi2: NDArray[np.float64],  # (n,)
+    amplitude_chi2: NDArray[np.float64],  # (n,)
+    gates: NDArray[np.float64],  # (C + 1,)
+    out: NDArray[np.float64],  # (n,) out
+) -> bool:  # pragma: no cover
     """locate._weights into ``out``; False when two weights tie or one is NaN (order undefined)."""
     n, n_ch = use.shape
     for row in range(n):
@@ -1139,7 +1180,7 @@ def _weights(use: Any, chi2: Any, amplitude_chi2: Any, gates: Any, out: Any) -> 
 
 
 @njit(cache=True)
-def _has_tie(values: Any, members: Any) -> bool:  # pragma: no cover - compiled
+def _has_tie(values: NDArray[np.float64], members: NDArray[np.int64]) -> bool:  # pragma: no cover - compiled
     for a in range(members.shape[0]):
         for b in range(a):
             if values[members[a]] == values[members[b]]:
@@ -1148,7 +1189,9 @@ def _has_tie(values: Any, members: Any) -> bool:  # pragma: no cover - compiled
 
 
 @njit(cache=True)
-def _order_by_weight(weights: Any, members: Any) -> None:  # pragma: no cover - compiled
+def _order_by_weight(
+    weights: NDArray[np.float64], members: NDArray[np.int64]
+) -> None:  # pragma: no cover - compiled
     """Sort ``members`` heaviest first (insertion sort: equal weights keep their order, as a
     stable sort leaves them)."""
     for a in range(1, members.shape[0]):
@@ -1162,7 +1205,12 @@ def _order_by_weight(weights: Any, members: Any) -> None:  # pragma: no cover - 
 
 @njit(cache=True)
 def _pack_group(
-    group: Any, ids: Any, weights: Any, n_echo: int, node_limit: int, out: Any
+    group: NDArray[np.int64],  # (m,) rows
+    ids: NDArray[np.int64],  # (n, C) flat echo ids, -1 none
+    weights: NDArray[np.float64],  # (n,)
+    n_echo: int,
+    node_limit: int,
+    out: NDArray[np.int64],  # (m,) out
 ) -> int:  # pragma: no cover
     """locate._pack_group: branch and bound over ``group`` (sorted heaviest first); the chosen
     members into ``out`` in group order, returns how many. ``ids`` (n, C): flat echo ids, -1 none."""
@@ -1258,7 +1306,9 @@ def _pack_group(
 
 
 @njit(cache=True, inline="always")
-def _disjoint(ids: Any, local: Any, used: Any) -> bool:  # pragma: no cover - compiled
+def _disjoint(
+    ids: NDArray[np.int64], local: NDArray[np.int64], used: NDArray[np.bool_]
+) -> bool:  # pragma: no cover - compiled
     """Whether no echo of a candidate (flat ids, -1 none) is marked in ``used`` (by ``local`` number)."""
     free = True
     for c in range(ids.shape[0]):
@@ -1267,7 +1317,9 @@ def _disjoint(ids: Any, local: Any, used: Any) -> bool:  # pragma: no cover - co
 
 
 @njit(cache=True, inline="always")
-def _mark(ids: Any, local: Any, used: Any, value: bool) -> None:  # pragma: no cover - compiled
+def _mark(
+    ids: NDArray[np.int64], local: NDArray[np.int64], used: NDArray[np.bool_], value: bool
+) -> None:  # pragma: no cover - compiled
     for c in range(ids.shape[0]):
         if ids[c] >= 0:
             used[local[ids[c]]] = value
@@ -1275,7 +1327,12 @@ def _mark(ids: Any, local: Any, used: Any, value: bool) -> None:  # pragma: no c
 
 @njit(cache=True)
 def best_disjoint(
-    members: Any, ids: Any, weights: Any, n_echo: int, node_limit: int, out: Any
+    members: NDArray[np.int64],  # (m,) rows
+    ids: NDArray[np.int64],  # (n, C) flat echo ids, -1 none
+    weights: NDArray[np.float64],  # (n,)
+    n_echo: int,
+    node_limit: int,
+    out: NDArray[np.int64],  # (m,) out
 ) -> Any:  # pragma: no cover - compiled
     """locate._best_disjoint over the candidates ``members`` (rows of ``ids``/``weights``):
     the chosen rows into ``out`` in the reference's order; returns (how many, True), or
@@ -1335,7 +1392,9 @@ def best_disjoint(
 
 
 @njit(cache=True)
-def _attach_ids(echo: Any, use: Any, offset: Any, ids: Any) -> None:  # pragma: no cover - compiled
+def _attach_ids(
+    echo: NDArray[np.int64], use: NDArray[np.int8], offset: NDArray[np.int64], ids: NDArray[np.int64]
+) -> None:  # pragma: no cover - compiled
     """Flat echo id (offset[c] + echo) of every echo a candidate uses, -1 where none."""
     for row in range(echo.shape[0]):
         for c in range(echo.shape[1]):
@@ -1344,24 +1403,24 @@ def _attach_ids(echo: Any, use: Any, offset: Any, ids: Any) -> None:  # pragma: 
 
 @njit(cache=True)
 def choose(
-    transmitters: Any,
-    receivers: Any,
-    transmitter_axes: Any,
-    receiver_axes: Any,
-    boresight: Any,
-    required: Any,
-    paths: Any,
-    sigmas: Any,
-    amplitudes: Any,
-    offset: Any,
-    echo: Any,
-    use: Any,
-    position: Any,
-    chi2: Any,
-    amplitude_chi2: Any,
+    transmitters: NDArray[np.float64],  # (C, D), m
+    receivers: NDArray[np.float64],  # (C, D), m
+    transmitter_axes: NDArray[np.float64],  # (C, D), unit
+    receiver_axes: NDArray[np.float64],  # (C, D), unit
+    boresight: NDArray[np.float64],  # (D,)
+    required: NDArray[np.bool_],  # (C,)
+    paths: NDArray[np.float64],  # (E,) every channel's echoes, m
+    sigmas: NDArray[np.float64],  # (E,), m
+    amplitudes: NDArray[np.float64],  # (E,) or (0,): none
+    offset: NDArray[np.int64],  # (C + 1,) channel c's echoes at offset[c]:offset[c + 1]
+    echo: NDArray[np.int64],  # (n, C) echo index per channel
+    use: NDArray[np.int8],  # (n, C) OWN, SHARED or NONE
+    position: NDArray[np.float64],  # (n, D), m
+    chi2: NDArray[np.float64],  # (n,)
+    amplitude_chi2: NDArray[np.float64],  # (n,)
     merge_sigma: float,
     merge_reach: float,
-    gates: Any,
+    gates: NDArray[np.float64],  # (C + 1,) chi-square gate by echo count
     check_beams: bool,
     cos_fov: float,
     min_own: int,
@@ -1377,6 +1436,7 @@ def choose(
     is meaningful then and the caller runs the reference. ``merge_sigma`` < 0: no
     merged peaks (resolution None).
     """
+    n_ch: int  # typed (no code): an index of NDArray's Any shape types its items as arrays
     n, n_ch = echo.shape
     d = receivers.shape[1]
     n_echo = offset[n_ch]
@@ -1619,7 +1679,14 @@ def choose(
 
 @njit(cache=True, inline="always")
 def _measure(
-    paths: Any, sigmas: Any, offset: Any, echo: Any, use: Any, merge_sigma: float, measured: Any, weights: Any
+    paths: NDArray[np.float64],  # (E,), m
+    sigmas: NDArray[np.float64],  # (E,), m
+    offset: NDArray[np.int64],  # (C + 1,)
+    echo: NDArray[np.int64],  # (C,)
+    use: NDArray[np.int8],  # (C,)
+    merge_sigma: float,
+    measured: NDArray[np.float64],  # (C,) out, m
+    weights: NDArray[np.float64],  # (C,) out
 ) -> int:  # pragma: no cover - compiled
     """locate._measurements for one candidate into ``measured``/``weights``; returns the channels used."""
     n_used = 0
@@ -1639,7 +1706,9 @@ def _measure(
 
 
 @njit(cache=True, error_model="numpy")  # a zero SNR divides as numpy does (inf, no exception)
-def path_sigmas(snr_db: Any, speed: float, prior_variance: float, omega: float) -> Any:  # pragma: no cover
+def path_sigmas(
+    snr_db: NDArray[np.float64], speed: float, prior_variance: float, omega: float
+) -> Any:  # pragma: no cover
     """locate.path_sigmas_m, m, from the SNRs (dB), the carrier's angular frequency ``omega``
     (rad/s) and the a-priori variance (m^2): the same operations in the same order, one loop
     instead of eight numpy calls. The linear SNR is libm's power, which differs from numpy's
@@ -1654,7 +1723,9 @@ def path_sigmas(snr_db: Any, speed: float, prior_variance: float, omega: float) 
 
 
 @njit(cache=True)
-def sort_within_channels(paths: Any, offset: Any) -> Any:  # pragma: no cover - compiled
+def sort_within_channels(
+    paths: NDArray[np.float64], offset: NDArray[np.int64]
+) -> Any:  # pragma: no cover - compiled
     """Each channel's paths sorted, and their echo indices: np.lexsort((paths, channel)) of
     locate._seed_candidates (stable insertion sort, NaN last)."""
     sorted_paths = paths.copy()
@@ -1676,7 +1747,9 @@ def sort_within_channels(paths: Any, offset: Any) -> Any:  # pragma: no cover - 
 
 
 @njit(cache=True)
-def first_of_each(echo: Any, use: Any, count: int) -> Any:  # pragma: no cover - compiled
+def first_of_each(
+    echo: NDArray[np.int64], use: NDArray[np.int8], count: int
+) -> Any:  # pragma: no cover - compiled
     """Indices (ascending) of the first of every distinct (echo, use) row among the first ``count``."""
     n_ch = echo.shape[1]
     size = 1
@@ -1711,24 +1784,24 @@ def first_of_each(echo: Any, use: Any, count: int) -> Any:  # pragma: no cover -
 
 @njit(cache=True)
 def candidates(
-    transmitters: Any,
-    receivers: Any,
-    transmitter_axes: Any,
-    receiver_axes: Any,
-    boresight: Any,
-    required: Any,
-    paths: Any,
-    sigmas: Any,
-    amplitudes: Any,
-    offset: Any,
-    seeds: Any,
+    transmitters: NDArray[np.float64],  # (C, D), m
+    receivers: NDArray[np.float64],  # (C, D), m
+    transmitter_axes: NDArray[np.float64],  # (C, D), unit
+    receiver_axes: NDArray[np.float64],  # (C, D), unit
+    boresight: NDArray[np.float64],  # (D,)
+    required: NDArray[np.bool_],  # (C,)
+    paths: NDArray[np.float64],  # (E,) every channel's echoes, m
+    sigmas: NDArray[np.float64],  # (E,), m
+    amplitudes: NDArray[np.float64],  # (E,) or (0,): none
+    offset: NDArray[np.int64],  # (C + 1,) channel c's echoes at offset[c]:offset[c + 1]
+    seeds: NDArray[np.int64],  # (S, D) channel indices
     window_low: float,
     window_high: float,
     cos_fov: float,
     k_gate: float,
     merge_reach: float,
     merge_sigma: float,
-    gates: Any,
+    gates: NDArray[np.float64],  # (C + 1,) chi-square gate by echo count
     check_beams: bool,
     min_own: int,
     sharing_rounds: int,
@@ -1800,7 +1873,9 @@ def candidates(
 
 
 @njit(cache=True)
-def _nearest_first(position: Any, rows: Any, origin: Any) -> bool:  # pragma: no cover - compiled
+def _nearest_first(
+    position: NDArray[np.float64], rows: NDArray[np.int64], origin: NDArray[np.float64]
+) -> bool:  # pragma: no cover - compiled
     """Sort ``rows`` by the distance of their ``position`` from ``origin``, nearest first, when
     that order is beyond doubt: every distance squared finite and each more than 1e-9 of
     itself above the one before, far beyond the rounding of any sum of D squares (a few
@@ -1834,31 +1909,31 @@ def _nearest_first(position: Any, rows: Any, origin: Any) -> bool:  # pragma: no
 
 @njit(cache=True, nogil=True)
 def associate(
-    transmitters: Any,
-    receivers: Any,
-    transmitter_axes: Any,
-    receiver_axes: Any,
-    boresight: Any,
-    required: Any,
-    paths: Any,
-    sigmas: Any,
-    amplitudes: Any,
-    offset: Any,
-    seeds: Any,
+    transmitters: NDArray[np.float64],  # (C, D), m
+    receivers: NDArray[np.float64],  # (C, D), m
+    transmitter_axes: NDArray[np.float64],  # (C, D), unit
+    receiver_axes: NDArray[np.float64],  # (C, D), unit
+    boresight: NDArray[np.float64],  # (D,)
+    required: NDArray[np.bool_],  # (C,)
+    paths: NDArray[np.float64],  # (E,) every channel's echoes, m
+    sigmas: NDArray[np.float64],  # (E,), m
+    amplitudes: NDArray[np.float64],  # (E,) or (0,): none
+    offset: NDArray[np.int64],  # (C + 1,) channel c's echoes at offset[c]:offset[c + 1]
+    seeds: NDArray[np.int64],  # (S, D) channel indices
     window_low: float,
     window_high: float,
     cos_fov: float,
     k_gate: float,
     merge_reach: float,
     merge_sigma: float,
-    gates: Any,
+    gates: NDArray[np.float64],  # (C + 1,) chi-square gate by echo count
     check_beams: bool,
     min_own: int,
     sharing_rounds: int,
     amplitude_log_sigma: float,
     node_limit: int,
     max_rows: int,
-    origin: Any,
+    origin: NDArray[np.float64],  # (D,), m
 ) -> Any:  # pragma: no cover - compiled
     """Steps 1-4 of locate.associate in one call: :func:`candidates`, then :func:`choose`.
 
@@ -1937,34 +2012,34 @@ def associate(
 
 @njit(cache=True, nogil=True)
 def associate_frame(
-    transmitters: Any,
-    receivers: Any,
-    transmitter_axes: Any,
-    receiver_axes: Any,
-    boresight: Any,
-    required: Any,
-    tof: Any,
+    transmitters: NDArray[np.float64],  # (C, D), m
+    receivers: NDArray[np.float64],  # (C, D), m
+    transmitter_axes: NDArray[np.float64],  # (C, D), unit
+    receiver_axes: NDArray[np.float64],  # (C, D), unit
+    boresight: NDArray[np.float64],  # (D,)
+    required: NDArray[np.bool_],  # (C,)
+    tof: NDArray[np.float64],  # (E,) times of flight, s
     speed: float,
-    snr_db: Any,
+    snr_db: NDArray[np.float64],  # (E,) SNRs, dB
     prior_variance: float,
     omega: float,
-    amplitudes: Any,
-    offset: Any,
-    seeds: Any,
+    amplitudes: NDArray[np.float64],  # (E,) or (0,): none
+    offset: NDArray[np.int64],  # (C + 1,) channel c's echoes at offset[c]:offset[c + 1]
+    seeds: NDArray[np.int64],  # (S, D) channel indices
     window_low: float,
     window_high: float,
     cos_fov: float,
     k_gate: float,
     merge_reach: float,
     merge_sigma: float,
-    gates: Any,
+    gates: NDArray[np.float64],  # (C + 1,) chi-square gate by echo count
     check_beams: bool,
     min_own: int,
     sharing_rounds: int,
     amplitude_log_sigma: float,
     node_limit: int,
     max_rows: int,
-    origin: Any,
+    origin: NDArray[np.float64],  # (D,), m
 ) -> Any:  # pragma: no cover - compiled
     """:func:`associate` on one frame's flat echoes as locate.locate_frame has them: times of
     flight ``tof`` (s) times ``speed`` (m/s) for the paths and :func:`path_sigmas` of their

@@ -28,17 +28,51 @@ on the other core meanwhile, where it used to wait for the GIL and fall behind t
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.fft
+from numpy.typing import NDArray
 
 from echoloc._jit import njit, prange
 from echoloc.tof.echoes import _PRECISION_AMPLITUDE, _PRECISION_POWER
 
+if TYPE_CHECKING:
+    from echoloc.tof.echoes import BatchConstants, FinishingConstants
+
+# The parameters' types are those numba's dispatchers record for the pipeline's calls (every
+# estimator on the simulated presets; the inlined helpers' from their callers). Arrays are
+# C-contiguous and 1-D unless a trailing comment or the docstring gives their shape, but for
+# ``table`` (MatchedFilter.acf_table: oversample rows of 2 half + 1 lags) and ``grid_b`` (>= count,
+# 4; base0, row0, base1, row1 of each delay, with its weight in ``grid_w``: _prepare). Delays are
+# float64 lags, amplitudes complex128 (real-valued where a fit takes real amplitudes), echo
+# states int8, and a channel's correlation float32 (complex64 viewed as real, imaginary pairs).
+
+_RefineScratch = tuple[
+    NDArray[np.float64],  # new_tofs
+    NDArray[np.complex128],  # new_amps
+    NDArray[np.complex128],  # window
+    NDArray[np.float64],  # joint_data (joint_w, 2)
+    NDArray[np.bool_],  # joint_valid
+    NDArray[np.float64],  # joint_t
+    NDArray[np.complex128],  # joint_a
+    NDArray[np.float64],  # joint_work
+    NDArray[np.complex128],  # joint_new
+]
+""":func:`_refine_echoes`' scratch, as :func:`batch_echoes` allocates it (a numba tuple)."""
+
+_Complex = NDArray[np.complex64] | NDArray[np.complex128]
+""":func:`weigh_and_fold`'s arrays, in either precision (numba compiles it for each): complex64
+from :func:`correlate_rows`; from MatchedFilter.correlate the weights complex128, the spectrum
+complex128 (complex64 for float32 frames) and ``out`` their result type."""
+
 
 @njit(cache=True, nogil=True)
-def weigh_and_fold(spectrum: Any, weights: Any, out: Any) -> None:  # pragma: no cover - compiled
+def weigh_and_fold(
+    spectrum: _Complex,  # (rows, bins)
+    weights: _Complex,  # (>= bins,)
+    out: _Complex,  # (rows, m): the result type of the two
+) -> None:  # pragma: no cover - compiled
     """``out[r, k]`` = the sum of ``spectrum[r, j] * weights[j]`` over the bins j = k (mod m), m =
     ``out.shape[1]``: the matched filter's product spectrum folded for its shorter inverse FFT
     (:meth:`echoloc.tof.echoes.MatchedFilter._weigh_and_fold`), in one pass; bins past the
@@ -62,8 +96,12 @@ OK, TOO_MANY, CLOSE, TOO_BIG, LEFT_OVER, UNEXPLAINED = 0, 1, 2, 3, 4, 5
 
 @njit(cache=True, nogil=True)
 def correlate_rows(
-    frames: Any, n_fft: int, n_ifft: int, weights: Any, workers: int
-) -> Any:  # pragma: no cover
+    frames: NDArray[np.float64],  # (rows, samples)
+    n_fft: int,
+    n_ifft: int,
+    weights: NDArray[np.complex64],  # (n_fft // 2 + 1,)
+    workers: int,
+) -> NDArray[np.complex64]:  # pragma: no cover
     """The matched filter's single-precision correlation of every row of ``frames`` (rows,
     samples; float64), as :meth:`echoloc.tof.echoes.MatchedFilter.correlate_single_rows` returns
     it: rows zero-padded (or cropped) to ``n_fft`` in float32, their rfft weighed by
@@ -76,23 +114,25 @@ def correlate_rows(
     spectrum = scipy.fft.rfft(padded, axis=-1, workers=workers)
     folded = np.empty((rows, n_ifft), np.complex64)
     weigh_and_fold(spectrum, weights, folded)
-    return scipy.fft.ifft(folded, axis=-1, overwrite_x=True, workers=workers)
+    # (rows, n_ifft); scipy's stubs are missing (Any): the annotation states rocket-fft's type.
+    correlation: NDArray[np.complex64] = scipy.fft.ifft(folded, axis=-1, overwrite_x=True, workers=workers)
+    return correlation
 
 
 @njit(cache=True, nogil=True)
 def correlate_and_fit(
-    frames: Any,
+    frames: NDArray[np.float64],  # (rows, samples)
     n_fft: int,
     n_ifft: int,
-    weights: Any,
+    weights: NDArray[np.complex64],  # (n_fft // 2 + 1,)
     workers: int,
     parts: int,
     n_lags: int,
-    constants: Any,
-    finishing: Any,
-    out: Any,
-    kept: Any,
-    ok: Any,
+    constants: BatchConstants,
+    finishing: FinishingConstants,
+    out: NDArray[np.float64],  # (3, rows, slots)
+    kept: NDArray[np.int64],
+    ok: NDArray[np.bool_],
 ) -> None:  # pragma: no cover - compiled
     """:func:`correlate_rows` then :func:`batch_channels` on it, in one call: a stream's frame
     makes one call from Python for its echoes instead of four (two FFTs, the fold, the fits),
@@ -112,7 +152,14 @@ def _grid(u: int, tof: float) -> tuple[int, int, int, int, float]:  # pragma: no
 
 @njit(cache=True, inline="always")
 def _at(
-    table: Any, half: int, base0: int, row0: int, base1: int, row1: int, weight: float, s: int
+    table: NDArray[np.complex128],
+    half: int,
+    base0: int,
+    row0: int,
+    base1: int,
+    row1: int,
+    weight: float,
+    s: int,
 ) -> tuple[complex, complex]:  # pragma: no cover - compiled
     """R(s - tof) and (v1 - v0) for a delay on the grid (base0, row0, base1, row1, weight)."""
     width = 2 * half + 1
@@ -130,7 +177,9 @@ def _at(
 
 
 @njit(cache=True)
-def _prepare(u: int, tofs: Any, grid_b: Any, grid_w: Any) -> None:  # pragma: no cover - compiled
+def _prepare(
+    u: int, tofs: NDArray[np.float64], grid_b: NDArray[np.int64], grid_w: NDArray[np.float64]
+) -> None:  # pragma: no cover - compiled
     """Grid positions of every delay (grid_b: base0, row0, base1, row1; grid_w: weight)."""
     for e in range(len(tofs)):
         b0, r0, b1, r1, w = _grid(u, tofs[e])
@@ -140,7 +189,15 @@ def _prepare(u: int, tofs: Any, grid_b: Any, grid_w: Any) -> None:  # pragma: no
 
 @njit(cache=True)
 def _model(
-    table: Any, half: int, grid_b: Any, grid_w: Any, amps: Any, count: int, s: int, skip_lo: int, skip_hi: int
+    table: NDArray[np.complex128],
+    half: int,
+    grid_b: NDArray[np.int64],
+    grid_w: NDArray[np.float64],
+    amps: NDArray[np.complex128],
+    count: int,
+    s: int,
+    skip_lo: int,
+    skip_hi: int,
 ) -> complex:  # pragma: no cover - compiled
     """Sum of a_k R(s - tau_k) over echoes 0..count-1 except those in [skip_lo, skip_hi)."""
     width = 2 * half + 1
@@ -168,14 +225,19 @@ def _model(
 
 
 @njit(cache=True)
-def _median(values: Any) -> float:  # pragma: no cover - compiled
+def _median(values: NDArray[np.float64]) -> float:  # pragma: no cover - compiled
     """The median (mean of the two middle values for an even count), by quickselect."""
     scratch = np.empty((3, len(values)), dtype=values.dtype)
     return _median_in(values, scratch[0], scratch[1], scratch[2])
 
 
 @njit(cache=True)
-def _median_in(values: Any, a: Any, below: Any, above: Any) -> float:  # pragma: no cover - compiled
+def _median_in(
+    values: NDArray[np.float64],
+    a: NDArray[np.float64],
+    below: NDArray[np.float64],
+    above: NDArray[np.float64],
+) -> float:  # pragma: no cover - compiled
     """:func:`_median` with scratch ``a``, ``below``, ``above`` (at least ``len(values)`` each),
     by :func:`_select`."""
     n = len(values)
@@ -195,7 +257,9 @@ bits of a chosen exponent; and the most values it sorts among those sharing thei
 
 
 @njit(cache=True)
-def _noise_median(values: Any, counts: Any, scratch: Any) -> float:  # pragma: no cover - compiled
+def _noise_median(
+    values: NDArray[np.float64], counts: NDArray[np.int32], scratch: NDArray[np.float64]
+) -> float:  # pragma: no cover - compiled
     """:func:`_median_in` of ``values`` (C-contiguous) by radix selection on their IEEE-754 bits:
     the same value, in less time on a channel's 600 noise powers (`benchmarks/bench_noise_median.py`
     measures it).
@@ -270,7 +334,9 @@ def _noise_median(values: Any, counts: Any, scratch: Any) -> float:  # pragma: n
 
 
 @njit(cache=True, inline="always")
-def _mean_of_middles(values: Any, upper: float, smaller: int, k: int) -> float:  # pragma: no cover
+def _mean_of_middles(
+    values: NDArray[np.float64], upper: float, smaller: int, k: int
+) -> float:  # pragma: no cover
     """The median of an even count from its upper middle value ``upper`` (rank ``k``): the mean
     with the largest of ``values`` below it, or with ``upper`` itself when it repeats there.
     ``smaller`` counts the values below ``upper`` that ``values`` leaves out (all below it)."""
@@ -285,7 +351,9 @@ def _mean_of_middles(values: Any, upper: float, smaller: int, k: int) -> float: 
 
 
 @njit(cache=True)
-def _solve_in_place(m: Any, v: Any, x: Any) -> None:  # pragma: no cover - compiled
+def _solve_in_place(
+    m: NDArray[np.float64], v: NDArray[np.float64], x: NDArray[np.float64]
+) -> None:  # pragma: no cover - compiled
     """x with m x = v (small) by Gaussian elimination with partial pivoting, into ``x``,
     overwriting ``m`` and ``v`` (no allocation: it runs every fit step); NaN if singular."""
     n = m.shape[0]
@@ -315,17 +383,17 @@ def _solve_in_place(m: Any, v: Any, x: Any) -> None:  # pragma: no cover - compi
 
 @njit(cache=True)
 def _evaluate(
-    table: Any,
+    table: NDArray[np.complex128],
     u: int,
     half: int,
-    data: Any,
+    data: NDArray[np.float64],  # (w, 2)
     lo: int,
-    valid: Any,
-    tofs: Any,
-    amps: Any,
-    shapes: Any,
-    slopes: Any,
-    residual: Any,
+    valid: NDArray[np.bool_],
+    tofs: NDArray[np.float64],
+    amps: NDArray[np.complex128],
+    shapes: NDArray[np.float64],  # (k, w, 2)
+    slopes: NDArray[np.float64],  # (k, w, 2)
+    residual: NDArray[np.float64],  # (w, 2)
 ) -> float:  # pragma: no cover - compiled
     """Shapes and slopes (k, w, 2: real, imaginary) over samples lo..lo+w-1, the residual
     data - model (w, 2; 0 where not valid) and its cost |residual|^2."""
@@ -367,14 +435,14 @@ def _evaluate(
 
 @njit(cache=True)
 def joint_fit(
-    table: Any,
+    table: NDArray[np.complex128],
     u: int,
     half: int,
-    data: Any,
+    data: NDArray[np.float64],  # (w, 2): real and imaginary parts
     lo: int,
-    valid: Any,
-    tofs: Any,
-    amps: Any,
+    valid: NDArray[np.bool_],
+    tofs: NDArray[np.float64],
+    amps: NDArray[np.complex128],
     real: bool,
     iterations: int,
     converge: bool = False,
@@ -431,22 +499,22 @@ def _fit_scratch_size(k: int, w: int) -> int:  # pragma: no cover - compiled
 
 @njit(cache=True)
 def _joint_fit_into(
-    table: Any,
+    table: NDArray[np.complex128],
     u: int,
     half: int,
-    data: Any,
+    data: NDArray[np.float64],  # (w, 2): real and imaginary parts
     lo: int,
-    valid: Any,
-    tofs: Any,
-    amps: Any,
+    valid: NDArray[np.bool_],
+    tofs: NDArray[np.float64],
+    amps: NDArray[np.complex128],
     real: bool,
     iterations: int,
     converge: bool,
     rotation: float,
     tolerance: float,
     gain: float,
-    work: Any,
-    new_amps: Any,
+    work: NDArray[np.float64],
+    new_amps: NDArray[np.complex128],
 ) -> float:  # pragma: no cover - compiled
     """:func:`joint_fit` with its scratch passed in (``work``: :func:`_fit_scratch_size` floats or
     more; ``new_amps``: ``len(tofs)`` complex or more): allocating them at every call would
@@ -541,12 +609,12 @@ def _joint_fit_into(
 
 @njit(cache=True, inline="always")
 def _lone_pass(
-    table: Any,
+    table: NDArray[np.complex128],
     u: int,
     half: int,
-    data: Any,
+    data: NDArray[np.float64],
     lo: int,
-    valid: Any,
+    valid: NDArray[np.bool_],
     tof: float,
     ar: float,
     ai: float,
@@ -588,7 +656,15 @@ def _lone_pass(
 
 @njit(cache=True)
 def _lone_fit(
-    table: Any, u: int, half: int, data: Any, lo: int, valid: Any, tof: float, amp: complex, iterations: int
+    table: NDArray[np.complex128],
+    u: int,
+    half: int,
+    data: NDArray[np.float64],  # (w, 2)
+    lo: int,
+    valid: NDArray[np.bool_],
+    tof: float,
+    amp: complex,
+    iterations: int,
 ) -> tuple[float, complex]:  # pragma: no cover - compiled
     """:func:`_joint_fit_into` of one echo with a real amplitude, ``iterations`` Levenberg-Marquardt
     steps (no convergence test), in scalars: the same steps, with the window's sums in another
@@ -630,7 +706,12 @@ def _lone_fit(
 
 
 @njit(cache=True, fastmath={"reassoc"})
-def _products(jac: Any, residual: Any, normal: Any, gradient: Any) -> None:  # pragma: no cover - compiled
+def _products(
+    jac: NDArray[np.float64],  # (p, n)
+    residual: NDArray[np.float64],
+    normal: NDArray[np.float64],  # (p, p)
+    gradient: NDArray[np.float64],
+) -> None:  # pragma: no cover - compiled
     """``normal = jac jac^T`` and ``gradient = jac residual`` (jac (p, n), residual (n,): real and
     imaginary parts side by side), the inner products of a fit step.
 
@@ -653,7 +734,14 @@ def _products(jac: Any, residual: Any, normal: Any, gradient: Any) -> None:  # p
 
 @njit(cache=True)
 def _normal_equations(
-    shapes: Any, slopes: Any, residual: Any, amps: Any, real: bool, jac: Any, normal: Any, gradient: Any
+    shapes: NDArray[np.float64],  # (k, w, 2)
+    slopes: NDArray[np.float64],  # (k, w, 2)
+    residual: NDArray[np.float64],  # (w, 2)
+    amps: NDArray[np.complex128],
+    real: bool,
+    jac: NDArray[np.float64],  # (p, w, 2)
+    normal: NDArray[np.float64],  # (p, p)
+    gradient: NDArray[np.float64],
 ) -> None:  # pragma: no cover - compiled
     """Jacobian (d model / d parameter: delays, real parts, imaginary parts unless ``real``),
     the undamped normal matrix ``J^T J`` and the gradient ``J^T residual`` of :func:`joint_fit`."""
@@ -675,16 +763,16 @@ def _normal_equations(
 
 @njit(cache=True)
 def _rotate_normal_equations(
-    shapes: Any,
-    slopes: Any,
-    residual: Any,
-    turn_c: Any,
-    turn_s: Any,
-    amps: Any,
+    shapes: NDArray[np.float64],  # (k, w, 2)
+    slopes: NDArray[np.float64],  # (k, w, 2)
+    residual: NDArray[np.float64],  # (w, 2)
+    turn_c: NDArray[np.float64],
+    turn_s: NDArray[np.float64],
+    amps: NDArray[np.complex128],
     rotation: float,
-    jac: Any,
-    normal: Any,
-    gradient: Any,
+    jac: NDArray[np.float64],  # (p, w, 2)
+    normal: NDArray[np.float64],  # (p, p)
+    gradient: NDArray[np.float64],
 ) -> None:  # pragma: no cover - compiled
     """:func:`_normal_equations` for complex amplitudes stepped in the frame turning with the carrier.
 
@@ -713,20 +801,20 @@ def _rotate_normal_equations(
 
 @njit(cache=True)
 def _fit_peak(
-    table: Any,
+    table: NDArray[np.complex128],
     u: int,
     half: int,
     rate: float,
-    corr: Any,
+    corr: NDArray[np.float32],  # (>= 2 n,): real and imaginary parts side by side
     n: int,
     peak: int,
     fit_half: int,
-    grid_b: Any,
-    grid_w: Any,
-    amps: Any,
+    grid_b: NDArray[np.int64],
+    grid_w: NDArray[np.float64],
+    amps: NDArray[np.complex128],
     count: int,
     skip: int,
-    window: Any,
+    window: NDArray[np.complex128],
 ) -> tuple[float, complex]:  # pragma: no cover - compiled
     """One echo as echoes._fit_peaks fits it, the other echoes' model (all but ``skip``) taken out.
 
@@ -774,7 +862,9 @@ def _fit_peak(
 
 
 @njit(cache=True, inline="always")
-def _sort_descending(keys: Any, values: Any, count: int) -> None:  # pragma: no cover - compiled
+def _sort_descending(
+    keys: NDArray[np.float64], values: NDArray[np.int64], count: int
+) -> None:  # pragma: no cover - compiled
     """Sort keys[:count] (and values alongside) largest first, equal keys in their order (stable).
 
     Insertion sort: a channel has a handful of candidates, and np.argsort would allocate.
@@ -790,26 +880,26 @@ def _sort_descending(keys: Any, values: Any, count: int) -> None:  # pragma: no 
 
 @njit(cache=True)
 def _channel_checks(
-    table: Any,
+    table: NDArray[np.complex128],
     half: int,
-    row: Any,
+    row: NDArray[np.float32],  # (>= 2 n,): real and imaginary parts side by side
     n: int,
-    grid_b: Any,
-    grid_w: Any,
-    tofs: Any,
-    amps: Any,
-    peaks: Any,
+    grid_b: NDArray[np.int64],
+    grid_w: NDArray[np.float64],
+    tofs: NDArray[np.float64],
+    amps: NDArray[np.complex128],
+    peaks: NDArray[np.int64],
     count: int,
-    cand_k: Any,
-    accepted: Any,
+    cand_k: NDArray[np.int64],
+    accepted: NDArray[np.bool_],
     n_cand: int,
     fit_half: int,
     span: int,
     threshold: float,
     power: float,
     acf_energy: float,
-    residual_power: Any,
-    state: Any,
+    residual_power: NDArray[np.float64],
+    state: NDArray[np.int8],  # FREE, BORN or WAIVED
 ) -> tuple[int, int]:  # pragma: no cover - compiled
     """The batch path's checks of a channel's fitted echoes (``grid_b``/``grid_w`` prepared for
     ``tofs[:count]``): its status, and the echo that failed (-1: none, or a rejected candidate).
@@ -893,7 +983,12 @@ cycle wide), and the cluster's joint fit after the split settles the pair in it.
 
 @njit(cache=True)
 def _window_max(
-    keys: Any, values: Any, count: int, reach: int, out: Any, queue: Any
+    keys: NDArray[np.int64],
+    values: NDArray[np.float64],
+    count: int,
+    reach: int,
+    out: NDArray[np.float64],
+    queue: NDArray[np.int64],
 ) -> None:  # pragma: no cover - compiled
     """``out[i]`` = the largest ``values[j]``, j < ``count``, with ``|keys[j] - keys[i]| <= reach``
     (``keys`` ascending; ``i`` itself included): a sliding maximum over a monotone queue of
@@ -915,7 +1010,13 @@ def _window_max(
 
 @njit(cache=True)
 def _local_floor(
-    keys: Any, power: Any, count: int, reach: int, out: Any, scratch: Any, queue: Any
+    keys: NDArray[np.int64],
+    power: NDArray[np.float64],
+    count: int,
+    reach: int,
+    out: NDArray[np.float64],
+    scratch: NDArray[np.float64],
+    queue: NDArray[np.int64],
 ) -> None:  # pragma: no cover - compiled
     """The dynamic range's reference for each candidate (echoes._local_strongest): ``out[i]`` = the
     largest power among the candidates within ``reach`` lags of candidate i that are the largest
@@ -928,7 +1029,13 @@ def _local_floor(
 
 
 @njit(cache=True, inline="always")
-def _sort_by_delay(tofs: Any, amps: Any, peaks: Any, state: Any, count: int) -> None:  # pragma: no cover
+def _sort_by_delay(
+    tofs: NDArray[np.float64],
+    amps: NDArray[np.complex128],
+    peaks: NDArray[np.int64],
+    state: NDArray[np.int8],
+    count: int,
+) -> None:  # pragma: no cover
     """Sort the first ``count`` echoes by delay, their amplitudes, peaks and states alongside
     (stable insertion sort: a channel has a handful, and np.argsort would allocate)."""
     for i in range(1, count):
@@ -942,7 +1049,16 @@ def _sort_by_delay(tofs: Any, amps: Any, peaks: Any, state: Any, count: int) -> 
 
 @njit(cache=True, inline="always")
 def _settle_real(
-    table: Any, u: int, half: int, data: Any, lo: int, valid: Any, t: Any, a: Any, work: Any, new_amps: Any
+    table: NDArray[np.complex128],
+    u: int,
+    half: int,
+    data: NDArray[np.float64],
+    lo: int,
+    valid: NDArray[np.bool_],
+    t: NDArray[np.float64],
+    a: NDArray[np.complex128],
+    work: NDArray[np.float64],
+    new_amps: NDArray[np.complex128],
 ) -> float:  # pragma: no cover - compiled
     """A split's real-amplitude fit of the pair ``t``/``a`` to ``data``, in place, to the basin's
     floor (:data:`_SPLIT_TOLERANCE`, :data:`_SPLIT_GAIN`); its cost."""
@@ -968,7 +1084,13 @@ def _settle_real(
 
 @njit(cache=True)
 def _pair_plausible(
-    t: Any, a: Any, lo: int, hi: int, merge_samples: float, mainlobe: float, threshold: float
+    t: NDArray[np.float64],
+    a: NDArray[np.complex128],
+    lo: int,
+    hi: int,
+    merge_samples: float,
+    mainlobe: float,
+    threshold: float,
 ) -> bool:  # pragma: no cover - compiled
     """Whether two fitted echoes make a pair CLEAN's model choice would keep: inside the window,
     both above the threshold (on |a|^2), a quarter main lobe apart, and _clean_plausible."""
@@ -982,33 +1104,33 @@ def _pair_plausible(
 
 @njit(cache=True)
 def _split_echo(
-    table: Any,
+    table: NDArray[np.complex128],
     u: int,
     half: int,
     rate: float,
-    row: Any,
+    row: NDArray[np.float32],  # (>= 2 n,): real and imaginary parts side by side
     n: int,
-    tofs: Any,
-    amps: Any,
-    peaks: Any,
-    state: Any,
+    tofs: NDArray[np.float64],
+    amps: NDArray[np.complex128],
+    peaks: NDArray[np.int64],
+    state: NDArray[np.int8],  # FREE, BORN or WAIVED
     count: int,
     e: int,
     reach: float,
-    grid_b: Any,
-    grid_w: Any,
+    grid_b: NDArray[np.int64],
+    grid_w: NDArray[np.float64],
     fit_half: int,
     mainlobe: float,
     threshold: float,
-    data: Any,
-    valid: Any,
-    shapes: Any,
-    overlap: Any,
-    energy: Any,
-    work: Any,
-    new_amps: Any,
-    pair_t: Any,
-    pair_a: Any,
+    data: NDArray[np.float64],  # (split_w, 2)
+    valid: NDArray[np.bool_],
+    shapes: NDArray[np.complex128],  # (split_grid, split_w)
+    overlap: NDArray[np.complex128],
+    energy: NDArray[np.float64],
+    work: NDArray[np.float64],
+    new_amps: NDArray[np.complex128],
+    pair_t: NDArray[np.float64],
+    pair_a: NDArray[np.complex128],
 ) -> int:  # pragma: no cover - compiled
     """Echo ``e`` of ``tofs``/``amps[:count]`` (real amplitudes; ``grid_b``/``grid_w`` prepared)
     refitted as two echoes within a main lobe of it, in place, together with the echoes within
@@ -1176,25 +1298,25 @@ def _split_echo(
 
 @njit(cache=True)
 def _refine_echoes(
-    table: Any,
+    table: NDArray[np.complex128],
     u: int,
     half: int,
     rate: float,
-    row: Any,
+    row: NDArray[np.float32],  # (>= 2 n,): real and imaginary parts side by side
     n: int,
-    peaks: Any,
-    tofs: Any,
-    amps: Any,
-    state: Any,
+    peaks: NDArray[np.int64],
+    tofs: NDArray[np.float64],
+    amps: NDArray[np.complex128],
+    state: NDArray[np.int8],  # FREE, BORN or WAIVED
     n_echo: int,
     fit_half: int,
     mainlobe: float,
-    grid_b: Any,
-    grid_w: Any,
-    fitted_tofs: Any,
-    fitted_amps: Any,
-    scratch: Any,
-    steps: Any,
+    grid_b: NDArray[np.int64],
+    grid_w: NDArray[np.float64],
+    fitted_tofs: NDArray[np.float64],
+    fitted_amps: NDArray[np.complex128],
+    scratch: _RefineScratch,
+    steps: tuple[int, int, int, int, int],  # max_joint, joint_w, complex, real and lone iterations
 ) -> int:  # pragma: no cover - compiled
     """The batch path's fits from the echoes' first estimates ``tofs``/``amps[:n_echo]``: twice
     each echo refitted at its peak with the others' model taken out (all updated together;
@@ -1316,16 +1438,16 @@ def _refine_echoes(
 
 @njit(cache=True)
 def _drop_faint(
-    fitted_tofs: Any,
-    fitted_amps: Any,
-    tofs: Any,
-    amps: Any,
-    peaks: Any,
-    state: Any,
+    fitted_tofs: NDArray[np.float64],
+    fitted_amps: NDArray[np.complex128],
+    tofs: NDArray[np.float64],
+    amps: NDArray[np.complex128],
+    peaks: NDArray[np.int64],
+    state: NDArray[np.int8],  # FREE, BORN or WAIVED
     n_echo: int,
     threshold: float,
-    cand_k: Any,
-    accepted: Any,
+    cand_k: NDArray[np.int64],
+    accepted: NDArray[np.bool_],
     n_cand: int,
 ) -> int:  # pragma: no cover - compiled
     """After a split and the refits around it: drop the echoes (not of a pair) that fell below
@@ -1346,19 +1468,19 @@ def _drop_faint(
 
 @njit(cache=True)
 def _residual_noise_power(
-    table: Any,
+    table: NDArray[np.complex128],
     u: int,
     half: int,
-    row: Any,
+    row: NDArray[np.float32],  # (>= 2 n,): real and imaginary parts side by side
     n: int,
-    tofs: Any,
-    amps: Any,
+    tofs: NDArray[np.float64],
+    amps: NDArray[np.complex128],
     count: int,
     noise_step: int,
-    resid: Any,
-    noise: Any,
-    median_scratch: Any,
-    counts: Any,
+    resid: NDArray[np.complex128],
+    noise: NDArray[np.float64],
+    median_scratch: NDArray[np.float64],  # (3, >= n_noise)
+    counts: NDArray[np.int32],  # (_EXPONENT_BUCKETS + _MANTISSA_BUCKETS,)
 ) -> float:  # pragma: no cover - compiled
     """The noise power of a channel's correlation (``row``, real and imaginary side by side) less
     its echoes' model: ``median |r|^2 / ln 2`` over every ``noise_step``-th lag (the batch path's
@@ -1384,7 +1506,13 @@ the pair's stronger neighbour was blamed in 2 of the 9 channels the first split 
 
 @njit(cache=True)
 def _split_targets(
-    tofs: Any, amps: Any, state: Any, count: int, failed: int, mainlobe: float, targets: Any
+    tofs: NDArray[np.float64],
+    amps: NDArray[np.complex128],
+    state: NDArray[np.int8],
+    count: int,
+    failed: int,
+    mainlobe: float,
+    targets: NDArray[np.int64],
 ) -> int:  # pragma: no cover - compiled
     """The echoes a round of splits tries, into ``targets``: ``failed`` (the one the checks
     blamed), then the other FREE echoes within two main lobes of it, strongest first (stable),
@@ -1411,14 +1539,14 @@ def _split_targets(
 
 @njit(cache=True)
 def batch_echoes(
-    corr: Any,
+    corr: NDArray[np.float32],  # (n_ch, >= 2 n): complex64 rows viewed as float32
     n: int,
-    constants: Any,
-    out_tof: Any,
-    out_amp: Any,
-    out_count: Any,
-    out_power: Any,
-    out_status: Any,
+    constants: BatchConstants,
+    out_tof: NDArray[np.float64],  # (n_ch, slots)
+    out_amp: NDArray[np.float64],  # (n_ch, slots)
+    out_count: NDArray[np.int64],
+    out_power: NDArray[np.float64],
+    out_status: NDArray[np.int64],  # each channel's status (OK, TOO_MANY, ...)
 ) -> None:  # pragma: no cover - compiled
     """Echoes of every channel of ``corr`` this path can vouch for (echoes._isolated_echoes).
 
@@ -1790,14 +1918,14 @@ def batch_echoes(
 @njit(cache=True, parallel=True)
 def batch_echoes_parallel(
     parts: int,
-    corr: Any,
+    corr: NDArray[np.float32],  # (n_ch, >= 2 n): complex64 rows viewed as float32
     n: int,
-    constants: Any,
-    out_tof: Any,
-    out_amp: Any,
-    out_count: Any,
-    out_power: Any,
-    out_status: Any,
+    constants: BatchConstants,
+    out_tof: NDArray[np.float64],  # (n_ch, slots)
+    out_amp: NDArray[np.float64],  # (n_ch, slots)
+    out_count: NDArray[np.int64],
+    out_power: NDArray[np.float64],
+    out_status: NDArray[np.int64],
 ) -> None:  # pragma: no cover - compiled
     """:func:`batch_echoes` on ``parts`` consecutive groups of channels at once, one thread a group.
 
@@ -1820,21 +1948,21 @@ def batch_echoes_parallel(
 
 @njit(cache=True)
 def finish_channels(
-    out_tof: Any,
-    out_amp: Any,
-    out_count: Any,
-    out_power: Any,
-    ok: Any,
+    out_tof: NDArray[np.float64],  # (n_ch, slots)
+    out_amp: NDArray[np.float64],  # (n_ch, slots)
+    out_count: NDArray[np.int64],
+    out_power: NDArray[np.float64],
+    ok: NDArray[np.bool_],
     lag_rate_hz: float,
     arrival_s: float,
     blanking_s: float,
     threshold_db: float,
     floor_ratio: float,
     support_s: float,
-    tof_s: Any,
-    amplitude: Any,
-    snr_db: Any,
-    kept: Any,
+    tof_s: NDArray[np.float64],  # (n_ch, >= slots)
+    amplitude: NDArray[np.float64],  # (n_ch, >= slots)
+    snr_db: NDArray[np.float64],  # (n_ch, >= slots)
+    kept: NDArray[np.int64],
 ) -> None:  # pragma: no cover - compiled
     """echoes.finish_channel of every channel the batch path fitted: delays in seconds, output
     SNR, blanked, sub-threshold and out-of-range echoes dropped, and those weaker by more than
@@ -1876,7 +2004,14 @@ def finish_channels(
 
 @njit(cache=True, nogil=True)
 def batch_channels(
-    parts: int, corr: Any, n: int, constants: Any, finishing: Any, out: Any, kept: Any, ok: Any
+    parts: int,
+    corr: NDArray[np.float32],  # (n_ch, >= 2 n): complex64 rows viewed as float32
+    n: int,
+    constants: BatchConstants,
+    finishing: FinishingConstants,
+    out: NDArray[np.float64],  # (3, n_ch, slots)
+    kept: NDArray[np.int64],
+    ok: NDArray[np.bool_],
 ) -> None:  # pragma: no cover - compiled
     """:func:`batch_echoes` (on ``parts`` threads: :func:`batch_echoes_parallel`), then
     :func:`finish_channels`, in one call: the channels as ChannelEchoes' arrays. One call, not
@@ -1929,7 +2064,14 @@ def batch_channels(
 
 @njit(cache=True, inline="always")
 def _clean_shape(
-    table: Any, half: int, base0: int, row0: int, base1: int, row1: int, weight: float, s: int
+    table: NDArray[np.complex128],
+    half: int,
+    base0: int,
+    row0: int,
+    base1: int,
+    row1: int,
+    weight: float,
+    s: int,
 ) -> complex:  # pragma: no cover - compiled
     """_Clean._shape at sample ``s``: ``(1 - w) row0 + w row1``, row1 one lag later past a whole sample."""
     width = 2 * half + 1
@@ -1946,7 +2088,12 @@ def _clean_shape(
 
 @njit(cache=True)
 def clean_subtract(
-    table: Any, u: int, half: int, values: Any, tof: float, scale: complex
+    table: NDArray[np.complex128],
+    u: int,
+    half: int,
+    values: NDArray[np.complex128],
+    tof: float,
+    scale: complex,
 ) -> None:  # pragma: no cover - compiled
     """``values -= scale * R(s - tof)`` over the template's reach (_Clean._shape, then echoes._subtract).
 
@@ -1976,7 +2123,13 @@ def clean_subtract(
 
 @njit(cache=True, error_model="numpy")  # a zero model divides as numpy does (no exception)
 def clean_fit(
-    table: Any, u: int, half: int, rate: float, fit_half: int, values: Any, peak: int
+    table: NDArray[np.complex128],
+    u: int,
+    half: int,
+    rate: float,
+    fit_half: int,
+    values: NDArray[np.complex128],
+    peak: int,
 ) -> tuple[float, complex]:  # pragma: no cover - compiled
     """_Clean._fit: delay and complex amplitude of one echo whose envelope peaks at ``peak``."""
     n = len(values)
@@ -2015,7 +2168,15 @@ def clean_fit(
 
 @njit(cache=True)
 def clean_refit(
-    table: Any, u: int, half: int, rate: float, fit_half: int, residual: Any, tofs: Any, amps: Any, i: int
+    table: NDArray[np.complex128],
+    u: int,
+    half: int,
+    rate: float,
+    fit_half: int,
+    residual: NDArray[np.complex128],
+    tofs: NDArray[np.float64],
+    amps: NDArray[np.complex128],
+    i: int,
 ) -> None:  # pragma: no cover - compiled
     """_Clean._refit of component ``i``: put it back, fit it again alone, take it out again."""
     n = len(residual)
@@ -2037,15 +2198,15 @@ def clean_refit(
 
 @njit(cache=True)
 def clean_extract(
-    table: Any,
+    table: NDArray[np.complex128],
     u: int,
     half: int,
     rate: float,
     fit_half: int,
     cluster_samples: float,
-    residual: Any,
-    tofs: Any,
-    amps: Any,
+    residual: NDArray[np.complex128],
+    tofs: NDArray[np.float64],
+    amps: NDArray[np.complex128],
     count: int,
     threshold: float,
     floor: float,
@@ -2122,7 +2283,12 @@ def _reach(u: int, half: int, tof: float, n: int) -> tuple[int, int]:  # pragma:
 
 @njit(cache=True)
 def _refresh_power(
-    residual: Any, power: Any, block: Any, scan: int, lo: int, hi: int
+    residual: NDArray[np.complex128],
+    power: NDArray[np.float64],
+    block: NDArray[np.float64],
+    scan: int,
+    lo: int,
+    hi: int,
 ) -> None:  # pragma: no cover - compiled
     """``power = |residual|^2`` over ``lo..hi-1`` (from ``scan`` on), and the maxima of the blocks
     that touch it (block ``b``: samples ``scan + b _BLOCK`` onwards; 0 if nothing is positive)."""
@@ -2131,7 +2297,9 @@ def _refresh_power(
 
 
 @njit(cache=True, inline="always")
-def _power_into(residual: Any, power: Any, scan: int, lo: int, hi: int) -> None:  # pragma: no cover
+def _power_into(
+    residual: NDArray[np.complex128], power: NDArray[np.float64], scan: int, lo: int, hi: int
+) -> None:  # pragma: no cover
     """``power = |residual|^2`` (``re^2 + im^2``) over ``lo..hi-1``, from ``scan`` on."""
     for s in range(max(lo, scan), hi):
         value = residual[s]
@@ -2140,7 +2308,14 @@ def _power_into(residual: Any, power: Any, scan: int, lo: int, hi: int) -> None:
 
 @njit(cache=True)
 def _mask_floor(
-    power: Any, lo: int, hi: int, tofs: Any, amps: Any, count: int, floor: float, residue: int
+    power: NDArray[np.float64],
+    lo: int,
+    hi: int,
+    tofs: NDArray[np.float64],
+    amps: NDArray[np.complex128],
+    count: int,
+    floor: float,
+    residue: int,
 ) -> None:  # pragma: no cover - compiled
     """_Clean._below_floor: ``power`` set to 0 over ``lo..hi-1`` where it is below
     ``(floor |a|)^2`` of a component within ``residue`` lags (``|s - tof| <= residue``): the
@@ -2157,7 +2332,9 @@ def _mask_floor(
 
 
 @njit(cache=True, inline="always")
-def _block_maxima(power: Any, block: Any, scan: int, lo: int, hi: int) -> None:  # pragma: no cover
+def _block_maxima(
+    power: NDArray[np.float64], block: NDArray[np.float64], scan: int, lo: int, hi: int
+) -> None:  # pragma: no cover
     """The maxima of the blocks of ``power`` that touch ``lo..hi-1`` (from ``scan`` on), as
     _refresh_power leaves them."""
     n = len(power)
@@ -2173,7 +2350,9 @@ def _block_maxima(power: Any, block: Any, scan: int, lo: int, hi: int) -> None: 
 
 
 @njit(cache=True)
-def _strongest(power: Any, block: Any, scan: int) -> tuple[int, float]:  # pragma: no cover - compiled
+def _strongest(
+    power: NDArray[np.float64], block: NDArray[np.float64], scan: int
+) -> tuple[int, float]:  # pragma: no cover - compiled
     """The first sample of largest positive ``power`` from ``scan`` on, and that power; (0, 0.0) if none
     is positive: the first block of the largest maximum, then its first sample of that power."""
     top = 0.0
@@ -2193,22 +2372,22 @@ def _strongest(power: Any, block: Any, scan: int) -> tuple[int, float]:  # pragm
 
 @njit(cache=True)
 def clean_fit_models(
-    table: Any,
+    table: NDArray[np.complex128],
     u: int,
     half: int,
     fit_half: int,
-    restored: Any,
+    restored: NDArray[np.complex128],
     lo: int,
     hi: int,
-    fit_tof: Any,
-    fit_amp: Any,
-    active: Any,
+    fit_tof: NDArray[np.float64],  # (rows, k)
+    fit_amp: NDArray[np.complex128],  # (rows, k)
+    active: NDArray[np.bool_],  # (rows, k)
     complex_iterations: int,
     real_iterations: int,
     rotation: float,
     tolerance: float,
     gain: float,
-    cost: Any,
+    cost: NDArray[np.float64],
 ) -> None:  # pragma: no cover - compiled
     """_Clean._try_models' fits: each row's active echoes fitted jointly (complex amplitudes,
     then real ones) over its own span on ``restored``, in place, and its cost over lo..hi."""
@@ -2297,7 +2476,9 @@ def clean_fit_models(
 
 
 @njit(cache=True)
-def _clean_plausible(tofs: Any, amps: Any, mainlobe: float) -> bool:  # pragma: no cover - compiled
+def _clean_plausible(
+    tofs: NDArray[np.float64], amps: NDArray[np.complex128], mainlobe: float
+) -> bool:  # pragma: no cover - compiled
     """_Clean._plausible: no two echoes within a main lobe of opposite signs, or one below a
     quarter of its neighbour."""
     order = np.argsort(tofs, kind="mergesort")
@@ -2312,7 +2493,9 @@ def _clean_plausible(tofs: Any, amps: Any, mainlobe: float) -> bool:  # pragma: 
 
 
 @njit(cache=True)
-def _clean_window_cost(values: Any, lo: int, hi: int) -> float:  # pragma: no cover - compiled
+def _clean_window_cost(
+    values: NDArray[np.complex128], lo: int, hi: int
+) -> float:  # pragma: no cover - compiled
     """_Clean._window_cost: ``sum |values[lo:hi]|^2``."""
     total = 0.0
     for s in range(lo, hi):
@@ -2322,7 +2505,7 @@ def _clean_window_cost(values: Any, lo: int, hi: int) -> float:  # pragma: no co
 
 @njit(cache=True)
 def clean_try_models(
-    table: Any,
+    table: NDArray[np.complex128],
     u: int,
     half: int,
     fit_half: int,
@@ -2330,13 +2513,13 @@ def clean_try_models(
     merge_samples: float,
     acf_energy: float,
     threshold: float,
-    residual: Any,
-    tofs: Any,
-    amps: Any,
+    residual: NDArray[np.complex128],
+    tofs: NDArray[np.float64],
+    amps: NDArray[np.complex128],
     count: int,
-    start_tof: Any,
-    start_amp: Any,
-    active: Any,
+    start_tof: NDArray[np.float64],  # (rows, k)
+    start_amp: NDArray[np.complex128],  # (rows, k)
+    active: NDArray[np.bool_],  # (rows, k)
     split: bool,
     complex_iterations: int,
     real_iterations: int,
@@ -2429,7 +2612,14 @@ def clean_try_models(
 
 @njit(cache=True)
 def _candidate(
-    start_tof: Any, start_amp: Any, active: Any, row: int, tofs: Any, amps: Any, count: int, skip: int
+    start_tof: NDArray[np.float64],  # (rows, k)
+    start_amp: NDArray[np.complex128],  # (rows, k)
+    active: NDArray[np.bool_],  # (rows, k)
+    row: int,
+    tofs: NDArray[np.float64],
+    amps: NDArray[np.complex128],
+    count: int,
+    skip: int,
 ) -> int:  # pragma: no cover - compiled
     """Write the group ``tofs``/``amps[:count]`` without member ``skip`` (-1: none) as candidate ``row``;
     its size."""
@@ -2444,7 +2634,7 @@ def _candidate(
 
 @njit(cache=True)
 def clean_choose_order(
-    table: Any,
+    table: NDArray[np.complex128],
     u: int,
     half: int,
     rate: float,
@@ -2454,9 +2644,9 @@ def clean_choose_order(
     acf_energy: float,
     threshold: float,
     power: float,
-    residual: Any,
-    tofs: Any,
-    amps: Any,
+    residual: NDArray[np.complex128],
+    tofs: NDArray[np.float64],
+    amps: NDArray[np.complex128],
     count: int,
     complex_iterations: int,
     real_iterations: int,
@@ -2592,7 +2782,9 @@ def clean_choose_order(
 
 
 @njit(cache=True)
-def _select(a: Any, k: int, below: Any, above: Any) -> float:  # pragma: no cover - compiled
+def _select(
+    a: NDArray[np.float64], k: int, below: NDArray[np.float64], above: NDArray[np.float64]
+) -> float:  # pragma: no cover - compiled
     """The ``k``-th smallest of ``a`` (from 0) by quickselect; ``a`` is overwritten (not a
     permutation of itself after), ``below`` and ``above`` are scratch at least as long.
 
@@ -2626,7 +2818,7 @@ def _select(a: Any, k: int, below: Any, above: Any) -> float:  # pragma: no cove
 
 
 @njit(cache=True)
-def _median_sampled(values: Any) -> float:  # pragma: no cover - compiled
+def _median_sampled(values: NDArray[np.float64]) -> float:  # pragma: no cover - compiled
     """:func:`_median`, exactly, in less time on thousands of values.
 
     Every 8th value brackets the median: its order statistics 1.5 sqrt(m) + 2 either side of
@@ -2668,7 +2860,7 @@ def _median_sampled(values: Any) -> float:  # pragma: no cover - compiled
 
 
 @njit(cache=True)
-def _clean_noise_power(residual: Any) -> float:  # pragma: no cover - compiled
+def _clean_noise_power(residual: NDArray[np.complex128]) -> float:  # pragma: no cover - compiled
     """_Clean._noise_power: ``median(re^2 + im^2) / ln 2``, at least the smallest normal float (the
     median exact, and free of the mispredicted branches that slow numpy's)."""
     n = len(residual)
@@ -2683,15 +2875,15 @@ def _clean_noise_power(residual: Any) -> float:  # pragma: no cover - compiled
 
 @njit(cache=True)
 def _clean_joint_fit(
-    table: Any,
+    table: NDArray[np.complex128],
     u: int,
     half: int,
     fit_half: int,
     merge_samples: float,
     threshold: float,
-    residual: Any,
-    tofs: Any,
-    amps: Any,
+    residual: NDArray[np.complex128],
+    tofs: NDArray[np.float64],
+    amps: NDArray[np.complex128],
     count: int,
     complex_iterations: int,
     real_iterations: int,
@@ -2754,7 +2946,7 @@ def _clean_joint_fit(
 
 @njit(cache=True, nogil=True)
 def clean_run(
-    table: Any,
+    table: NDArray[np.complex128],
     u: int,
     half: int,
     rate: float,
@@ -2773,10 +2965,10 @@ def clean_run(
     real_iterations: int,
     tolerance: float,
     gain: float,
-    residual: Any,
-    out_tof: Any,
-    out_amp: Any,
-    out_power: Any,
+    residual: NDArray[np.complex128],
+    out_tof: NDArray[np.float64],  # (>= 2 max_echoes,)
+    out_amp: NDArray[np.complex128],  # (>= 2 max_echoes,)
+    out_power: NDArray[np.float64],  # (1,)
 ) -> int:  # pragma: no cover - compiled
     """_Clean.run on ``residual`` (the channel's correlation, taken apart in place): the echoes
     into ``out_tof``/``out_amp`` (room for ``2 max_echoes``), the noise power into ``out_power[0]``;
@@ -2878,7 +3070,7 @@ def clean_run(
 
 @njit(cache=True, parallel=True, nogil=True)
 def clean_run_rows(
-    table: Any,
+    table: NDArray[np.complex128],
     u: int,
     half: int,
     rate: float,
@@ -2897,11 +3089,11 @@ def clean_run_rows(
     real_iterations: int,
     tolerance: float,
     gain: float,
-    residuals: Any,
-    out_tof: Any,
-    out_amp: Any,
-    out_power: Any,
-    out_count: Any,
+    residuals: NDArray[np.complex128],  # (n_rows, n)
+    out_tof: NDArray[np.float64],  # (n_rows, >= 2 max_echoes)
+    out_amp: NDArray[np.complex128],  # (n_rows, >= 2 max_echoes)
+    out_power: NDArray[np.float64],
+    out_count: NDArray[np.int64],
 ) -> None:  # pragma: no cover - compiled
     """:func:`clean_run` on every row of ``residuals`` (n_rows, n), rows spread over the threads:
     row r's echoes into ``out_tof[r]``/``out_amp[r]``, its noise power into ``out_power[r]`` and
