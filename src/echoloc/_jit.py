@@ -3,7 +3,8 @@
 numba is the ``[fast]`` extra. The kernel modules (``*_kernels.py``) are written in the
 subset of Python and numpy that numba compiles, so without it the same functions run as
 they are, interpreted: the same answers (to rounding: numba's ``fastmath`` and scipy.fft
-against rocket-fft's FFT may differ in the last bits), about 5-20 times slower a frame.
+against rocket-fft's FFT may differ in the last bits), 7-50 times slower a frame
+(``benchmarks/results/uncompiled.md``: 40 ms instead of 1 ms on a 4-channel rf frame).
 :func:`njit` says so once, as a warning, the first time a kernel module is imported
 without numba.
 
@@ -33,7 +34,7 @@ HAVE_NUMBA = _numba is not None
 
 NO_NUMBA_NOTICE = (
     ("ECHOLOC_DISABLE_NUMBA is set" if _TURNED_OFF else "numba is not installed")
-    + ": echoloc's kernels run as plain Python, the same answers about 5-20 times slower a "
+    + ": echoloc's kernels run as plain Python, the same answers 7-50 times slower a "
     "frame; `pip install 'echoloc[fast]'` compiles them"
 )
 

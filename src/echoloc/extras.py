@@ -5,7 +5,7 @@ protocol, MCAP and PLY exports) installs with numpy, scipy, h5py, mcap and the c
 line's click and rich. The rest are extras of the package:
 
 - ``fast``: the kernels compiled (numba, rocket-fft). Without it they run as plain Python,
-  the same answers about 5-20 times slower a frame, and echoloc says so once
+  the same answers 7-50 times slower a frame, and echoloc says so once
   (:mod:`echoloc._jit`);
 - ``plot``: every picture (``--plot``, ``image``, a ``map`` as PNG, ``design -o``): matplotlib;
 - ``live``: the live view of ``stream --view`` (Foxglove WebSocket): foxglove-sdk;
