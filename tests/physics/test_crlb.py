@@ -113,6 +113,18 @@ def test_general_two_parameter_case_when_delay_and_amplitude_couple() -> None:
         )
 
 
+@pytest.mark.parametrize(
+    ("amplitude", "message"),
+    [(math.inf, "not finite"), (math.nan, "not finite"), (1e300, "not finite"), (0.0, "not identifiable")],
+)
+def test_an_amplitude_without_a_bound_is_one_clear_error(amplitude: float, message: str) -> None:
+    """An infinite or NaN amplitude, or one whose square overflows the Fisher matrix, is said to
+    be out of range; a zero amplitude leaves the delay unidentifiable. Never numpy's own error."""
+    s = np.sin(np.arange(64) / 3) * np.hanning(64)
+    with pytest.raises(EchoLocError, match=message):
+        coherent_tof_bound(s, FS_HZ, amplitude=amplitude, noise_sigma=0.1)
+
+
 def test_unknown_phase_bound_is_the_envelope_rms_bandwidth_formula() -> None:
     """Gaussian tone: the envelope's rms angular bandwidth is 1/(√2 w), so var = 2 w² σ² / (A² Σ s²)."""
     width, amplitude, sigma = 40e-6, 1.0, 0.2

@@ -336,7 +336,8 @@ def _fisher(columns: list[NDArray[np.generic]], noise_sigma: float) -> NDArray[n
     with variance σ², which gives the real part of the complex inner product.
     """
     stacked = np.vstack(columns)
-    gram = np.conj(stacked) @ stacked.T
+    with np.errstate(over="ignore", invalid="ignore"):  # a non-finite result is _bound's error
+        gram = np.conj(stacked) @ stacked.T
     return np.asarray(np.real(gram) / noise_sigma**2, dtype=np.float64)
 
 
@@ -345,6 +346,11 @@ def _bound(fisher: NDArray[np.float64], parameters: tuple[str, ...]) -> TofBound
     # Judge singularity on the correlation form D^-1/2 F D^-1/2 (units drop out): two
     # parameters whose derivatives are proportional give a condition number near 1/eps,
     # whatever LAPACK build and numpy version round the inverse.
+    if not np.all(np.isfinite(fisher)):
+        raise EchoLocError(
+            "the Fisher matrix is not finite: the amplitude over the noise sigma is not a finite, "
+            "representable ratio"
+        )
     diagonal = np.diag(fisher)
     if not np.all(diagonal > 0):
         raise singular
