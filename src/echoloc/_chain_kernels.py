@@ -73,24 +73,9 @@ def echoes_and_objects(
     is associate_frame's for each frame, or :data:`LEFT_TO_CLEAN`; frame f's objects are the
     rows ``found[f]:found[f + 1]`` of the other four.
     """
-    # (numba unpacks no named tuple into a call: each field goes to its parameter by keyword.)
-    correlate_and_fit(
-        frames=echo_arguments.frames,
-        n_fft=echo_arguments.n_fft,
-        n_ifft=echo_arguments.n_ifft,
-        weights=echo_arguments.weights,
-        workers=echo_arguments.workers,
-        parts=echo_arguments.parts,
-        n_lags=echo_arguments.n_lags,
-        constants=echo_arguments.constants,
-        finishing=echo_arguments.finishing,
-        out=echo_arguments.out,
-        kept=echo_arguments.kept,
-        ok=echo_arguments.ok,
-    )
+    correlate_and_fit(echo_arguments)
     out, kept, ok = echo_arguments.out, echo_arguments.kept, echo_arguments.ok
-    geometry, tail = locate_arguments.geometry, locate_arguments.tail
-    receivers = geometry.receivers
+    receivers = locate_arguments.geometry.receivers
     n_frames = kept.shape[0] // n_rx
     dim = receivers.shape[1]
     status = np.full(n_frames, LEFT_TO_CLEAN, dtype=np.int64)
@@ -120,34 +105,7 @@ def echoes_and_objects(
                 amplitude[offset[c] + e] = out[1, first + c, e]
                 snr_db[offset[c] + e] = out[2, first + c, e]
         frame_status, frame_use, frame_positions, frame_covariances, frame_chi2 = associate_frame(
-            transmitters=geometry.transmitters,
-            receivers=geometry.receivers,
-            transmitter_axes=geometry.transmitter_axes,
-            receiver_axes=geometry.receiver_axes,
-            boresight=geometry.boresight,
-            required=geometry.required,
-            tof=tof,
-            speed=locate_arguments.speed_of_sound_m_s,
-            snr_db=snr_db,
-            prior_variance=locate_arguments.prior_variance_m2,
-            omega=locate_arguments.omega_rad_s,
-            amplitudes=amplitude,
-            offset=offset,
-            seeds=tail.seeds,
-            window_low=tail.window_low,
-            window_high=tail.window_high,
-            cos_fov=tail.cos_fov,
-            k_gate=tail.k_gate,
-            merge_reach=tail.merge_reach,
-            merge_sigma=tail.merge_sigma,
-            gates=tail.gates,
-            check_beams=tail.check_beams,
-            min_own=tail.min_own,
-            sharing_rounds=tail.sharing_rounds,
-            amplitude_log_sigma=tail.amplitude_log_sigma,
-            node_limit=locate_arguments.node_limit,
-            max_rows=locate_arguments.max_rows,
-            origin=locate_arguments.origin,
+            locate_arguments, tof, snr_db, amplitude, offset
         )
         status[f] = frame_status
         n = frame_chi2.shape[0]

@@ -31,12 +31,15 @@ entry points Python calls once a frame release the GIL (see :mod:`echoloc.tof._e
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any, TypeVar, cast
+from typing import TYPE_CHECKING, Any, TypeVar, cast
 
 import numpy as np
 from numpy.typing import NDArray
 
 from echoloc._jit import njit
+
+if TYPE_CHECKING:
+    from echoloc.localise.locate import LocateKernelArguments
 
 OWN, SHARED, NONE = 0, 1, 2
 
@@ -2012,64 +2015,45 @@ def associate(
 
 @njit(cache=True, nogil=True)
 def associate_frame(
-    transmitters: NDArray[np.float64],  # (C, D), m
-    receivers: NDArray[np.float64],  # (C, D), m
-    transmitter_axes: NDArray[np.float64],  # (C, D), unit
-    receiver_axes: NDArray[np.float64],  # (C, D), unit
-    boresight: NDArray[np.float64],  # (D,)
-    required: NDArray[np.bool_],  # (C,)
+    arguments: LocateKernelArguments,
     tof: NDArray[np.float64],  # (E,) times of flight, s
-    speed: float,
     snr_db: NDArray[np.float64],  # (E,) SNRs, dB
-    prior_variance: float,
-    omega: float,
     amplitudes: NDArray[np.float64],  # (E,) or (0,): none
     offset: NDArray[np.int64],  # (C + 1,) channel c's echoes at offset[c]:offset[c + 1]
-    seeds: NDArray[np.int64],  # (S, D) channel indices
-    window_low: float,
-    window_high: float,
-    cos_fov: float,
-    k_gate: float,
-    merge_reach: float,
-    merge_sigma: float,
-    gates: NDArray[np.float64],  # (C + 1,) chi-square gate by echo count
-    check_beams: bool,
-    min_own: int,
-    sharing_rounds: int,
-    amplitude_log_sigma: float,
-    node_limit: int,
-    max_rows: int,
-    origin: NDArray[np.float64],  # (D,), m
 ) -> Any:  # pragma: no cover - compiled
     """:func:`associate` on one frame's flat echoes as locate.locate_frame has them: times of
-    flight ``tof`` (s) times ``speed`` (m/s) for the paths and :func:`path_sigmas` of their
-    SNRs ``snr_db`` (dB) for their sigmas, in this call."""
+    flight ``tof`` (s) times the speed of sound for the paths and :func:`path_sigmas` of their
+    SNRs ``snr_db`` (dB) for their sigmas, in this call. ``arguments``
+    (locate.FrameLocator.kernel_arguments) are read by name."""
+    speed = arguments.speed_of_sound_m_s
     paths = tof * speed
-    sigmas = path_sigmas(snr_db, speed, prior_variance, omega)
+    sigmas = path_sigmas(snr_db, speed, arguments.prior_variance_m2, arguments.omega_rad_s)
+    geometry, tail = arguments.geometry, arguments.tail
+    # (numba unpacks no named tuple into a call: each field goes to its parameter by keyword.)
     return associate(
-        transmitters,
-        receivers,
-        transmitter_axes,
-        receiver_axes,
-        boresight,
-        required,
-        paths,
-        sigmas,
-        amplitudes,
-        offset,
-        seeds,
-        window_low,
-        window_high,
-        cos_fov,
-        k_gate,
-        merge_reach,
-        merge_sigma,
-        gates,
-        check_beams,
-        min_own,
-        sharing_rounds,
-        amplitude_log_sigma,
-        node_limit,
-        max_rows,
-        origin,
+        transmitters=geometry.transmitters,
+        receivers=geometry.receivers,
+        transmitter_axes=geometry.transmitter_axes,
+        receiver_axes=geometry.receiver_axes,
+        boresight=geometry.boresight,
+        required=geometry.required,
+        paths=paths,
+        sigmas=sigmas,
+        amplitudes=amplitudes,
+        offset=offset,
+        seeds=tail.seeds,
+        window_low=tail.window_low,
+        window_high=tail.window_high,
+        cos_fov=tail.cos_fov,
+        k_gate=tail.k_gate,
+        merge_reach=tail.merge_reach,
+        merge_sigma=tail.merge_sigma,
+        gates=tail.gates,
+        check_beams=tail.check_beams,
+        min_own=tail.min_own,
+        sharing_rounds=tail.sharing_rounds,
+        amplitude_log_sigma=tail.amplitude_log_sigma,
+        node_limit=arguments.node_limit,
+        max_rows=arguments.max_rows,
+        origin=arguments.origin,
     )

@@ -1587,14 +1587,16 @@ class FrameLocator:
         self.options = options
         self.usable = usable
         self._setup: _Setup | None = None
-        self._flat_arguments: tuple[float, float, AssociationTail] | None = None
+        # The compiled path's arguments that stay from frame to frame (kernel_arguments adds the
+        # rest): the prior path variance (m^2), the carrier (rad/s), the seeds and options.
+        self._fixed_kernel_arguments: tuple[float, float, AssociationTail] | None = None
         receivers = np.asarray(receivers_m, dtype=float)
         n_ch, dim = receivers.shape
         # Every channel usable and enough of them: each frame goes straight to its flat echoes.
         if (usable is None or bool(np.all(usable))) and n_ch >= max(options.min_receivers, dim):
             self._setup = setup = _setup(transmitter_m, receivers, usable, None, None, None, options)
             if options.carrier_hz:
-                self._flat_arguments = (
+                self._fixed_kernel_arguments = (
                     options.path_sigma_m**2,
                     2 * np.pi * options.carrier_hz,
                     _kernel_tail(setup, options),
@@ -1612,7 +1614,7 @@ class FrameLocator:
         flat_amplitudes = np.concatenate([ch.amplitude for ch in channels]).astype(float, copy=False)
         c = frame_echoes.speed_of_sound_m_s
         objects = None
-        if self._flat_arguments and tof.dtype == snr_db.dtype == np.float64:
+        if self._fixed_kernel_arguments and tof.dtype == snr_db.dtype == np.float64:
             objects = self._compiled(offset, tof, c, snr_db, flat_amplitudes)
         if objects is None or (not objects and self.options.excuse_one_channel):
             echoes = _Echoes(
@@ -1662,20 +1664,8 @@ class FrameLocator:
 
         arguments = self.kernel_arguments(speed_of_sound_m_s)
         assert arguments is not None
-        kernel: Any = kernels.associate_frame
-        status, echo_use, position, covariance, chi2 = kernel(
-            *arguments.geometry,
-            tof_s,
-            arguments.speed_of_sound_m_s,
-            snr_db,
-            arguments.prior_variance_m2,
-            arguments.omega_rad_s,
-            amplitudes,
-            offset,
-            *arguments.tail,
-            arguments.node_limit,
-            arguments.max_rows,
-            arguments.origin,
+        status, echo_use, position, covariance, chi2 = kernels.associate_frame(
+            arguments, tof_s, snr_db, amplitudes, offset
         )
         return self.kernel_objects(
             status, echo_use, position, covariance, chi2, len(offset) - 1, stacklevel=4
@@ -1686,9 +1676,9 @@ class FrameLocator:
         takes besides a frame's echoes. None when this locator has no compiled path (some
         receiver unusable, or no carrier): :meth:`__call__` then takes the reference."""
         setup = self._setup
-        if setup is None or not _COMPILED or self._flat_arguments is None:
+        if setup is None or not _COMPILED or self._fixed_kernel_arguments is None:
             return None
-        prior_variance, omega, tail = self._flat_arguments
+        prior_variance, omega, tail = self._fixed_kernel_arguments
         return LocateKernelArguments(
             setup.geometry.kernel_arguments,
             float(speed_of_sound_m_s),

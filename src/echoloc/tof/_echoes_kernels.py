@@ -38,7 +38,7 @@ from echoloc._jit import njit, prange
 from echoloc.tof.echoes import _PRECISION_AMPLITUDE, _PRECISION_POWER
 
 if TYPE_CHECKING:
-    from echoloc.tof.echoes import BatchConstants, FinishingConstants
+    from echoloc.tof.echoes import BatchConstants, EchoKernelArguments, FinishingConstants
 
 # The parameters' types are those numba's dispatchers record for the pipeline's calls (every
 # estimator on the simulated presets; the inlined helpers' from their callers). Arrays are
@@ -120,25 +120,25 @@ def correlate_rows(
 
 
 @njit(cache=True, nogil=True)
-def correlate_and_fit(
-    frames: NDArray[np.float64],  # (rows, samples)
-    n_fft: int,
-    n_ifft: int,
-    weights: NDArray[np.complex64],  # (n_fft // 2 + 1,)
-    workers: int,
-    parts: int,
-    n_lags: int,
-    constants: BatchConstants,
-    finishing: FinishingConstants,
-    out: NDArray[np.float64],  # (3, rows, slots)
-    kept: NDArray[np.int64],
-    ok: NDArray[np.bool_],
-) -> None:  # pragma: no cover - compiled
+def correlate_and_fit(arguments: EchoKernelArguments) -> None:  # pragma: no cover - compiled
     """:func:`correlate_rows` then :func:`batch_channels` on it, in one call: a stream's frame
     makes one call from Python for its echoes instead of four (two FFTs, the fold, the fits),
-    which saves the overhead of three calls (`benchmarks/bench_fft_kernel.py` measures it)."""
-    correlation = correlate_rows(frames, n_fft, n_ifft, weights, workers)
-    batch_channels(parts, correlation.view(np.float32), n_lags, constants, finishing, out, kept, ok)
+    which saves the overhead of three calls (`benchmarks/bench_fft_kernel.py` measures it).
+    ``arguments`` (echoes.echo_kernel_arguments) are read by name; the echoes land in its
+    ``out``, ``kept`` and ``ok``."""
+    correlation = correlate_rows(
+        arguments.frames, arguments.n_fft, arguments.n_ifft, arguments.weights, arguments.workers
+    )
+    batch_channels(
+        arguments.parts,
+        correlation.view(np.float32),
+        arguments.n_lags,
+        arguments.constants,
+        arguments.finishing,
+        arguments.out,
+        arguments.kept,
+        arguments.ok,
+    )
 
 
 @njit(cache=True, inline="always")

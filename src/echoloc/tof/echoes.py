@@ -1435,9 +1435,9 @@ class FinishingConstants(NamedTuple):
 
 
 class EchoKernelArguments(NamedTuple):
-    """The arguments of :func:`echoloc.tof._echoes_kernels.correlate_and_fit`, in its order:
-    the rows of samples, the FFT sizes, the template's spectrum, the FFT's threads, the fits'
-    parallel parts, the lags, the two bundles of constants, then the outputs it writes:
+    """What :func:`echoloc.tof._echoes_kernels.correlate_and_fit` takes, as one argument it reads
+    by name: the rows of samples, the FFT sizes, the template's spectrum, the FFT's threads, the
+    fits' parallel parts, the lags, the two bundles of constants, then the outputs it writes:
     ``out`` (3, rows, slots: delays s, amplitudes, SNRs dB), ``kept`` (their counts) and
     ``ok`` (False: the row is left to CLEAN)."""
 
@@ -1621,7 +1621,7 @@ def _correlated_channels(
     from echoloc.tof import _echoes_kernels as kernels
 
     arguments = echo_kernel_arguments(frames, mf, options, threads)
-    run_kernel(arguments.parts, kernels.correlate_and_fit, *arguments)
+    run_kernel(arguments.parts, kernels.correlate_and_fit, arguments)
     return kernel_channels(arguments)
 
 
