@@ -37,7 +37,6 @@ from pathlib import Path
 from typing import TypeGuard
 
 import numpy as np
-from scipy import optimize
 
 from echoloc.errors import EchoLocError, read_text_input
 from echoloc.io.recording import Recording
@@ -132,6 +131,8 @@ def fit_calibration(
             design[r, 1 + i] = 1.0
             observed[r] = tof
         # Robust (soft L1) least squares: a wrongly paired echo does not drag the fit.
+        from scipy import optimize  # here, not at the top: locate needs none of its 0.4 s import
+
         start = np.concatenate([[slowness], delays])
         fit = optimize.least_squares(
             lambda x, a=design, b=observed: a @ x - b,

@@ -34,7 +34,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import special, stats
+from scipy import special
 
 from echoloc.errors import GeometryError
 from echoloc.tof.echoes import FrameEchoes
@@ -405,7 +405,10 @@ _MAX_SEED_ROWS = 262_144
 
 @lru_cache(maxsize=64)
 def _chi2_gate(probability: float, dof: int) -> float:
-    return float(stats.chi2.ppf(probability, dof)) if dof > 0 else np.inf
+    """The chi-square quantile: ``2 P^-1(dof / 2, probability)`` with P the regularised lower
+    incomplete gamma function, the very expression of ``scipy.stats.chi2.ppf``, without the
+    0.8 s that importing scipy.stats adds to every command's start."""
+    return float(2.0 * special.gammaincinv(dof / 2, probability)) if dof > 0 else np.inf
 
 
 @lru_cache(maxsize=64)
