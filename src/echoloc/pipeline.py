@@ -174,7 +174,8 @@ def prepare(
     """Precompute the chain for ``recording``; options not given take recording-based defaults.
 
     With a ``calibration`` its speed of sound is used and its receiver delays are
-    taken off every echo (an explicit ``speed_of_sound_m_s`` still wins).
+    taken off every echo (an explicit ``speed_of_sound_m_s`` still wins); without
+    ``echo_options``, its measured detection threshold is the envelope-peak estimator's.
     ``conditioning`` (:mod:`echoloc.tof.conditioning`; default: subtract the background
     and undo the receiver gain when the recording has them) is applied to every
     frame; a blind zone in seconds raises ``blanking_s`` to it. ``check_channels``
@@ -186,7 +187,9 @@ def prepare(
     """
     conditioning = conditioning or Conditioning()
     estimator = resolve_estimator(estimator, recording)
-    echo_options = echo_options or EchoOptions(threshold_db=default_threshold_db(estimator))
+    if echo_options is None:
+        calibrated_db = None if calibration is None else calibration.threshold_db
+        echo_options = EchoOptions(threshold_db=default_threshold_db(estimator, calibrated_db))
     if (
         calibration is not None
         and calibration.echo_shape is not None

@@ -9,6 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import scipy.fft
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 
 from echoloc.cli.commands import main
 from echoloc.errors import EchoLocError
@@ -228,3 +231,107 @@ def test_unknown_fields_are_read_past_with_a_warning(tmp_path: Path) -> None:
     path.write_text(json.dumps({**record, "temperature_c": 21.5, "speed_of_sound_m_S": 1.0}))
     with pytest.warns(CalibrationWarning, match=r"c\.json: .*speed_of_sound_m_S, temperature_c"):
         assert read_calibration(path, 4) == calibration
+
+
+def snr_echoes(
+    snr_db: np.ndarray, clutter_db: float | None = None
+) -> tuple[Recording, list[FrameEchoes], Calibration]:
+    """Frames of targets whose echo on each receiver has the given SNR (dB; -inf: no echo),
+    at exactly its calibrated arrival; ``clutter_db``: an echo that strong 50 mm of path later
+    on every receiver, far outside the gate. With the calibration that predicts them."""
+    rng = np.random.default_rng(8)
+    n = len(snr_db)
+    targets = np.column_stack([rng.uniform(-0.1, 0.1, (n, 2)), rng.uniform(0.1, 0.6, n)])
+    recording, _ = rig_echoes(targets, 343.0, 0.0, seed=1)
+    calibration = Calibration(343.0, tuple(RIG_DELAYS_S), path_sigma_m=0.001)
+    paths = np.linalg.norm(targets, axis=1)[:, None] + np.linalg.norm(
+        targets[:, None] - RIG_RECEIVERS_M[None], axis=2
+    )
+    echoes = []
+    for f in range(n):
+        channels = []
+        for i in range(4):
+            tof, snr = [], []
+            if np.isfinite(snr_db[f, i]):
+                tof.append(paths[f, i] / 343.0 + RIG_DELAYS_S[i])
+                snr.append(snr_db[f, i])
+            if clutter_db is not None:
+                tof.append((paths[f, i] + 0.05) / 343.0 + RIG_DELAYS_S[i])
+                snr.append(clutter_db)
+            channels.append(ChannelEchoes(np.array(tof), np.ones(len(tof)), np.array(snr)))
+        echoes.append(FrameEchoes(f, 0.0, 343.0, tuple(channels)))
+    return recording, echoes, calibration
+
+
+def test_the_detection_threshold_keeps_99_percent_of_the_targets_on_three_receivers() -> None:
+    """200 targets whose echoes stand 0-12 dB above the noise: the threshold is the level that
+    the third-strongest echo of 99 % of them reaches (the lower 1 % sample), whatever strong
+    clutter lies outside the gate; a target heard on two receivers only does not count."""
+    from echoloc.localise.calibrate import detection_threshold_db
+
+    snr = np.random.default_rng(3).uniform(0.0, 12.0, (200, 4))
+    snr[:5, 1:] = -np.inf  # heard on one receiver: no object at any threshold
+    snr[5:20, 0] = -np.inf  # one receiver misses it: the third of the other three counts
+    recording, echoes, calibration = snr_echoes(snr, clutter_db=30.0)
+    needed = np.sort(snr[5:], axis=1)[:, ::-1][:, 2]
+    expected = float(np.quantile(needed, 0.01, method="lower"))
+    assert np.mean(needed >= expected) >= 0.99
+    measured = detection_threshold_db(recording, echoes, calibration, ceiling_db=20.0)
+    assert measured == expected
+    assert detection_threshold_db(recording, echoes, calibration, ceiling_db=0.1) == 0.1
+    assert detection_threshold_db(recording, echoes, calibration, ceiling_db=20.0, min_receivers=4) == float(
+        np.quantile(np.min(snr[20:], axis=1), 0.01, method="lower")
+    )
+
+
+def test_no_detection_threshold_where_no_target_is_heard_on_enough_receivers() -> None:
+    from echoloc.localise.calibrate import detection_threshold_db
+
+    snr = np.full((30, 4), -np.inf)
+    snr[:, :2] = 10.0
+    recording, echoes, calibration = snr_echoes(snr)
+    assert detection_threshold_db(recording, echoes, calibration, ceiling_db=3.0) is None
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    snr=arrays(np.float64, (40, 4), elements=st.floats(-10.0, 40.0)),
+    keep=st.floats(0.5, 1.0),
+    ceiling=st.floats(-5.0, 30.0),
+)
+def test_the_detection_threshold_keeps_what_it_promises(snr: np.ndarray, keep: float, ceiling: float) -> None:
+    """Whatever the SNRs: at most the ceiling, and at least ``keep`` of the targets still have
+    three echoes at or above it."""
+    from echoloc.localise.calibrate import detection_threshold_db
+
+    recording, echoes, calibration = snr_echoes(snr)
+    measured = detection_threshold_db(recording, echoes, calibration, ceiling_db=ceiling, keep=keep)
+    assert measured is not None
+    assert measured <= ceiling
+    needed = np.sort(snr, axis=1)[:, ::-1][:, 2]
+    assert np.mean(needed >= measured) >= keep - 1e-12
+
+
+def test_the_detection_threshold_survives_the_file_and_sets_the_default(tmp_path: Path) -> None:
+    """Written and read back; envelope-peak takes it as its default, the other estimators keep
+    theirs; a threshold that is not a number of at least -20 dB is refused."""
+    from echoloc.tof.estimators import ENVELOPE_PEAK_THRESHOLD_DB, default_threshold_db
+
+    calibration = Calibration(343.0, (0.0, 1e-6), threshold_db=1.25)
+    read = read_calibration(write_calibration(calibration, tmp_path / "c.json"))
+    assert read.threshold_db == 1.25
+    assert default_threshold_db("envelope-peak", read.threshold_db) == 1.25
+    assert default_threshold_db("envelope-peak", None) == ENVELOPE_PEAK_THRESHOLD_DB
+    assert default_threshold_db("matched", read.threshold_db) == default_threshold_db("matched")
+    recording, _ = rig_echoes(np.array([[0.0, 0.0, 0.2]]), 343.0, 0.0, seed=1)
+    four = Calibration(343.0, tuple(RIG_DELAYS_S), threshold_db=1.25)
+    chain = prepare(recording, estimator="auto", calibration=four, check_channels=False)
+    assert chain.echo_options.threshold_db == 1.25
+    assert "threshold_db" not in json.loads(
+        write_calibration(Calibration(343.0, (0.0, 1e-6)), tmp_path / "d.json").read_text()
+    )
+    record = json.loads((tmp_path / "c.json").read_text())
+    for bad in ("3", -25.0, float("nan")):
+        (tmp_path / "c.json").write_text(json.dumps({**record, "threshold_db": bad}))
+        with pytest.raises(EchoLocError, match="threshold_db must be a number >= -20 dB"):
+            read_calibration(tmp_path / "c.json")

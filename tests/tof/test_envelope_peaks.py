@@ -155,6 +155,8 @@ def test_real_ch101_flow_with_defaults_only(tmp_path: Path) -> None:
     assert 320 < record["speed_of_sound_m_s"] < 360
     assert 0.002 < record["path_sigma_m"] < 0.02
     assert "echo_shape" in record
+    # The rig's detection threshold, measured on the targets: never above the default.
+    assert 0.0 <= record["threshold_db"] <= 3.0
     result = runner.invoke(
         cli,
         [
@@ -183,7 +185,7 @@ def test_real_ch101_flow_with_defaults_only(tmp_path: Path) -> None:
             best = max(frame["objects"], key=lambda o: o["score"])
             errors.append(np.linalg.norm(np.array(best["position_m"]) - truth[frame["frame"], 0]))
     assert n > 100
-    assert found / n >= 0.95
+    assert found / n >= 0.98
     assert np.median(errors) <= 0.022
     assert np.percentile(errors, 90) <= 0.06
 

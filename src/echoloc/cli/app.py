@@ -122,16 +122,18 @@ class Processing:
     def chain(self, recording: Recording, template: Template | None) -> Chain:
         """The chain for ``recording`` with these options; ``template``: the matched filter's or
         the learnt echo shape (None: the recording's own, or the calibration's shape)."""
-        threshold_db = self.threshold_db
-        if threshold_db is None:
-            threshold_db = default_threshold_db(self.estimator_name(recording))
-        echo_options = EchoOptions(
-            threshold_db=threshold_db, blanking_s=self.blanking_s, template=template, workers=self.workers
-        )
         calibration = (
             None
             if self.calibration_path is None
             else read_calibration(self.calibration_path, recording.n_receivers)
+        )
+        threshold_db = self.threshold_db
+        if threshold_db is None:
+            threshold_db = default_threshold_db(
+                self.estimator_name(recording), None if calibration is None else calibration.threshold_db
+            )
+        echo_options = EchoOptions(
+            threshold_db=threshold_db, blanking_s=self.blanking_s, template=template, workers=self.workers
         )
         blind_zone = None if self.blind_zone_text is None else parse_blind_zone(self.blind_zone_text)
         conditioning = Conditioning(background=self.background, tvg=self.tvg, blind_zone_s=blind_zone)

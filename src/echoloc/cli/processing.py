@@ -7,6 +7,7 @@ import json
 import math
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -31,7 +32,13 @@ from echoloc.cli.app import (
 from echoloc.cli.basics import _object_cells
 from echoloc.errors import EchoLocError
 from echoloc.io.output import echoes_record, json_line, objects_record
-from echoloc.localise.calibrate import fit_calibration, write_calibration
+from echoloc.localise.calibrate import (
+    DETECTION_KEEP,
+    SEARCH_THRESHOLD_DB,
+    detection_threshold_db,
+    fit_calibration,
+    write_calibration,
+)
 from echoloc.localise.evaluation import Evaluation, evaluate
 from echoloc.localise.locate import FrameObjects
 from echoloc.pipeline import (
@@ -41,6 +48,7 @@ from echoloc.pipeline import (
     run,
 )
 from echoloc.tof.echoes import FrameEchoes, frame_time_s
+from echoloc.tof.estimators import default_threshold_db
 
 # --- echoes, locate, evaluate ------------------------------------------------------
 
@@ -446,11 +454,16 @@ def calibrate_command(processing: Processing, output: Path) -> None:
     if recording.truth_positions_m is None:
         raise EchoLocError(f"{processing.recording_path}: has no truth_positions to calibrate against")
     shape = None
-    if processing.estimator_name(recording) == "envelope-peak" and processing.template_path is None:
+    peaks = processing.estimator_name(recording) == "envelope-peak"
+    if peaks and processing.template_path is None:
         # No pulse is known: learn the echo's shape from these frames' known targets (the
         # report's BALL template), then time the echoes with it.
         shape = learn_chain_echo_shape(chain, frames, "truth", "learnt")
         chain = processing.chain(recording, shape)
+    measure_threshold = peaks and processing.threshold_db is None
+    if measure_threshold:
+        # Look for the targets' echoes down to the noise, then measure what they need.
+        chain = replace(processing, threshold_db=SEARCH_THRESHOLD_DB).chain(recording, shape)
     echoes = []
     with _progress(len(frames), "finding echoes", True) as advance:
         for index in frames:
@@ -459,6 +472,22 @@ def calibrate_command(processing: Processing, output: Path) -> None:
     calibration = fit_calibration(
         recording, echoes, speed_of_sound_m_s=chain.speed_of_sound_m_s, echo_shape=shape
     )
+    threshold = ""
+    if measure_threshold:
+        measured = detection_threshold_db(
+            recording,
+            echoes,
+            calibration,
+            ceiling_db=default_threshold_db("envelope-peak"),
+            min_receivers=chain.locate_options.min_receivers,
+        )
+        calibration = replace(calibration, threshold_db=measured)
+        if measured is not None:
+            threshold = (
+                f"; detection threshold {measured:.2f} dB "
+                f"({DETECTION_KEEP:.0%} of the targets keep echoes on "
+                f"{chain.locate_options.min_receivers} receivers)"
+            )
     written = write_calibration(calibration, output)
     delays = ", ".join(f"{d * 1e6:+.3f}" for d in calibration.receiver_delays_s)
     sigma = calibration.path_sigma_m or 0.0
@@ -468,6 +497,7 @@ def calibrate_command(processing: Processing, output: Path) -> None:
         f"speed of sound {calibration.speed_of_sound_m_s:.3f} m/s ({how} "
         f"{chain.speed_of_sound_m_s:.3f}); "
         f"receiver delays {delays} µs; {calibration.echoes_used} echoes from {len(frames)} frames, "
-        f"residual {calibration.residual_rms_s * 1e9:.1f} ns rms, path σ {sigma * 1e3:.2f} mm{learnt}. "
+        f"residual {calibration.residual_rms_s * 1e9:.1f} ns rms, path σ {sigma * 1e3:.2f} mm{learnt}"
+        f"{threshold}. "
         f"Written to {written}."
     )

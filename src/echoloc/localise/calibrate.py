@@ -20,9 +20,17 @@ The file written by ``echoloc calibrate`` is JSON:
 "receiver_delays_s": [...], "echoes_used": ..., "residual_rms_s": ...}`` and, optional
 (version 1 readers ignore them): ``"speed_of_sound_fitted"`` (false: kept as assumed),
 ``"path_sigma_m"`` (1.4826 times the median absolute path residual, m: what ``locate``
-then assumes instead of its a-priori 0.5 mm) and ``"echo_shape"`` (the learnt echo
+then assumes instead of its a-priori 0.5 mm), ``"echo_shape"`` (the learnt echo
 envelope, :mod:`echoloc.tof.envelope_peaks`: ``name``, ``sample_rate_hz``, ``arrival_s``,
-``samples``).
+``samples``) and ``"threshold_db"`` (the detection threshold measured on the targets,
+:func:`detection_threshold_db`).
+
+**Detection threshold from the targets.** A ToF chip's envelope has no processing gain,
+and how far a far target's echo stands above the clutter left by background subtraction
+depends on the rig. With the targets known, calibration measures it: for each target, the
+SNR of its echo on the receiver where it is the ``min_receivers``-th strongest (what an
+object of ``min_receivers`` ellipsoids needs); the threshold is the level that
+:data:`DETECTION_KEEP` of the targets reach, never above the estimator's default.
 """
 
 from __future__ import annotations
@@ -57,6 +65,22 @@ MIN_PATH_SIGMA_M = 1e-6
 MAX_SHAPE_SAMPLES = 65536
 """The most samples a calibration file's echo shape may hold."""
 
+DETECTION_KEEP = 0.99
+"""Share of the calibration targets whose echoes the measured detection threshold keeps on
+enough receivers to be located (:func:`detection_threshold_db`)."""
+
+SEARCH_THRESHOLD_DB = 0.0
+"""The threshold, dB over the noise level, down to which calibration looks for the targets'
+echoes before it measures the detection threshold they need."""
+
+DETECTION_GATE_SIGMAS = 3.0
+"""An echo is a target's, for :func:`detection_threshold_db`, within this many path sigmas
+of the target's calibrated arrival."""
+
+MIN_THRESHOLD_DB = -20.0
+"""The lowest detection threshold a calibration file may give, dB (an echo 20 dB below the
+noise level is noise)."""
+
 MAX_CALIBRATION_FILE_BYTES = 4 << 20
 """The largest calibration file read, bytes: a full echo shape written by
 :func:`write_calibration` takes about 1.6 MB."""
@@ -64,7 +88,9 @@ MAX_CALIBRATION_FILE_BYTES = 4 << 20
 
 @dataclass(frozen=True)
 class Calibration:
-    """Fitted speed of sound (m/s) and per-receiver delays (s) to subtract from every tof."""
+    """Fitted speed of sound (m/s) and per-receiver delays (s) to subtract from every tof;
+    the rig's path sigma (m), learnt echo shape and measured detection threshold (dB), when
+    calibration measured them."""
 
     speed_of_sound_m_s: float
     receiver_delays_s: tuple[float, ...]
@@ -73,6 +99,7 @@ class Calibration:
     path_sigma_m: float | None = None
     echo_shape: Template | None = None
     speed_fitted: bool = True
+    threshold_db: float | None = None
 
 
 def fit_calibration(
@@ -181,6 +208,56 @@ def fit_calibration(
     )
 
 
+def detection_threshold_db(
+    recording: Recording,
+    echoes: Sequence[FrameEchoes],
+    calibration: Calibration,
+    *,
+    ceiling_db: float,
+    min_receivers: int = 3,
+    keep: float = DETECTION_KEEP,
+) -> float | None:
+    """The detection threshold, dB, that keeps ``keep`` of the known targets locatable.
+
+    ``echoes`` are the uncorrected echoes of frames of ``recording``, found with a threshold
+    below any that this may return. For each known target, the echo nearest its calibrated
+    arrival on each receiver counts when within :data:`DETECTION_GATE_SIGMAS` path sigmas;
+    the target needs the ``min_receivers``-th largest of those SNRs (dB). The result is the
+    ``1 - keep`` quantile of what the targets need (the lower sample: at least ``keep`` of
+    them reach it), at most ``ceiling_db``; None when fewer than ``min_receivers`` receivers
+    or no target has echoes on ``min_receivers`` receivers.
+    """
+    truth = recording.truth_positions_m
+    if truth is None or recording.n_receivers < min_receivers:
+        return None
+    slowness = 1.0 / calibration.speed_of_sound_m_s
+    gate_s = DETECTION_GATE_SIGMAS * (calibration.path_sigma_m or MIN_PATH_SIGMA_M) * slowness
+    delays = np.asarray(calibration.receiver_delays_s)
+    needed: list[float] = []
+    for frame in echoes:
+        points = truth[frame.frame]
+        points = points[np.all(np.isfinite(points), axis=1)]
+        if len(points) == 0:
+            continue
+        tx = 0 if recording.frame_transmitter is None else int(recording.frame_transmitter[frame.frame])
+        paths_m = model_paths_m(recording.transmitters_m[tx], recording.receivers_m, points)
+        arrivals = paths_m * slowness + delays
+        for k in range(len(points)):
+            snr = np.full(recording.n_receivers, -np.inf)
+            for i, channel in enumerate(frame.channels):
+                if len(channel.tof_s):
+                    gap = np.abs(np.asarray(channel.tof_s) - arrivals[k, i])
+                    j = int(np.argmin(gap))
+                    if gap[j] <= gate_s:
+                        snr[i] = float(channel.snr_db[j])
+            needed.append(float(np.sort(snr)[::-1][min_receivers - 1]))
+    reachable = np.array([n for n in needed if math.isfinite(n)])
+    if len(reachable) == 0:
+        return None
+    level = float(np.quantile(reachable, 1.0 - keep, method="lower"))
+    return max(min(level, ceiling_db), MIN_THRESHOLD_DB)
+
+
 def apply_calibration(echoes: FrameEchoes, calibration: Calibration) -> FrameEchoes:
     """The frame's echoes with each receiver's delay removed and the calibrated speed of sound."""
     channels = tuple(
@@ -201,6 +278,7 @@ CALIBRATION_KEYS = frozenset(
         "speed_of_sound_fitted",
         "path_sigma_m",
         "echo_shape",
+        "threshold_db",
     }
 )
 """The fields :func:`write_calibration` writes and :func:`read_calibration` knows."""
@@ -237,6 +315,8 @@ def write_calibration(calibration: Calibration, path: str | os.PathLike[str]) ->
             "arrival_s": shape.arrival_s,
             "samples": [float(v) for v in shape.samples],
         }
+    if calibration.threshold_db is not None:
+        record["threshold_db"] = calibration.threshold_db
     try:
         target.write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")
     except OSError as error:
@@ -291,6 +371,11 @@ def read_calibration(path: str | os.PathLike[str], n_receivers: int | None = Non
         raise EchoLocError(
             f"{source}: path_sigma_m must be a number > 0 and <= {MAX_PATH_SIGMA_M:g} m, got {path_sigma!r}"
         )
+    threshold = record.get("threshold_db")
+    if threshold is not None and not (_finite_number(threshold) and threshold >= MIN_THRESHOLD_DB):
+        raise EchoLocError(
+            f"{source}: threshold_db must be a number >= {MIN_THRESHOLD_DB:g} dB, got {threshold!r}"
+        )
     speed_fitted = record.get("speed_of_sound_fitted", True)
     if not isinstance(speed_fitted, bool):
         raise EchoLocError(f"{source}: speed_of_sound_fitted must be true or false, got {speed_fitted!r}")
@@ -302,6 +387,7 @@ def read_calibration(path: str | os.PathLike[str], n_receivers: int | None = Non
         path_sigma_m=None if path_sigma is None else float(path_sigma),
         echo_shape=_read_shape(source, record.get("echo_shape")),
         speed_fitted=speed_fitted,
+        threshold_db=None if threshold is None else float(threshold),
     )
 
 

@@ -273,12 +273,18 @@ envelope sample has no processing gain behind it, unlike the matched filter's ou
 14 dB default is set for, and a missed echo costs the whole frame while a noise peak
 rarely lies on the ellipsoids of three other channels (the association's gate rejects it).
 On real CH101 data (``benchmarks/real_ch101.py``, the calibration half) 3 dB finds the
-target's echo on enough channels in 98 % of frames, 8 dB in 78 %."""
+target's echo on enough channels in 98 % of frames, 8 dB in 78 %. A calibration with known
+targets measures the rig's own threshold, at most this one, and ``locate --calibration``
+uses it."""
 
 
-def default_threshold_db(name: str) -> float:
-    """The default detection threshold of estimator ``name``, dB."""
-    return ENVELOPE_PEAK_THRESHOLD_DB if name == "envelope-peak" else EchoOptions.threshold_db
+def default_threshold_db(name: str, calibrated_db: float | None = None) -> float:
+    """The default detection threshold of estimator ``name``, dB: for envelope-peak, the one a
+    calibration measured on its targets (``calibrated_db``, see
+    :func:`echoloc.localise.calibrate.detection_threshold_db`) where there is one."""
+    if name != "envelope-peak":
+        return EchoOptions.threshold_db
+    return ENVELOPE_PEAK_THRESHOLD_DB if calibrated_db is None else calibrated_db
 
 
 def default_estimator(recording: Recording) -> str:
