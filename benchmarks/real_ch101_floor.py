@@ -20,8 +20,10 @@ It then splits each receiver's path residual at the known positions into what is
 a position's frames (between positions: the target's own scattering, the labels) and what
 varies from frame to frame (within a position: noise and the chip's timing jitter). Only the
 second averages out; the first is a floor for any method that times one echo per receiver
-under a per-receiver delay. Labels whose frames disagree with the echoes are listed: a
-position is flagged when fewer than half of its frames have the label's echo on 3 receivers.
+under a per-receiver delay, unless it is smooth over space: the script also predicts each
+position's offsets from its nearest positions of the other half. Labels whose frames
+disagree with the echoes are listed: a position is flagged when fewer than half of its
+frames have the label's echo on 3 receivers.
 
     .venv/bin/python benchmarks/real_ch101_floor.py [--data PATH] > benchmarks/results/real_ch101_floor.md
 """
@@ -201,6 +203,20 @@ def main() -> None:
             f"| {r} | {robust_sigma(means[:, r]) * 1e3:.1f} | {robust_sigma(within) * 1e3:.1f} | "
             f"{robust_sigma(residual_m[:, r]) * 1e3:.1f} |"
         )
+    # Are the offsets smooth over space, so that a correction learnt at the calibration
+    # positions could be carried to their neighbours? Predict each position's offsets by
+    # the mean of its nearest positions of the other half.
+    first = np.array([target[position == p][0] for p in range(n_positions)])
+    kept = np.array([p not in flagged for p in range(n_positions)])
+    print("\n| neighbours of the other half | offset sigma left, mm (was, all receivers) |\n|---|---|")
+    for k in (1, 2, 4):
+        left = []
+        for p in np.flatnonzero(kept):
+            others = np.flatnonzero(kept & (np.arange(n_positions) % 2 != p % 2))
+            nearest = others[np.argsort(np.linalg.norm(first[others] - first[p], axis=1))[:k]]
+            left.append(means[p] - np.nanmean(means[nearest], axis=0))
+        was = robust_sigma(means[kept].ravel())
+        print(f"| {k} | {robust_sigma(np.ravel(left)) * 1e3:.1f} ({was * 1e3:.1f}) |")
     complete = np.all(np.isfinite(means), axis=1)
     common = means[complete].mean(axis=1)
     differential = means[complete] - common[:, None]
