@@ -39,12 +39,13 @@ import json
 import math
 import os
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TypeGuard
 
 import numpy as np
+from numpy.typing import NDArray
 
 from echoloc.errors import EchoLocError, read_text_input
 from echoloc.io.recording import Recording
@@ -117,8 +118,7 @@ def fit_calibration(
     learnt shape the echoes were timed with, is kept with the result. ``path_sigma_m`` is
     1.4826 times the median absolute path residual (at least :data:`MIN_PATH_SIGMA_M`).
     """
-    truth = recording.truth_positions_m
-    if truth is None:
+    if recording.truth_positions_m is None:
         raise EchoLocError(f"{recording.source}: calibration needs truth_positions")
     n_rx = recording.n_receivers
     slowness, delays = 1.0 / speed_of_sound_m_s, np.zeros(n_rx)
@@ -128,13 +128,7 @@ def fit_calibration(
     rows: list[tuple[float, int, float]] = []
     for _ in range(8):
         rows = []
-        for frame in echoes:
-            points = truth[frame.frame]
-            points = points[np.all(np.isfinite(points), axis=1)]
-            if len(points) == 0:
-                continue
-            tx = 0 if recording.frame_transmitter is None else int(recording.frame_transmitter[frame.frame])
-            paths = model_paths_m(recording.transmitters_m[tx], recording.receivers_m, points)
+        for frame, paths in _known_paths_m(recording, echoes):
             for i, channel in enumerate(frame.channels):
                 if len(channel.tof_s) == 0:
                     continue
@@ -208,6 +202,21 @@ def fit_calibration(
     )
 
 
+def _known_paths_m(
+    recording: Recording, echoes: Sequence[FrameEchoes]
+) -> Iterator[tuple[FrameEchoes, NDArray[np.float64]]]:
+    """Each frame of ``echoes`` that has known targets, with their true paths (n_targets, n_rx), m."""
+    truth = recording.truth_positions_m
+    assert truth is not None  # the callers refuse a recording without truth_positions
+    for frame in echoes:
+        points = truth[frame.frame]
+        points = points[np.all(np.isfinite(points), axis=1)]
+        if len(points) == 0:
+            continue
+        tx = 0 if recording.frame_transmitter is None else int(recording.frame_transmitter[frame.frame])
+        yield frame, model_paths_m(recording.transmitters_m[tx], recording.receivers_m, points)
+
+
 def detection_threshold_db(
     recording: Recording,
     echoes: Sequence[FrameEchoes],
@@ -227,22 +236,15 @@ def detection_threshold_db(
     them reach it), at most ``ceiling_db``; None when fewer than ``min_receivers`` receivers
     or no target has echoes on ``min_receivers`` receivers.
     """
-    truth = recording.truth_positions_m
-    if truth is None or recording.n_receivers < min_receivers:
+    if recording.truth_positions_m is None or recording.n_receivers < min_receivers:
         return None
     slowness = 1.0 / calibration.speed_of_sound_m_s
     gate_s = DETECTION_GATE_SIGMAS * (calibration.path_sigma_m or MIN_PATH_SIGMA_M) * slowness
     delays = np.asarray(calibration.receiver_delays_s)
     needed: list[float] = []
-    for frame in echoes:
-        points = truth[frame.frame]
-        points = points[np.all(np.isfinite(points), axis=1)]
-        if len(points) == 0:
-            continue
-        tx = 0 if recording.frame_transmitter is None else int(recording.frame_transmitter[frame.frame])
-        paths_m = model_paths_m(recording.transmitters_m[tx], recording.receivers_m, points)
+    for frame, paths_m in _known_paths_m(recording, echoes):
         arrivals = paths_m * slowness + delays
-        for k in range(len(points)):
+        for k in range(len(paths_m)):
             snr = np.full(recording.n_receivers, -np.inf)
             for i, channel in enumerate(frame.channels):
                 if len(channel.tof_s):
