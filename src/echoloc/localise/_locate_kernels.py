@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from echoloc._jit import njit
+from echoloc._linear_kernels import solve_in_place
 
 if TYPE_CHECKING:
     from echoloc.localise.locate import LocateKernelArguments
@@ -54,37 +55,6 @@ def _without_runtime(function: _Function) -> _Function:
 
 
 @njit(cache=True, inline="always")
-def _solve_in_place(
-    m: NDArray[np.float64], v: NDArray[np.float64], x: NDArray[np.float64]
-) -> bool:  # pragma: no cover - compiled
-    """Solve the small system m x = v by Gaussian elimination with partial pivoting, overwriting
-    ``m`` and ``v`` (no allocation: called per echo combination); False if singular."""
-    n = m.shape[0]
-    for col in range(n):
-        pivot = col
-        for row in range(col + 1, n):
-            if abs(m[row, col]) > abs(m[pivot, col]):
-                pivot = row
-        if m[pivot, col] == 0.0 or not np.isfinite(m[pivot, col]):
-            return False
-        if pivot != col:
-            for k in range(n):
-                m[col, k], m[pivot, k] = m[pivot, k], m[col, k]
-            v[col], v[pivot] = v[pivot], v[col]
-        for row in range(col + 1, n):
-            f = m[row, col] / m[col, col]
-            for k in range(col, n):
-                m[row, k] -= f * m[col, k]
-            v[row] -= f * v[col]
-    for row in range(n - 1, -1, -1):
-        s = v[row]
-        for k in range(row + 1, n):
-            s -= m[row, k] * x[k]
-        x[row] = s / m[row, row]
-    return True
-
-
-@njit(cache=True, inline="always")
 def _solve3(
     a00: float,
     a01: float,
@@ -99,8 +69,9 @@ def _solve3(
     r1: float,
     r2: float,
 ) -> Any:  # pragma: no cover - compiled
-    """:func:`_solve_in_place` for a 3x3 system in scalars (registers, not array rows): the same
-    pivots and operations in the same order, so the same bits; (solved, x0, x1, x2)."""
+    """:func:`~echoloc._linear_kernels.solve_in_place` for a 3x3 system in scalars (registers,
+    not array rows): the same pivots and operations in the same order, so the same bits;
+    (solved, x0, x1, x2)."""
     if abs(a10) > abs(a00):
         if abs(a20) > abs(a10):
             a00, a01, a02, a20, a21, a22 = a20, a21, a22, a00, a01, a02
@@ -143,9 +114,9 @@ def _solve3(
 def _solve(
     m: NDArray[np.float64], v: NDArray[np.float64], x: NDArray[np.float64]
 ) -> bool:  # pragma: no cover - compiled
-    """:func:`_solve_in_place`, called: inlined in the seed loop it counted references to its
-    three arrays (atomic operations), which cost more than the call."""
-    return _solve_in_place(m, v, x)
+    """:func:`~echoloc._linear_kernels.solve_in_place`, called: inlined in the seed loop it
+    counted references to its three arrays (atomic operations), which cost more than the call."""
+    return solve_in_place(m, v, x)
 
 
 @njit(cache=True, inline="always")
@@ -289,7 +260,7 @@ def _exact_work_3d(
     trace += g22
     if not abs(_det3(g00, g01, g02, g10, g11, g12, g20, g21, g22)) > 1e-18 * max(trace, 1e-30) ** d:
         return 0
-    # y = (M M^T)^-1 b, as _solve_in_place solves it.
+    # y = (M M^T)^-1 b, as solve_in_place solves it.
     solved, y0, y1, y2 = _solve3(g00, g01, g02, g10, g11, g12, g20, g21, g22, b0, b1, b2)
     if not solved:
         return 0
@@ -368,7 +339,7 @@ def _exact_work_any(
         rhs[i] = b[i]
         for k in range(d):
             scratch[i, k] = gram[i, k]
-    if not _solve_in_place(scratch, rhs, y):
+    if not solve_in_place(scratch, rhs, y):
         return 0
     for j in range(d + 1):
         s = 0.0
@@ -958,13 +929,13 @@ def _gauss_newton_row_any(
                 for i in range(d):
                     unit[i] = 1.0 if i == j else 0.0
                 _copy(normal, lhs)
-                _solve_in_place(lhs, unit, column)
+                solve_in_place(lhs, unit, column)
                 for i in range(d):
                     covariance[i, j] = column[i]
             chi2 = total
             break
         _copy(normal, lhs)
-        if not _solve_in_place(lhs, rhs, delta):
+        if not solve_in_place(lhs, rhs, delta):
             return np.nan, False
         step = 0.0
         for j in range(d):

@@ -35,6 +35,7 @@ import scipy.fft
 from numpy.typing import NDArray
 
 from echoloc._jit import njit, prange
+from echoloc._linear_kernels import solve_in_place
 from echoloc.tof.echoes import _PRECISION_AMPLITUDE, _PRECISION_POWER
 
 if TYPE_CHECKING:
@@ -351,37 +352,6 @@ def _mean_of_middles(
 
 
 @njit(cache=True)
-def _solve_in_place(
-    m: NDArray[np.float64], v: NDArray[np.float64], x: NDArray[np.float64]
-) -> None:  # pragma: no cover - compiled
-    """x with m x = v (small) by Gaussian elimination with partial pivoting, into ``x``,
-    overwriting ``m`` and ``v`` (no allocation: it runs every fit step); NaN if singular."""
-    n = m.shape[0]
-    for col in range(n):
-        pivot = col
-        for row in range(col + 1, n):
-            if abs(m[row, col]) > abs(m[pivot, col]):
-                pivot = row
-        if m[pivot, col] == 0.0 or not np.isfinite(m[pivot, col]):
-            x[:] = np.nan
-            return
-        if pivot != col:
-            for k in range(n):
-                m[col, k], m[pivot, k] = m[pivot, k], m[col, k]
-            v[col], v[pivot] = v[pivot], v[col]
-        for row in range(col + 1, n):
-            f = m[row, col] / m[col, col]
-            for k in range(col, n):
-                m[row, k] -= f * m[col, k]
-            v[row] -= f * v[col]
-    for row in range(n - 1, -1, -1):
-        acc = v[row]
-        for k in range(row + 1, n):
-            acc -= m[row, k] * x[k]
-        x[row] = acc / m[row, row]
-
-
-@njit(cache=True)
 def _evaluate(
     table: NDArray[np.complex128],
     u: int,
@@ -567,7 +537,8 @@ def _joint_fit_into(
         for a in range(p):
             d = normal[a, a]
             normal[a, a] = d + damping * d + (1.0 if d == 0 else 0.0)
-        _solve_in_place(normal, rhs, step)
+        if not solve_in_place(normal, rhs, step):
+            step[:] = np.nan  # a singular system: a NaN step
         for m in range(k):
             new_tofs[m] = tofs[m] + min(max(step[m], -2.0), 2.0)
             if rotation != 0.0 and not real:
@@ -677,7 +648,7 @@ def _lone_fit(
     for step_index in range(iterations):
         m00 = n00 + damping * n00 + (1.0 if n00 == 0 else 0.0)
         m11 = n11 + damping * n11 + (1.0 if n11 == 0 else 0.0)
-        # m x = g by Gaussian elimination with partial pivoting, as _solve_in_place.
+        # m x = g by Gaussian elimination with partial pivoting, as solve_in_place.
         a00, a01, a10, a11, v0, v1 = m00, n01, n01, m11, g0, g1
         if abs(a10) > abs(a00):
             a00, a01, a10, a11, v0, v1 = a10, a11, a00, a01, v1, v0
