@@ -256,15 +256,22 @@ def _check_shape(source: str, name: str, arr: _AnyArray, expected: tuple[int, ..
         raise _error(source, f"{name} has shape {arr.shape}, expected {want}")
 
 
-def _check_finite(source: str, name: str, arr: _AnyArray) -> None:
-    bad = ~np.isfinite(arr)
-    if bad.any():
-        first = tuple(int(i) for i in np.argwhere(bad)[0])
+def _refuse_flagged(source: str, arr: _AnyArray, flagged: NDArray[np.bool_], has: str, what: str) -> None:
+    """Raise if any element of ``arr`` is ``flagged``, saying how many and which comes first.
+
+    The message reads ``"{has} {count} {what}, first {value} at index [i, j, ...]"``, so
+    a reader can find the offending sample in the file.
+    """
+    if flagged.any():
+        first = tuple(int(i) for i in np.argwhere(flagged)[0])
         raise _error(
             source,
-            f"{name} has {int(bad.sum())} non-finite value(s), "
-            f"first {arr[first].item()} at index {list(first)}",
+            f"{has} {int(flagged.sum())} {what}, first {arr[first].item()} at index {list(first)}",
         )
+
+
+def _check_finite(source: str, name: str, arr: _AnyArray) -> None:
+    _refuse_flagged(source, arr, ~np.isfinite(arr), f"{name} has", "non-finite value(s)")
 
 
 MAX_EXTENT_M = 10_000.0
@@ -312,13 +319,7 @@ def _check_optional_float(
 
 def _check_nonnegative(source: str, name: str, arr: _AnyArray) -> None:
     negative = (arr < 0) & np.isfinite(arr)
-    if negative.any():
-        first = tuple(int(i) for i in np.argwhere(negative)[0])
-        raise _error(
-            source,
-            f"{name} is envelope data but has {int(negative.sum())} negative sample(s), "
-            f"first {arr[first].item()} at index {list(first)}",
-        )
+    _refuse_flagged(source, arr, negative, f"{name} is envelope data but has", "negative sample(s)")
 
 
 def _check_frames_layout(source: str, value: object, signal_kind: str, n_rx: int) -> _AnyArray:

@@ -364,6 +364,29 @@ def _bound(fisher: NDArray[np.float64], parameters: tuple[str, ...]) -> TofBound
     return TofBound(std_s=math.sqrt(variance), fisher=fisher, parameters=parameters)
 
 
+_Samples = NDArray[np.float64] | NDArray[np.complex128]
+"""Real (rf, envelope) or complex (iq) samples."""
+
+
+def _pulse_terms(
+    pulse: ArrayLike, sample_rate_hz: float, amplitude: float, noise_sigma: float
+) -> tuple[_Samples, float, float, int, _Samples]:
+    """The checked inputs of a known-pulse bound and the pulse's band-limited derivative.
+
+    Returns ``(s, A, σ, n_fft, ṡ)``: the pulse, amplitude and noise sigma, the padded
+    FFT length the Fisher matrix's columns are taken at, and ``ṡ`` (units per second)
+    at that length. Shared by the coherent and unknown-phase bounds so that both
+    check the pulse, then the rate, then σ, and report the same first error.
+    """
+    s = _pulse(pulse)
+    fs = _positive(sample_rate_hz, "sample_rate_hz")
+    sigma = _positive(noise_sigma, "noise_sigma")
+    a = float(amplitude)
+    size = _padded_length(len(s))
+    ds = bandlimited_derivative(s, fs, n_fft=size)
+    return s, a, sigma, size, ds
+
+
 def coherent_tof_bound(
     pulse: ArrayLike, sample_rate_hz: float, *, amplitude: float, noise_sigma: float
 ) -> TofBound:
@@ -396,12 +419,7 @@ def coherent_tof_bound(
     TofBound
         ``std_s`` in seconds; parameters ``("tof_s", "amplitude")``.
     """
-    s = _pulse(pulse)
-    fs = _positive(sample_rate_hz, "sample_rate_hz")
-    sigma = _positive(noise_sigma, "noise_sigma")
-    a = float(amplitude)
-    size = _padded_length(len(s))
-    ds = bandlimited_derivative(s, fs, n_fft=size)
+    s, a, sigma, size, ds = _pulse_terms(pulse, sample_rate_hz, amplitude, noise_sigma)
     fisher = _fisher([-a * ds, _padded(s, size)], sigma)
     return _bound(fisher, ("tof_s", "amplitude"))
 
@@ -426,12 +444,7 @@ def unknown_phase_tof_bound(
     TofBound
         ``std_s`` in seconds; parameters ``("tof_s", "amplitude", "phase_rad")``.
     """
-    s = _pulse(pulse)
-    fs = _positive(sample_rate_hz, "sample_rate_hz")
-    sigma = _positive(noise_sigma, "noise_sigma")
-    a = float(amplitude)
-    size = _padded_length(len(s))
-    ds = bandlimited_derivative(s, fs, n_fft=size)
+    s, a, sigma, size, ds = _pulse_terms(pulse, sample_rate_hz, amplitude, noise_sigma)
     padded = _padded(s, size)
     if np.iscomplexobj(s):
         d_phase: NDArray[np.generic] = 1j * a * padded

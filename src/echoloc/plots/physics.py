@@ -28,6 +28,14 @@ from echoloc.physics.transducer import (
 from echoloc.physics.waveform import Waveform
 
 
+def _save(figure: Figure, path: str | Path) -> Path:
+    """Write ``figure`` to ``path`` (format by its extension) at 110 dpi, as every picture
+    here is written, and return ``path`` as a Path (what each plot function returns)."""
+    output = Path(path)
+    figure.savefig(output, dpi=110)
+    return output
+
+
 def _db(values: NDArray[np.float64], floor_db: float = -80.0) -> NDArray[np.float64]:
     peak = float(np.max(np.abs(values))) or 1.0
     return np.asarray(np.maximum(20 * np.log10(np.maximum(np.abs(values) / peak, 1e-12)), floor_db))
@@ -110,9 +118,7 @@ def plot_waveform(waveform: Waveform, path: str | Path, *, transducer: Transduce
     zoom_axis.set_xlim(-width_us, width_us + (0 if received is None else 100))
     zoom_axis.set_xlabel("lag (µs)")
     zoom_axis.set_title("Main lobe, zoomed")
-    output = Path(path)
-    figure.savefig(output, dpi=110)
-    return output
+    return _save(figure, path)
 
 
 def plot_air(
@@ -159,9 +165,7 @@ def plot_air(
     speed_axis.set_title("Speed of sound")
     speed_axis.grid(True, alpha=0.3)
     speed_axis.legend(fontsize="small")
-    output = Path(path)
-    figure.savefig(output, dpi=110)
-    return output
+    return _save(figure, path)
 
 
 def plot_beam(
@@ -210,6 +214,4 @@ def plot_beam(
     cartesian.set_title("Beam pattern; dotted: -3 dB")
     cartesian.grid(True, alpha=0.3)
     cartesian.legend(fontsize="small", loc="lower center")
-    output = Path(path)
-    figure.savefig(output, dpi=110)
-    return output
+    return _save(figure, path)

@@ -576,22 +576,31 @@ def _decode_session(
     return validate_header(rec)
 
 
+def _control_message(kind: int, sequence: int, payload: bytes, payload_crc32: int | None) -> bytes:
+    """A message that carries no samples (end, refusal): its header, then ``payload``.
+
+    Such a header describes no frame: no start time (NaN), and rate, channels,
+    samples and sample format all 0, signal kind ``"rf"`` (code 0).
+    """
+    header = MessageHeader(
+        kind=kind,
+        header_bytes=HEADER_BYTES,
+        payload_bytes=len(payload),
+        sequence=sequence,
+        frame_time_s=math.nan,
+        sample_rate_hz=0.0,
+        n_channels=0,
+        n_samples=0,
+        sample_format=0,
+        signal_kind="rf",
+        payload_crc32=payload_crc32,
+    )
+    return _pack(header) + payload
+
+
 def encode_end(sequence: int = 0) -> bytes:
     """The end message: the sender has sent its last frame (``sequence``: the next it would send)."""
-    return _pack(
-        MessageHeader(
-            kind=KIND_END,
-            header_bytes=HEADER_BYTES,
-            payload_bytes=0,
-            sequence=sequence,
-            frame_time_s=math.nan,
-            sample_rate_hz=0.0,
-            n_channels=0,
-            n_samples=0,
-            sample_format=0,
-            signal_kind="rf",
-        )
-    )
+    return _control_message(KIND_END, sequence, b"", payload_crc32=None)
 
 
 def encode_refusal(reason: str) -> bytes:
@@ -599,24 +608,7 @@ def encode_refusal(reason: str) -> bytes:
     ``reason``, one line of UTF-8 (cut to :data:`MAX_REFUSAL_BYTES`)."""
     text = " ".join(reason.split()).encode("utf-8")[:MAX_REFUSAL_BYTES]
     payload = text.decode("utf-8", "ignore").encode("utf-8")  # not cut inside a character
-    return (
-        _pack(
-            MessageHeader(
-                kind=KIND_REFUSAL,
-                header_bytes=HEADER_BYTES,
-                payload_bytes=len(payload),
-                sequence=0,
-                frame_time_s=math.nan,
-                sample_rate_hz=0.0,
-                n_channels=0,
-                n_samples=0,
-                sample_format=0,
-                signal_kind="rf",
-                payload_crc32=zlib.crc32(payload),
-            )
-        )
-        + payload
-    )
+    return _control_message(KIND_REFUSAL, 0, payload, payload_crc32=zlib.crc32(payload))
 
 
 def decode_refusal(header: MessageHeader, payload: bytes | bytearray | memoryview) -> str:

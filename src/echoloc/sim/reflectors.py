@@ -1130,6 +1130,45 @@ def _take(paths: EchoPaths, index: slice) -> EchoPaths:
     )
 
 
+def _plane_and_pointlike(
+    source: FloatArray,
+    receiver: FloatArray,
+    states: ReflectorStates,
+    n_rx: int,
+    j: int,
+    *,
+    plane_first: bool,
+) -> EchoPaths:
+    """Second-order paths via plane ``j`` and every point, sphere and edge, in one order.
+
+    Plane first (transmitter -> plane -> reflector -> receiver) the transmitter is
+    mirrored in the plane, plane last (transmitter -> reflector -> plane -> receiver)
+    the receiver: either way the path is the first-order one between the two ends,
+    one of them an image, with gain ``s R / (leg_a leg_b)`` (the unfolded legs
+    before and after the reflector). It is valid where the leg on the image's side
+    crosses the plane inside the rectangle.
+    """
+    c = states.plane_centres_m[:, None, j : j + 1]
+    n = states.plane_normals[:, None, j : j + 1]
+    w = states.plane_width_axes[:, None, j : j + 1]
+    tx, rx = (_mirror(source, c, n), receiver) if plane_first else (source, _mirror(receiver, c, n))
+    found, strength, names = _pointlike(tx, rx, states, n_rx)
+    leg_a, leg_b = _norm(found - tx), _norm(found - rx)
+    # The leg on the image's side, in path order, meets the plane at the first or last point.
+    if plane_first:
+        spot, crosses = _crossing(tx, found, c, n)
+        to_first, to_last = spot - source, found - receiver
+        labels = [f"plane {j} > {name}" for name in names]
+    else:
+        spot, crosses = _crossing(found, rx, c, n)
+        to_first, to_last = found - source, spot - receiver
+        labels = [f"{name} > plane {j}" for name in names]
+    valid = crosses & _inside(spot, c, n, w, states.plane_sizes_m[j])
+    gain = strength * states.plane_reflections[j] / (leg_a * leg_b)
+    shape = (states.n_frames, n_rx, found.shape[2])
+    return _block(valid, leg_a + leg_b, gain, to_first, to_last, 2, labels, shape)
+
+
 def _second_order(
     source: FloatArray, receiver: FloatArray, states: ReflectorStates, n_rx: int, point_pairs: bool
 ) -> list[EchoPaths]:
@@ -1163,47 +1202,8 @@ def _second_order(
 
         # A plane with a point, sphere or edge, both ways round.
         for j in range(n_pl):
-            cj, nj, wj = c[:, :, j : j + 1], n[:, :, j : j + 1], w[:, :, j : j + 1]
-            reflection = states.plane_reflections[j]
-            # transmitter -> plane -> reflector -> receiver: from the transmitter's image.
-            image = _mirror(source, cj, nj)
-            found, strength, names = _pointlike(image, receiver, states, n_rx)
-            spot, crosses = _crossing(image, found, cj, nj)
-            valid = crosses & _inside(spot, cj, nj, wj, size[j])
-            leg_a, leg_b = _norm(found - image), _norm(found - receiver)
-            shape = (n_f, n_rx, found.shape[2])
-            gain = strength * reflection / (leg_a * leg_b)
-            parts.append(
-                _block(
-                    valid,
-                    leg_a + leg_b,
-                    gain,
-                    spot - source,
-                    found - receiver,
-                    2,
-                    [f"plane {j} > {name}" for name in names],
-                    shape,
-                )
-            )
-            # transmitter -> reflector -> plane -> receiver: towards the receiver's image.
-            image = _mirror(receiver, cj, nj)
-            found, strength, names = _pointlike(source, image, states, n_rx)
-            spot, crosses = _crossing(found, image, cj, nj)
-            valid = crosses & _inside(spot, cj, nj, wj, size[j])
-            leg_a, leg_b = _norm(found - source), _norm(image - found)
-            gain = strength * reflection / (leg_a * leg_b)
-            parts.append(
-                _block(
-                    valid,
-                    leg_a + leg_b,
-                    gain,
-                    found - source,
-                    spot - receiver,
-                    2,
-                    [f"{name} > plane {j}" for name in names],
-                    shape,
-                )
-            )
+            for plane_first in (True, False):
+                parts.append(_plane_and_pointlike(source, receiver, states, n_rx, j, plane_first=plane_first))
 
         # Point -> other point.
         n_p = states.points_m.shape[1]
