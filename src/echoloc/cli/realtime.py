@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -14,6 +16,7 @@ from rich.table import Table
 
 from echoloc.cli.app import (
     _WORKERS_OPTION,
+    _Decorated,
     _finite,
     _interrupt_cleanly,
     _path_option,
@@ -42,9 +45,43 @@ from echoloc.tof.estimators import (
 # --- real time: send, stream, record, bench ----------------------------------------
 
 
+def _int_range_option(
+    *names: str, low: int, high: int | None, default: int, **settings: Any
+) -> Callable[[_Decorated], _Decorated]:
+    """A click option taking a whole number from ``low`` to ``high`` (None: no upper bound), its
+    default shown in the help: the form of these commands' counts (frames, passes, a port)."""
+    return click.option(
+        *names, type=click.IntRange(low, high), default=default, show_default=True, **settings
+    )
+
+
+@dataclass(frozen=True)
+class _Listening:
+    """The options of :func:`_listen_options`, as `stream` and `record` take them: where and how
+    to listen (address, UDP, geometry, queue, blocking, idle timeout in s) and when to stop (once,
+    after frames or after a duration in s). Fields are named as the options' parameters."""
+
+    listen_text: str
+    udp: bool
+    geometry_path: Path | None
+    queue_frames: int
+    block: bool
+    once: bool
+    max_frames: int | None
+    duration_s: float | None
+    idle_timeout_s: float
+
+
 def _listen_options(func: Callable[..., None]) -> Callable[..., None]:
-    """--listen, --udp, --geometry, --queue and the rest, shared by stream and record."""
+    """--listen, --udp, --geometry, --queue and the rest, shared by stream and record: ``func``
+    takes them together, as one :class:`_Listening` named ``listening``."""
     from echoloc.realtime.transport import DEFAULT_HOST, DEFAULT_IDLE_TIMEOUT_S, DEFAULT_PORT
+
+    @functools.wraps(func)
+    def command(**values: Any) -> None:
+        # click passes every option by its parameter's name: those of listening go in one value.
+        listening = _Listening(**{field.name: values.pop(field.name) for field in fields(_Listening)})
+        func(listening=listening, **values)
 
     decorators = [
         click.option(
@@ -62,12 +99,12 @@ def _listen_options(func: Callable[..., None]) -> Callable[..., None]:
             help="Take the session (geometry, waveform, air) from this recording instead of the "
             "sender's session message.",
         ),
-        click.option(
+        _int_range_option(
             "--queue",
             "queue_frames",
-            type=click.IntRange(1, 1_000_000),
+            low=1,
+            high=1_000_000,
             default=64,
-            show_default=True,
             help="Frames held between the socket and the processor; when full the oldest is dropped.",
         ),
         click.option(
@@ -96,43 +133,39 @@ def _listen_options(func: Callable[..., None]) -> Callable[..., None]:
             help="Close a TCP connection that sends nothing for this many seconds.",
         ),
     ]
+    decorated: Callable[..., None] = command
     for decorator in reversed(decorators):
-        func = decorator(func)
-    return func
+        decorated = decorator(decorated)
+    return decorated
 
 
-def _events(listener: Any, once: bool, max_frames: int | None, duration_s: float | None) -> Iterator[Any]:
-    """What the listener queued, until a stop condition (:func:`listener_events`); its errors
-    to stderr as warnings."""
+def _events(listener: Any, listening: _Listening) -> Iterator[Any]:
+    """What the listener queued, until a stop condition of ``listening`` (:func:`listener_events`);
+    its errors to stderr as warnings."""
     from echoloc.realtime.session import listener_events
 
+    duration_s = listening.duration_s
     _finite("--duration", duration_s, positive=True)
     deadline = None if duration_s is None else time.monotonic() + duration_s
-    return listener_events(listener, once=once, max_frames=max_frames, deadline_s=deadline, on_error=_warn)
+    return listener_events(
+        listener, once=listening.once, max_frames=listening.max_frames, deadline_s=deadline, on_error=_warn
+    )
 
 
-def _open_listener(
-    listen_text: str,
-    udp: bool,
-    geometry_path: Path | None,
-    queue_frames: int,
-    block: bool,
-    idle_timeout_s: float,
-    accept_session: Callable[[Recording], object] | None = None,
-) -> Any:
+def _open_listener(listening: _Listening, accept_session: Callable[[Recording], object] | None = None) -> Any:
     """The listener of `stream` and `record`; ``accept_session`` refuses (by raising) a session
     they cannot use, before it reaches them (the sender is told, the stream goes on)."""
     from echoloc.realtime.stream import FrameQueue
     from echoloc.realtime.transport import Listener, parse_endpoint
 
-    endpoint = parse_endpoint(listen_text, "udp" if udp else "tcp")
-    _finite("--idle-timeout", idle_timeout_s, positive=True)
-    geometry = None if geometry_path is None else read_recording(geometry_path)
+    endpoint = parse_endpoint(listening.listen_text, "udp" if listening.udp else "tcp")
+    _finite("--idle-timeout", listening.idle_timeout_s, positive=True)
+    geometry = None if listening.geometry_path is None else read_recording(listening.geometry_path)
     return Listener(
         endpoint,
-        FrameQueue(queue_frames, block=block),
+        FrameQueue(listening.queue_frames, block=listening.block),
         geometry=geometry,
-        idle_timeout_s=idle_timeout_s,
+        idle_timeout_s=listening.idle_timeout_s,
         accept_session=accept_session,
     )
 
@@ -169,9 +202,7 @@ def _no_session_error(output: str, listener: Any) -> EchoLocError:
     help="1: the recording's own pace; N: N times faster; 0: as fast as the receiver takes it.",
 )
 @click.option("--rate", "rate_hz", type=float, default=None, help="Frames per second instead of --speed.")
-@click.option(
-    "--loop", "loops", type=click.IntRange(0, None), default=1, show_default=True, help="Passes; 0: forever."
-)
+@_int_range_option("--loop", "loops", low=0, high=None, default=1, help="Passes; 0: forever.")
 @click.option(
     "--sample-format",
     type=click.Choice(["auto", "float32", "float64", "int16"]),
@@ -221,9 +252,7 @@ def send_command(
 @_path_option("--record", "record_path", default=None, help="Also record to HDF5.")
 @click.option("--force", is_flag=True, help="Let --record replace an existing file.")
 @click.option("--view", is_flag=True, help="Serve the live view (Foxglove WebSocket) on 127.0.0.1.")
-@click.option(
-    "--view-port", type=click.IntRange(0, 65535), default=8765, show_default=True, help="Live view's port."
-)
+@_int_range_option("--view-port", low=0, high=65535, default=8765, help="Live view's port.")
 @click.option(
     "--deadline-ms",
     type=float,
@@ -254,15 +283,7 @@ def send_command(
 )
 @_WORKERS_OPTION
 def stream_command(
-    listen_text: str,
-    udp: bool,
-    geometry_path: Path | None,
-    queue_frames: int,
-    block: bool,
-    once: bool,
-    max_frames: int | None,
-    duration_s: float | None,
-    idle_timeout_s: float,
+    listening: _Listening,
     as_json: bool,
     record_path: Path | None,
     force: bool,
@@ -314,12 +335,10 @@ def stream_command(
 
     if record_path is not None:
         Recorder.check_path(record_path, force=force)
-    _finite("--duration", duration_s, positive=True)
+    _finite("--duration", listening.duration_s, positive=True)
     # A session is prepared as it arrives, in the listener: one the chain cannot use is refused
     # to its sender, and the stream goes on serving.
-    listener = _open_listener(
-        listen_text, udp, geometry_path, queue_frames, block, idle_timeout_s, accept_session=make_chain
-    )
+    listener = _open_listener(listening, accept_session=make_chain)
     warm_kernels(estimator, workers)
     printer = _StreamPrinter(as_json)
     session = LiveSession(
@@ -351,7 +370,7 @@ def stream_command(
         ):
             printer.live = live
             try:
-                for item in _events(listener, once, max_frames, duration_s):
+                for item in _events(listener, listening):
                     session.handle(item)
             except KeyboardInterrupt:
                 interrupted = True
@@ -412,12 +431,8 @@ def _stream_table(objects: FrameObjects, stats: Any) -> Table:
 @cli.command(name="record")
 @click.argument("output", metavar="OUT.h5", type=click.Path(path_type=Path))
 @_listen_options
-@click.option(
-    "--batch-frames",
-    type=click.IntRange(1, 1_000_000),
-    default=64,
-    show_default=True,
-    help="Frames appended and flushed at a time.",
+@_int_range_option(
+    "--batch-frames", low=1, high=1_000_000, default=64, help="Frames appended and flushed at a time."
 )
 @click.option(
     "--batch-seconds", "batch_s", type=float, default=0.5, show_default=True, help="...or after this long."
@@ -426,15 +441,7 @@ def _stream_table(objects: FrameObjects, stats: Any) -> Table:
 @click.option("-v", "--verbose", is_flag=True, help="One line on stderr per batch written.")
 def record_command(
     output: Path,
-    listen_text: str,
-    udp: bool,
-    geometry_path: Path | None,
-    queue_frames: int,
-    block: bool,
-    once: bool,
-    max_frames: int | None,
-    duration_s: float | None,
-    idle_timeout_s: float,
+    listening: _Listening,
     batch_frames: int,
     batch_s: float,
     force: bool,
@@ -456,9 +463,9 @@ def record_command(
             )
 
     Recorder.check_path(output, force=force)
-    _finite("--duration", duration_s, positive=True)
+    _finite("--duration", listening.duration_s, positive=True)
     _finite("--batch-seconds", batch_s, positive=True)
-    listener = _open_listener(listen_text, udp, geometry_path, queue_frames, block, idle_timeout_s)
+    listener = _open_listener(listening)
     recorder: Recorder | None = None
     interrupted = False
     try:
@@ -466,7 +473,7 @@ def record_command(
         stderr.print(f"echoloc: record: listening on {listener.address}", markup=False, highlight=False)
         with _interrupt_cleanly():
             try:
-                for item in _events(listener, once, max_frames, duration_s):
+                for item in _events(listener, listening):
                     if isinstance(item, SessionEvent):
                         if recorder is not None:
                             stderr.print(
@@ -510,33 +517,33 @@ def record_command(
 
 
 @cli.command(name="bench")
-@click.option(
+@_int_range_option(
     "--reflectors",
-    type=click.IntRange(0, 50),
+    low=0,
+    high=50,
     default=5,
-    show_default=True,
     help="Random reflectors in the default scene (0: the report's three balls).",
 )
-@click.option("--frames", "n_frames", type=click.IntRange(2, 100_000), default=200, show_default=True)
-@click.option(
+@_int_range_option("--frames", "n_frames", low=2, high=100_000, default=200)
+@_int_range_option(
     "--baseline-frames",
-    type=click.IntRange(1, 1000),
+    low=1,
+    high=1000,
     default=2,
-    show_default=True,
     help="Frames for the scipy chain (its brute-force locate takes seconds a frame).",
 )
-@click.option(
+@_int_range_option(
     "--workers",
-    type=click.IntRange(1, 1024),
+    low=1,
+    high=1024,
     default=1,
-    show_default=True,
     help="Cores to pin the bench to, and threads for echoloc's echoes stage.",
 )
-@click.option(
+@_int_range_option(
     "--rounds",
-    type=click.IntRange(1, 100),
+    low=1,
+    high=100,
     default=3,
-    show_default=True,
     help="Passes of echoloc's stream over the frames, each way; the median pass is reported.",
 )
 @click.option("--json", "as_json", is_flag=True, help="One JSON object with the figures.")

@@ -400,6 +400,19 @@ def local_maxima(shape: tuple[int, ...], flat: _IntArray, scores: NDArray[np.flo
 # --- echoes on one channel -----------------------------------------------------------
 
 
+def _vertex_offset(values: NDArray[np.floating], peak: int) -> float:
+    """Where the parabola through ``values[peak - 1 : peak + 2]`` peaks, relative to ``peak``
+    (index units, clipped to +-0.5): the sub-sample refinement of a maximum, shared by the
+    envelope and matched fits of :class:`EchoModel`. 0 at either end of ``values`` or where
+    the three values do not bend down."""
+    if 0 < peak < len(values) - 1:
+        y0, y1, y2 = values[peak - 1], values[peak], values[peak + 1]
+        denom = y0 - 2 * y1 + y2
+        if denom < 0:
+            return float(np.clip(0.5 * (y0 - y2) / denom, -0.5, 0.5))
+    return 0.0
+
+
 @dataclass(frozen=True, eq=False)
 class EchoModel:
     """How one echo looks on a channel's signal, to fit and subtract it.
@@ -445,13 +458,7 @@ class EchoModel:
         return self._fit_matched(signal, peak)
 
     def _fit_envelope(self, magnitude: NDArray[np.floating], peak: int) -> tuple[float, complex]:
-        delta = 0.0
-        if 0 < peak < len(magnitude) - 1:
-            y0, y1, y2 = magnitude[peak - 1], magnitude[peak], magnitude[peak + 1]
-            denom = y0 - 2 * y1 + y2
-            if denom < 0:
-                delta = float(np.clip(0.5 * (y0 - y2) / denom, -0.5, 0.5))
-        return peak + delta, complex(magnitude[peak])
+        return peak + _vertex_offset(magnitude, peak), complex(magnitude[peak])
 
     def _rows(self, taus: _FloatArray) -> tuple[_IntArray, _IntArray]:
         assert self.matched is not None
@@ -480,13 +487,7 @@ class EchoModel:
         den = np.sum(np.abs(shapes) ** 2, axis=1)
         cost = np.abs(num) ** 2 / den
         j = int(np.argmax(cost))
-        delta = 0.0
-        if 0 < j < len(cost) - 1:
-            c0, c1, c2 = cost[j - 1], cost[j], cost[j + 1]
-            denom = c0 - 2 * c1 + c2
-            if denom < 0:
-                delta = float(np.clip(0.5 * (c0 - c2) / denom, -0.5, 0.5))
-        tau = float(taus[j] + delta / 32)
+        tau = float(taus[j] + _vertex_offset(cost, j) / 32)
         base1, row1 = self._rows(np.array([tau]))
         shape1 = table[row1[0]]
         seg1 = self._segments(signal, base1)[0]

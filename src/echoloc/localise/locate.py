@@ -778,7 +778,8 @@ def _setup(
     options: LocateOptions,
 ) -> _Setup:
     """The geometry of the usable channels, their indices, the origin of the objects' order,
-    and each channel's receiver and transmitter: the same for every frame of a stream (cached)."""
+    and each channel's receiver and transmitter: the same for every frame of a stream (cached by
+    the arguments' values, built here on a miss)."""
     key = (
         _key(transmitter_m),
         _key(receivers),
@@ -791,24 +792,10 @@ def _setup(
         _key(options.receiver_axes),
     )
     setup = _SETUPS.get(key)
-    if setup is None:
-        if len(_SETUPS) >= 64:
-            _SETUPS.clear()
-        setup = _SETUPS[key] = _make_setup(
-            transmitter_m, receivers, usable, transmitter_index, receiver_index, required, options
-        )
-    return setup
-
-
-def _make_setup(
-    transmitter_m: NDArray[np.float64],
-    receivers: NDArray[np.float64],
-    usable: NDArray[np.bool_] | None,
-    transmitter_index: NDArray[np.int64] | None,
-    receiver_index: NDArray[np.int64] | None,
-    required: NDArray[np.bool_] | None,
-    options: LocateOptions,
-) -> _Setup:
+    if setup is not None:
+        return setup
+    if len(_SETUPS) >= 64:
+        _SETUPS.clear()
     n_ch, dim = receivers.shape
     usable_mask = np.ones(n_ch, dtype=bool) if usable is None else np.asarray(usable, dtype=bool)
     tx = np.broadcast_to(np.asarray(transmitter_m, dtype=float), (n_ch, dim))
@@ -824,9 +811,10 @@ def _make_setup(
     geometry = _geometry(
         tx[active], receivers[active], tx_index[active], rx_index[active], must[active], options, dim
     )
-    return _Setup(
+    setup = _SETUPS[key] = _Setup(
         geometry, active.tolist(), tx[0].copy(), rx_index[active].tolist(), tx_index[active].tolist(), {}, {}
     )
+    return setup
 
 
 def _geometry(

@@ -25,11 +25,13 @@ from __future__ import annotations
 
 import math
 import zipfile
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any, BinaryIO
 
 import numpy as np
+from mcap.records import Schema
 from mcap.writer import CompressionType
 from mcap_ros2.writer import Writer as Ros2Writer
 from numpy.typing import NDArray
@@ -293,6 +295,24 @@ def _tf_message(pose: NDArray[np.float64], stamp_s: float) -> dict[str, Any]:
     }
 
 
+def _write_stamped(
+    writer: Ros2Writer,
+    topic: str,
+    schema: Schema,
+    message_at: Callable[[float], dict[str, Any]],
+    stamp_s: float,
+    sequence: int,
+) -> None:
+    """Write the message ``message_at(stamp_s)`` on ``topic`` as message ``sequence``, logged and
+    published at its header's time ``stamp_s`` (s; whole ns in MCAP): a frame's ``/tf`` or objects
+    in :func:`write_map_mcap`. The time is converted to ns first, so a time without a count of ns
+    (inf, nan) fails here before the message is built."""
+    t_ns = round(stamp_s * 1e9)
+    writer.write_message(
+        topic, schema, message_at(stamp_s), log_time=t_ns, publish_time=t_ns, sequence=sequence
+    )
+
+
 def write_map_mcap(
     path: str | Path,
     grid: OccupancyGrid,
@@ -343,29 +363,12 @@ def write_map_mcap(
         if poses is not None:
             tf_schema = writer.register_msgdef("tf2_msgs/msg/TFMessage", TF_MESSAGE_SCHEMA)
             for index, k in enumerate(written):
-                pose = poses[k]
                 stamp = start_time_s + float(times[k])
-                t_ns = round(stamp * 1e9)
-                writer.write_message(
-                    TF_TOPIC,
-                    tf_schema,
-                    _tf_message(pose, stamp),
-                    log_time=t_ns,
-                    publish_time=t_ns,
-                    sequence=index,
-                )
+                _write_stamped(writer, TF_TOPIC, tf_schema, partial(_tf_message, poses[k]), stamp, index)
                 count += 1
         for index, frame in enumerate(objects_per_frame):
             stamp = start_time_s + float(times[frame.frame])
-            t_ns = round(stamp * 1e9)
-            writer.write_message(
-                OBJECTS_TOPIC,
-                cloud_schema,
-                point_cloud2(frame, stamp),
-                log_time=t_ns,
-                publish_time=t_ns,
-                sequence=index,
-            )
+            _write_stamped(writer, OBJECTS_TOPIC, cloud_schema, partial(point_cloud2, frame), stamp, index)
             count += 1
         t_ns = round(last * 1e9)
         if grid.spec.is_floor_plan:

@@ -309,32 +309,27 @@ class _Model(Protocol):
 
 
 @dataclass(frozen=True, eq=False)
-class _ComplexModel:
-    """``c T(k - τ)``, parameters ``[τ, Re c, Im c]``: the envelope-level fit to IQ."""
+class _ShiftedShapeModel:
+    """What the template models share: a ``shape`` shifted by the delay ``τ = params[0]`` (samples).
+
+    The arrival, the extent (the shape's support from τ) and the absent prior are the
+    same for the complex, coherent and squared-envelope models; each gives its own
+    ``evaluate``, ``start`` and ``power``.
+    """
 
     shape: BandLimitedShape
-    n_params: int = 3
-    domain: str = "coherent"
+
+    def evaluate(self, params: FloatArray, k: FloatArray) -> tuple[NDArray[Any], NDArray[Any]]:
+        raise NotImplementedError  # pragma: no cover - every model defines it
 
     def values(self, params: FloatArray, k: FloatArray) -> NDArray[Any]:
         return self.evaluate(params, k)[0]
 
-    def evaluate(self, params: FloatArray, k: FloatArray) -> tuple[NDArray[Any], NDArray[Any]]:
-        c = complex(params[1], params[2])
-        values, slopes = self.shape(k - params[0])
-        return c * values, np.array([-c * slopes, values, 1j * values])
-
     def prior(self, params: FloatArray) -> tuple[FloatArray, FloatArray]:
         return _NO_PRIOR
 
-    def start(self, tof_samples: float, scale: complex) -> FloatArray:
-        return np.array([tof_samples, scale.real, scale.imag])
-
     def tof(self, params: FloatArray) -> float:
         return float(params[0])
-
-    def power(self, params: FloatArray) -> float:
-        return float(params[1] ** 2 + params[2] ** 2)
 
     def extent(self, params: FloatArray) -> tuple[float, float]:
         lo, hi = self.shape.support
@@ -342,16 +337,31 @@ class _ComplexModel:
 
 
 @dataclass(frozen=True, eq=False)
-class _CoherentModel:
+class _ComplexModel(_ShiftedShapeModel):
+    """``c T(k - τ)``, parameters ``[τ, Re c, Im c]``: the envelope-level fit to IQ."""
+
+    n_params: int = 3
+    domain: str = "coherent"
+
+    def evaluate(self, params: FloatArray, k: FloatArray) -> tuple[NDArray[Any], NDArray[Any]]:
+        c = complex(params[1], params[2])
+        values, slopes = self.shape(k - params[0])
+        return c * values, np.array([-c * slopes, values, 1j * values])
+
+    def start(self, tof_samples: float, scale: complex) -> FloatArray:
+        return np.array([tof_samples, scale.real, scale.imag])
+
+    def power(self, params: FloatArray) -> float:
+        return float(params[1] ** 2 + params[2] ** 2)
+
+
+@dataclass(frozen=True, eq=False)
+class _CoherentModel(_ShiftedShapeModel):
     """``a exp(-2jπ ν τ) T(k - τ)``, parameters ``[τ, a]``, ν the carrier in cycles per sample."""
 
-    shape: BandLimitedShape
     cycles_per_sample: float
     n_params: int = 2
     domain: str = "coherent"
-
-    def values(self, params: FloatArray, k: FloatArray) -> NDArray[Any]:
-        return self.evaluate(params, k)[0]
 
     def evaluate(self, params: FloatArray, k: FloatArray) -> tuple[NDArray[Any], NDArray[Any]]:
         tau, a = float(params[0]), float(params[1])
@@ -361,54 +371,30 @@ class _CoherentModel:
         unit = rotation * values
         return a * unit, np.array([a * rotation * (-1j * omega * values - slopes), unit])
 
-    def prior(self, params: FloatArray) -> tuple[FloatArray, FloatArray]:
-        return _NO_PRIOR
-
     def start(self, tof_samples: float, scale: complex) -> FloatArray:
         return np.array([tof_samples, scale.real])
-
-    def tof(self, params: FloatArray) -> float:
-        return float(params[0])
 
     def power(self, params: FloatArray) -> float:
         return float(params[1] ** 2)
 
-    def extent(self, params: FloatArray) -> tuple[float, float]:
-        lo, hi = self.shape.support
-        return params[0] + lo, params[0] + hi
-
 
 @dataclass(frozen=True, eq=False)
-class _PowerModel:
+class _PowerModel(_ShiftedShapeModel):
     """``q Q(k - τ)``, parameters ``[τ, q]``: the low-passed squared envelope ``Q = h * |T|²``."""
 
-    shape: BandLimitedShape
     n_params: int = 2
     domain: str = "power"
-
-    def values(self, params: FloatArray, k: FloatArray) -> NDArray[Any]:
-        return self.evaluate(params, k)[0]
 
     def evaluate(self, params: FloatArray, k: FloatArray) -> tuple[NDArray[Any], NDArray[Any]]:
         tau, q = float(params[0]), float(params[1])
         values, slopes = self.shape(k - tau)
         return q * values, np.array([-q * slopes, values])
 
-    def prior(self, params: FloatArray) -> tuple[FloatArray, FloatArray]:
-        return _NO_PRIOR
-
     def start(self, tof_samples: float, scale: complex) -> FloatArray:
         return np.array([tof_samples, scale.real])
 
-    def tof(self, params: FloatArray) -> float:
-        return float(params[0])
-
     def power(self, params: FloatArray) -> float:
         return float(params[1])
-
-    def extent(self, params: FloatArray) -> tuple[float, float]:
-        lo, hi = self.shape.support
-        return params[0] + lo, params[0] + hi
 
 
 def emg(u: FloatArray, width: float, decay: float) -> FloatArray:
