@@ -18,7 +18,6 @@ meeting different frames one after another.
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import time
 from typing import Any
@@ -26,12 +25,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from _common import one_worker_chain, parse_arguments
 from echoloc.benchmark import _stream_pass, bench_scene, pinned_cores
 from echoloc.io.output import echoes_record, objects_record
-from echoloc.pipeline import Chain, prepare
+from echoloc.pipeline import Chain
 from echoloc.realtime.stream import STREAM_BATCH_FRAMES, StreamFrame, StreamProcessor, recording_frames
 from echoloc.sim.simulation import simulate
-from echoloc.tof.echoes import EchoOptions, _correlated_channels
+from echoloc.tof.echoes import _correlated_channels
 
 
 def frame_order_study(
@@ -83,14 +83,11 @@ SOUND_LIMIT_FRAMES_S = 85.8
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=200)
-    parser.add_argument("--rounds", type=int, default=7)
-    args = parser.parse_args()
+    args = parse_arguments(__doc__, frames=200, rounds=7)
     with pinned_cores(1) as cores:
         recording = simulate(bench_scene(5), args.frames)
-        one_call = prepare(recording, echo_options=EchoOptions(workers=1))
-        stages = prepare(recording, echo_options=EchoOptions(workers=1))
+        one_call = one_worker_chain(recording)
+        stages = one_worker_chain(recording)
         stages.__dict__["one_call"] = None  # the cached property, set: the stages in turn
         assert one_call.one_call is not None
         ways: dict[str, Chain] = {"two stages": stages, "one call": one_call}

@@ -21,25 +21,22 @@ The threaded rows spread each call's channels over ``--threads`` threads
 
 from __future__ import annotations
 
-import argparse
 import os
-import time
 from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
 
-from echoloc.benchmark import baseline_echoes
+from _common import matched_filter, parse_arguments, seconds
+from echoloc.benchmark import baseline_echoes, bench_scene
 from echoloc.io.recording import Recording
 from echoloc.localise.locate import model_paths_m
 from echoloc.pipeline import Chain, prepare
-from echoloc.sim.scene import RandomReflectors, Scene, default_scene
+from echoloc.sim.scene import Scene
 from echoloc.sim.simulation import simulate
 from echoloc.tof.echoes import (
-    MATCHED_DECIMATION,
     EchoOptions,
-    MatchedFilter,
     _Clean,
     _compiled_echoes,
     _isolated_echoes,
@@ -86,23 +83,12 @@ def accuracy(
     return found / max(total, 1), rmse_mm, extra / max(n_channels, 1)
 
 
-def _time(job: Callable[[], object]) -> float:
-    start = time.perf_counter()
-    job()
-    return time.perf_counter() - start
-
-
 def bench(name: str, scene: Scene, n_frames: int, rounds: int, threads: int) -> None:
     chain = prepare(simulate(scene, n_frames))
     recording = chain.recording
     options: EchoOptions = chain.echo_options
     frames = np.asarray(recording.frames[:n_frames], dtype=float)
-    mf = MatchedFilter(
-        np.asarray(recording.waveform, float),
-        recording.n_samples,
-        recording.sample_rate_hz,
-        decimation=MATCHED_DECIMATION,
-    )
+    mf = matched_filter(recording)
     rows = frames.reshape(-1, recording.n_samples)
     matched_filter_batch(frames[:1], mf, options)  # compile (or load) the kernels, build the tables
     correlation = mf.correlate_single(frames).reshape(rows.shape[0], -1)
@@ -129,7 +115,7 @@ def bench(name: str, scene: Scene, n_frames: int, rounds: int, threads: int) -> 
     timings: dict[str, list[float]] = {k: [] for k in jobs}
     for _ in range(rounds):
         for key, job in jobs.items():
-            timings[key].append(_time(job) / n_frames)
+            timings[key].append(seconds(job) / n_frames)
     median = {k: float(np.median(v)) * 1e6 for k, v in timings.items()}
 
     ours = [[c.tof_s for c in channels] for channels in matched_filter_batch(frames, mf, options)]
@@ -171,11 +157,9 @@ def bench(name: str, scene: Scene, n_frames: int, rounds: int, threads: int) -> 
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=40)
-    parser.add_argument("--rounds", type=int, default=7)
-    parser.add_argument("--threads", type=int, default=2, help="threads of the threaded rows (--workers)")
-    args = parser.parse_args()
+    args = parse_arguments(
+        __doc__, frames=40, rounds=7, more=[("--threads", 2, "threads of the threaded rows (--workers)")]
+    )
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(
         "# bench_echoes.py — last run\n\n"
@@ -183,17 +167,8 @@ def main() -> None:
         f"--threads {args.threads}`"
     )
     print(f"\nLoad average at start: {load:.2f} on {os.cpu_count()} cores (the machine is shared).")
-    scene = default_scene()
-    bench("Default scene (report set-up, 3 balls)", scene, args.frames, args.rounds, args.threads)
-    five = replace(
-        scene,
-        reflector_positions_m=np.zeros((0, 3)),
-        reflector_strengths=np.zeros(0),
-        random=RandomReflectors(count=(5, 5), strength=(0.5, 2.0)),
-        snr_db=20.0,
-        path_jitter_m=0.5e-3,
-    )
-    bench("Five random reflectors in 1 m^3", five, args.frames, args.rounds, args.threads)
+    bench("Default scene (report set-up, 3 balls)", bench_scene(0), args.frames, args.rounds, args.threads)
+    bench("Five random reflectors in 1 m^3", bench_scene(5), args.frames, args.rounds, args.threads)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"\nLoad average at the end: {load:.2f}.")
 

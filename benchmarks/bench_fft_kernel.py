@@ -17,7 +17,6 @@ one core, in alternating rounds (medians reported), and checks that they find th
 
 from __future__ import annotations
 
-import argparse
 import time
 from collections.abc import Callable
 from typing import Any
@@ -26,8 +25,8 @@ import numpy as np
 import scipy.fft
 from numpy.typing import NDArray
 
+from _common import one_worker_chain, parse_arguments
 from echoloc.benchmark import bench_scene, pinned_cores
-from echoloc.pipeline import prepare
 from echoloc.realtime.stream import StreamProcessor, recording_frames
 from echoloc.sim.simulation import simulate
 from echoloc.tof.echoes import (
@@ -55,13 +54,10 @@ def scipy_echoes(mf: MatchedFilter, options: EchoOptions) -> Callable[[NDArray[n
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=200)
-    parser.add_argument("--rounds", type=int, default=7)
-    args = parser.parse_args()
+    args = parse_arguments(__doc__, frames=200, rounds=7)
     with pinned_cores(1) as cores:
         recording = simulate(bench_scene(5), args.frames)
-        chain = prepare(recording, echo_options=EchoOptions(workers=1))
+        chain = one_worker_chain(recording)
         mf, options = chain.estimator.mf, chain.estimator.options  # type: ignore[attr-defined]
         frames = [np.asarray(f, dtype=float) for f in recording.frames]
         before = scipy_echoes(mf, options)

@@ -19,25 +19,14 @@ a speed-up never hides a loss of accuracy.
 
 from __future__ import annotations
 
-import argparse
-import time
-from collections.abc import Callable
-from dataclasses import replace
-
 import numpy as np
 
-from echoloc.benchmark import baseline_echoes, baseline_locate
+from _common import matched_filter, parse_arguments, seconds
+from echoloc.benchmark import baseline_echoes, baseline_locate, bench_scene
 from echoloc.localise.evaluation import evaluate
 from echoloc.pipeline import Chain, frame_echoes, frame_objects, prepare
-from echoloc.sim.scene import RandomReflectors, default_scene
 from echoloc.sim.simulation import simulate
-from echoloc.tof.echoes import MATCHED_DECIMATION, MatchedFilter, matched_filter_batch
-
-
-def _time(job: Callable[[], object]) -> float:
-    start = time.perf_counter()
-    job()
-    return time.perf_counter() - start
+from echoloc.tof.echoes import matched_filter_batch
 
 
 def bench(name: str, chain: Chain, n_frames: int, rounds: int, brute_frames: int) -> None:
@@ -50,24 +39,19 @@ def bench(name: str, chain: Chain, n_frames: int, rounds: int, brute_frames: int
     timings: dict[str, list[float]] = {
         k: [] for k in ("echoes", "echoes_batch", "echoes_base", "locate", "locate_base")
     }
-    mf = MatchedFilter(
-        np.asarray(recording.waveform, float),
-        recording.n_samples,
-        recording.sample_rate_hz,
-        decimation=MATCHED_DECIMATION,
-    )
+    mf = matched_filter(recording)
     block = recording.frames[:n_frames]
     for _ in range(rounds):
-        timings["echoes"].append(_time(lambda: [frame_echoes(chain, i) for i in frames]) / n_frames)
+        timings["echoes"].append(seconds(lambda: [frame_echoes(chain, i) for i in frames]) / n_frames)
         timings["echoes_batch"].append(
-            _time(lambda: matched_filter_batch(block, mf, chain.echo_options)) / n_frames
+            seconds(lambda: matched_filter_batch(block, mf, chain.echo_options)) / n_frames
         )
         timings["echoes_base"].append(
-            _time(lambda: [baseline_echoes(chain, recording.frames[i]) for i in frames]) / n_frames
+            seconds(lambda: [baseline_echoes(chain, recording.frames[i]) for i in frames]) / n_frames
         )
-        timings["locate"].append(_time(lambda: [frame_objects(chain, e) for e in echoes]) / n_frames)
+        timings["locate"].append(seconds(lambda: [frame_objects(chain, e) for e in echoes]) / n_frames)
         timings["locate_base"].append(
-            _time(lambda: [baseline_locate(chain, i, base_paths[i]) for i in few]) / len(few)
+            seconds(lambda: [baseline_locate(chain, i, base_paths[i]) for i in few]) / len(few)
         )
     median = {k: float(np.median(v)) for k, v in timings.items()}
     truth = chain.recording.truth_positions_m
@@ -99,34 +83,15 @@ def bench(name: str, chain: Chain, n_frames: int, rounds: int, brute_frames: int
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=40)
-    parser.add_argument("--rounds", type=int, default=5)
-    parser.add_argument("--brute-frames", type=int, default=2, help="frames for the brute-force locate")
-    args = parser.parse_args()
-    scene = default_scene()
-    bench(
-        "Default scene (report set-up, 3 balls)",
-        prepare(simulate(scene, args.frames)),
-        args.frames,
-        args.rounds,
-        args.brute_frames,
+    args = parse_arguments(
+        __doc__, frames=40, rounds=5, more=[("--brute-frames", 2, "frames for the brute-force locate")]
     )
-    five = replace(
-        scene,
-        reflector_positions_m=np.zeros((0, 3)),
-        reflector_strengths=np.zeros(0),
-        random=RandomReflectors(count=(5, 5), strength=(0.5, 2.0)),
-        snr_db=20.0,
-        path_jitter_m=0.5e-3,
-    )
-    bench(
-        "Five random reflectors in 1 m^3",
-        prepare(simulate(five, args.frames)),
-        args.frames,
-        args.rounds,
-        args.brute_frames,
-    )
+    for name, reflectors in (
+        ("Default scene (report set-up, 3 balls)", 0),
+        ("Five random reflectors in 1 m^3", 5),
+    ):
+        chain = prepare(simulate(bench_scene(reflectors), args.frames))
+        bench(name, chain, args.frames, args.rounds, args.brute_frames)
 
 
 if __name__ == "__main__":

@@ -49,31 +49,21 @@ def _judge(
     return outcome, next(iter(tally.examples.values()), "")
 
 
-@fuzz_settings(60)
-@given(rng=st.randoms(use_true_random=False))
-def test_mutated_recordings_end_cleanly(
-    worker: harness.Worker, seeds: harness.Seeds, tmp_path: Path, rng: random.Random
+@pytest.mark.parametrize(
+    ("family", "max_examples"), [("recordings", 60), ("scenes", 25), ("calibrations", 25)]
+)
+def test_mutated_files_end_cleanly(
+    worker: harness.Worker, seeds: harness.Seeds, tmp_path: Path, family: str, max_examples: int
 ) -> None:
-    outcome, finding = _judge(worker, seeds, "recordings", rng, tmp_path / "case")
-    assert outcome.problems == [], finding
+    """``max_examples`` mutations of the family's seed files, each judged by the harness."""
 
+    @fuzz_settings(max_examples)
+    @given(rng=st.randoms(use_true_random=False))
+    def mutated_file_ends_cleanly(rng: random.Random) -> None:
+        outcome, finding = _judge(worker, seeds, family, rng, tmp_path / "case")
+        assert outcome.problems == [], finding
 
-@fuzz_settings(25)
-@given(rng=st.randoms(use_true_random=False))
-def test_mutated_scenes_end_cleanly(
-    worker: harness.Worker, seeds: harness.Seeds, tmp_path: Path, rng: random.Random
-) -> None:
-    outcome, finding = _judge(worker, seeds, "scenes", rng, tmp_path / "case")
-    assert outcome.problems == [], finding
-
-
-@fuzz_settings(25)
-@given(rng=st.randoms(use_true_random=False))
-def test_mutated_calibrations_end_cleanly(
-    worker: harness.Worker, seeds: harness.Seeds, tmp_path: Path, rng: random.Random
-) -> None:
-    outcome, finding = _judge(worker, seeds, "calibrations", rng, tmp_path / "case")
-    assert outcome.problems == [], finding
+    mutated_file_ends_cleanly()
 
 
 def test_hostile_sessions_leave_the_stream_serving(seeds: harness.Seeds, tmp_path: Path) -> None:

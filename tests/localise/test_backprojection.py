@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from functools import cache
 
 import numpy as np
@@ -11,6 +12,7 @@ from hypothesis import strategies as st
 from numpy.typing import NDArray
 
 from echoloc.errors import EchoLocError
+from echoloc.io.recording import Recording
 from echoloc.localise.backprojection import (
     QUANTUM,
     BackprojectionOptions,
@@ -288,22 +290,33 @@ def test_mirrored_array_mirrors_image_and_objects() -> None:
     np.testing.assert_allclose(a, np.array(sorted(map(tuple, points))), atol=1e-3)
 
 
-def test_simulated_scene_round_trip_within_a_few_mm() -> None:
+# Two point reflectors in front of ARRAY_3D, and the grid that holds them (the round trips below).
+TWO_POINTS = (
+    {"kind": "point", "position_m": [0.1, -0.05, 0.5]},
+    {"kind": "point", "position_m": [-0.15, 0.12, 0.65]},
+)
+ROUND_TRIP_GRID = Grid(np.array([-0.3, -0.3, 0.3]), np.array([0.3, 0.3, 0.9]), 0.005)
+
+
+def _simulated(
+    transmitters_m: list[list[float]], reflectors: Sequence[dict[str, object]], n_frames: int
+) -> Recording:
+    """Frames of a Barker-13 scene on ARRAY_3D: SNR 20 dB, 0.5 mm path jitter, seed 3."""
     data = {
         "seed": 3,
-        "array": {"transmitters_m": [[0.0, 0.0, 0.0]], "receivers_m": ARRAY_3D.tolist()},
+        "array": {"transmitters_m": transmitters_m, "receivers_m": ARRAY_3D.tolist()},
         "pulse": {"code": "barker13", "carrier_hz": 50e3, "cycles_per_bit": 4},
         "acquisition": {"sample_rate_hz": FS, "n_samples": N_SAMPLES},
         "noise": {"snr_db": 20.0, "path_jitter_m": 0.0005},
-        "reflectors": [
-            {"kind": "point", "position_m": [0.1, -0.05, 0.5]},
-            {"kind": "point", "position_m": [-0.15, 0.12, 0.65]},
-            {"kind": "point", "position_m": [0.05, 0.18, 0.8], "strength": 0.7},
-        ],
+        "reflectors": list(reflectors),
     }
-    recording = simulate(scene_from_dict(data, "test"), 6)
-    grid = Grid(np.array([-0.3, -0.3, 0.3]), np.array([0.3, 0.3, 0.9]), 0.005)
-    bp = prepare_backprojection(recording, grid)
+    return simulate(scene_from_dict(data, "test"), n_frames)
+
+
+def test_simulated_scene_round_trip_within_a_few_mm() -> None:
+    third = {"kind": "point", "position_m": [0.05, 0.18, 0.8], "strength": 0.7}
+    recording = _simulated([[0.0, 0.0, 0.0]], [*TWO_POINTS, third], 6)
+    bp = prepare_backprojection(recording, ROUND_TRIP_GRID)
     results = [backproject_frame(bp, i) for i in range(recording.n_frames)]
     assert recording.truth_positions_m is not None
     report = evaluate(results, recording.truth_positions_m, match_radius_m=0.01)
@@ -329,22 +342,10 @@ def test_bad_grid_and_support_are_refused() -> None:
 
 
 def test_two_transmitters_fired_in_turn_are_located_together() -> None:
-    data = {
-        "seed": 3,
-        "array": {"transmitters_m": [[0.0, 0.0, 0.0], [0.0, 0.1, 0.0]], "receivers_m": ARRAY_3D.tolist()},
-        "pulse": {"code": "barker13", "carrier_hz": 50e3, "cycles_per_bit": 4},
-        "acquisition": {"sample_rate_hz": FS, "n_samples": N_SAMPLES},
-        "noise": {"snr_db": 20.0, "path_jitter_m": 0.0005},
-        "reflectors": [
-            {"kind": "point", "position_m": [0.1, -0.05, 0.5]},
-            {"kind": "point", "position_m": [-0.15, 0.12, 0.65]},
-        ],
-    }
-    recording = simulate(scene_from_dict(data, "test"), 4)
+    recording = _simulated([[0.0, 0.0, 0.0], [0.0, 0.1, 0.0]], TWO_POINTS, 4)
     assert recording.frame_transmitter is not None
     assert list(recording.frame_transmitter) == [0, 1, 0, 1]
-    grid = Grid(np.array([-0.3, -0.3, 0.3]), np.array([0.3, 0.3, 0.9]), 0.005)
-    results = list(run_backprojection(prepare_backprojection(recording, grid)))
+    results = list(run_backprojection(prepare_backprojection(recording, ROUND_TRIP_GRID)))
     assert recording.truth_positions_m is not None
     report = evaluate(results, recording.truth_positions_m, match_radius_m=0.01)
     assert report.recall == 1.0

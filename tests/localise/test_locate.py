@@ -208,6 +208,16 @@ def test_random_scenes_round_trip(points: list[np.ndarray]) -> None:
     ranges at least 1 mm apart (equal ranges make a cross array ambiguous), and the
     paths must not admit another exact scene (see _unambiguous).
     """
+    per_receiver = _separable_paths(points)
+    objects = associate(TX, CROSS, per_receiver, _sigmas(per_receiver), OPTIONS)
+    assert len(objects) == len(points)
+    for point in points:
+        assert min(np.linalg.norm(o.position_m - point) for o in objects) < 1e-6
+
+
+def _separable_paths(points: list[np.ndarray]) -> list[np.ndarray]:
+    """The exact paths of ``points`` per receiver, sorted; hypothesis rejects (``assume``) any
+    scene whose reflectors are not separable as test_random_scenes_round_trip says."""
     array = np.array(points)
     paths = model_paths_m(TX, CROSS, array)
     for i in range(4):
@@ -217,10 +227,7 @@ def test_random_scenes_round_trip(points: list[np.ndarray]) -> None:
     assume(len(ranges) < 2 or np.diff(ranges).min() > 1e-3)
     per_receiver = [np.sort(paths[:, i]) for i in range(4)]
     assume(_unambiguous(per_receiver, len(points)))
-    objects = associate(TX, CROSS, per_receiver, _sigmas(per_receiver), OPTIONS)
-    assert len(objects) == len(points)
-    for point in points:
-        assert min(np.linalg.norm(o.position_m - point) for o in objects) < 1e-6
+    return per_receiver
 
 
 def _unambiguous(per_receiver: list[np.ndarray], n_points: int) -> bool:
@@ -345,15 +352,7 @@ def test_two_receivers_make_two_ghosts_and_a_third_removes_them() -> None:
 @given(points=st.lists(points_in_front, min_size=1, max_size=3))
 def test_mirrored_array_mirrors_the_objects(points: list[np.ndarray]) -> None:
     """Mirroring the array in x (receivers' x negated, paths kept) mirrors every object in x."""
-    array = np.array(points)
-    paths = model_paths_m(TX, CROSS, array)
-    for i in range(4):
-        gaps = np.diff(np.sort(paths[:, i]))
-        assume(len(gaps) == 0 or gaps.min() > 1e-3)
-    ranges = np.sort(np.linalg.norm(array, axis=1))
-    assume(len(ranges) < 2 or np.diff(ranges).min() > 1e-3)
-    per_receiver = [np.sort(paths[:, i]) for i in range(4)]
-    assume(_unambiguous(per_receiver, len(points)))
+    per_receiver = _separable_paths(points)
     mirror = np.array([-1.0, 1.0, 1.0])
     direct = associate(TX, CROSS, per_receiver, _sigmas(per_receiver), OPTIONS)
     mirrored = associate(TX, CROSS * mirror, per_receiver, _sigmas(per_receiver), OPTIONS)

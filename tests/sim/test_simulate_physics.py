@@ -587,7 +587,8 @@ def test_adc_at_1_mhz_decimated_matches_direct_sampling(
 # --- (10) signal kinds -------------------------------------------------------------------------
 
 
-def kinds_scene(kind: str, transducer: str | None, output_rate_hz: float | None = None) -> Scene:
+def two_echo_scene(receiver: ReceiverSpec, transducer: str | None = None) -> Scene:
+    """The pair 3 cm apart with two reflectors (0.4 m and 0.7 m deep), noiseless, 1200 samples."""
     return pair_scene(
         [0, 0, 0],
         [0.03, 0, 0],
@@ -595,8 +596,12 @@ def kinds_scene(kind: str, transducer: str | None, output_rate_hz: float | None 
         reflector_strengths=[1.0, 0.6],
         n_samples=1200,
         transducer=transducer,
-        receiver=ReceiverSpec(signal_kind=kind, output_rate_hz=output_rate_hz),
+        receiver=receiver,
     )
+
+
+def kinds_scene(kind: str, transducer: str | None, output_rate_hz: float | None = None) -> Scene:
+    return two_echo_scene(ReceiverSpec(signal_kind=kind, output_rate_hz=output_rate_hz), transducer)
 
 
 @pytest.mark.parametrize("transducer", [None, "electrostatic50"])
@@ -651,14 +656,7 @@ GAINS = {
 
 def gained(gain: GainSpec | None, adc_rate_hz: float | None, kind: str) -> Scene:
     spec = GainSpec() if gain is None else gain
-    return pair_scene(
-        [0, 0, 0],
-        [0.03, 0, 0],
-        reflector_positions_m=[[0.02, 0.01, 0.4], [-0.1, 0.05, 0.7]],
-        reflector_strengths=[1.0, 0.6],
-        n_samples=1200,
-        receiver=ReceiverSpec(adc_rate_hz=adc_rate_hz, gain=spec, signal_kind=kind),
-    )
+    return two_echo_scene(ReceiverSpec(adc_rate_hz=adc_rate_hz, gain=spec, signal_kind=kind))
 
 
 @pytest.mark.parametrize(
@@ -705,15 +703,22 @@ AIR_R = np.array([0.03, 0.0, 0.0])
 AIR_PATH = float(np.linalg.norm(AIR_P) + np.linalg.norm(AIR_P - AIR_R))
 
 
-def test_drifting_air_delays_follow_speed_of_sound_at_frame_time() -> None:
-    """Frame k at t = k / frame_rate: delay = path / c(T0 + dT t, RH0 + dRH t) within 0.05 sample."""
-    drift = AirDrift(temperature_c_per_s=20.0, relative_humidity_per_s=0.1)
-    scene = pair_scene(
+def air_scene(**kw: object) -> Scene:
+    """The pair with one reflector at AIR_P, the receiver at AIR_R, 800 samples; the air as told."""
+    return pair_scene(
         [0, 0, 0],
         AIR_R.tolist(),
         reflector_positions_m=[AIR_P],
         reflector_strengths=[1.0],
         n_samples=800,
+        **kw,
+    )
+
+
+def test_drifting_air_delays_follow_speed_of_sound_at_frame_time() -> None:
+    """Frame k at t = k / frame_rate: delay = path / c(T0 + dT t, RH0 + dRH t) within 0.05 sample."""
+    drift = AirDrift(temperature_c_per_s=20.0, relative_humidity_per_s=0.1)
+    scene = air_scene(
         frame_rate_hz=10.0,
         temperature_c=15.0,
         relative_humidity=0.3,
@@ -730,12 +735,7 @@ def test_drifting_air_delays_follow_speed_of_sound_at_frame_time() -> None:
 
 def test_turbulence_spreads_delays_by_its_relative_std() -> None:
     """c (1 + 1e-3 N(0, 1)) per frame: delays path / c spread by 1e-3 relative (400 frames: ±3.5 %)."""
-    scene = pair_scene(
-        [0, 0, 0],
-        AIR_R.tolist(),
-        reflector_positions_m=[AIR_P],
-        reflector_strengths=[1.0],
-        n_samples=800,
+    scene = air_scene(
         drift=AirDrift(turbulence=1e-3),
         seed=3,
     )

@@ -155,26 +155,6 @@ def test_a_thread_count_below_one_is_refused(workers: int) -> None:
         EchoOptions(workers=workers)
 
 
-@settings(max_examples=15, deadline=None)
-@given(
-    delay=st.floats(300.0, 2000.0),
-    separation=st.floats(11.0, 30.0),
-    ratio=st.floats(0.5, 1.0),
-    seed=st.integers(0, 1000),
-)
-def test_batch_path_fits_close_pairs_as_clean_does(
-    delay: float, separation: float, ratio: float, seed: int
-) -> None:
-    """Two echoes within two main lobes (17-sample main lobe): both found at SNR 50, each within
-    the noise of CLEAN's joint fit, whichever path takes the channel."""
-    delays = [delay, delay + separation]
-    frames = frames_with_echoes(delays, [1.0, ratio], noise_std=0.02, seed=seed)
-    channel = matched_filter_echoes(frames[0], MF, EchoOptions())[0]
-    clean, _ = _Clean(MF, EchoOptions()).run(MF.correlate(frames[0, 0]))
-    assert channel.tof_s * FS == pytest.approx(delays, abs=0.05)
-    assert channel.tof_s * FS == pytest.approx(sorted(c.tof_samples for c in clean), abs=0.02)
-
-
 def test_half_cycle_slip_of_a_merged_pair_is_undone() -> None:
     """Two equal echoes 8 samples apart (under half the main lobe) at per-sample SNR 13: the
     joint fit with real amplitudes has a minimum every half carrier cycle (2 samples); the
@@ -192,26 +172,42 @@ def test_half_cycle_slip_of_a_merged_pair_is_undone() -> None:
 MF2 = MatchedFilter(PULSE, N_SAMPLES, FS, decimation=2)  # the registered estimator's
 
 
+@pytest.mark.parametrize(
+    ("mf", "separations", "clean_tolerance"),
+    [
+        # Within two main lobes (17-sample main lobe), every lag: within the noise of CLEAN's joint fit.
+        pytest.param(MF, (11.0, 30.0), 0.02, id="within-two-main-lobes"),
+        # Within the main lobe, where the correlation may show one peak, every second lag (the
+        # registered estimator's): the split on the batch path, or CLEAN.
+        pytest.param(MF2, (6.0, 16.0), 0.03, id="within-a-main-lobe"),
+    ],
+)
 @settings(max_examples=20, deadline=None)
 @given(
     delay=st.floats(300.0, 2000.0),
-    separation=st.floats(6.0, 16.0),
     ratio=st.floats(0.5, 1.0),
     seed=st.integers(0, 1000),
+    data=st.data(),
 )
-def test_pairs_within_a_main_lobe_are_found_as_clean_finds_them(
-    delay: float, separation: float, ratio: float, seed: int
+def test_close_pairs_are_found_as_clean_finds_them(
+    mf: MatchedFilter,
+    separations: tuple[float, float],
+    clean_tolerance: float,
+    delay: float,
+    ratio: float,
+    seed: int,
+    data: st.DataObject,
 ) -> None:
-    """Two echoes 6-16 samples apart, within the 17-sample main lobe, where the correlation may
-    show one peak: both within 0.05 samples at SNR 50, and within 0.03 of CLEAN's on the same
-    channel, whichever path takes it (the split on the batch path, or CLEAN)."""
+    """Two echoes ``separations`` samples apart: both found within 0.05 samples at SNR 50, and
+    within ``clean_tolerance`` samples of CLEAN's on the same channel, whichever path takes it."""
+    separation = data.draw(st.floats(*separations), label="separation")
     delays = [delay, delay + separation]
     frames = frames_with_echoes(delays, [1.0, ratio], noise_std=0.02, seed=seed)
-    channel = matched_filter_echoes(frames[0], MF2, EchoOptions())[0]
-    clean, _ = _Clean(MF2, EchoOptions()).run(MF2.correlate(frames[0, 0]))
+    channel = matched_filter_echoes(frames[0], mf, EchoOptions())[0]
+    clean, _ = _Clean(mf, EchoOptions()).run(mf.correlate(frames[0, 0]))
     assert channel.tof_s * FS == pytest.approx(delays, abs=0.05)
-    clean_delays = sorted(c.tof_samples / MF2.lag_rate_hz + MF2.arrival_s for c in clean)
-    assert channel.tof_s == pytest.approx(clean_delays, abs=0.03 / FS)
+    clean_delays = sorted(c.tof_samples / mf.lag_rate_hz + mf.arrival_s for c in clean)
+    assert channel.tof_s == pytest.approx(clean_delays, abs=clean_tolerance / FS)
 
 
 def test_the_split_keeps_pairs_within_a_main_lobe_on_the_batch_path() -> None:
