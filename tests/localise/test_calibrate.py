@@ -284,6 +284,26 @@ def test_the_detection_threshold_keeps_99_percent_of_the_targets_on_three_receiv
     )
 
 
+def test_a_weak_peak_nearer_the_arrival_does_not_hide_the_targets_echo() -> None:
+    """A noise peak at 0.5 dB a quarter sigma from the arrival, the target's echo at 6 dB half a
+    sigma after it: the echo is what a threshold must keep, so 6 dB is the level needed."""
+    from echoloc.localise.calibrate import detection_threshold_db
+
+    snr = np.full((50, 4), 6.0)
+    recording, echoes, calibration = snr_echoes(snr)
+    sigma_s = 0.001 / 343.0
+
+    def with_decoy(channel: ChannelEchoes) -> ChannelEchoes:
+        arrival = channel.tof_s[0]
+        tof = np.array([arrival + 0.25 * sigma_s, arrival + 0.5 * sigma_s])
+        return ChannelEchoes(tof, np.ones(2), np.array([0.5, 6.0]))
+
+    echoes = [
+        dataclasses.replace(frame, channels=tuple(with_decoy(c) for c in frame.channels)) for frame in echoes
+    ]
+    assert detection_threshold_db(recording, echoes, calibration, ceiling_db=20.0) == 6.0
+
+
 def test_no_detection_threshold_where_no_target_is_heard_on_enough_receivers() -> None:
     from echoloc.localise.calibrate import detection_threshold_db
 
@@ -314,7 +334,7 @@ def test_the_detection_threshold_keeps_what_it_promises(snr: np.ndarray, keep: f
 
 def test_the_detection_threshold_survives_the_file_and_sets_the_default(tmp_path: Path) -> None:
     """Written and read back; envelope-peak takes it as its default, the other estimators keep
-    theirs; a threshold that is not a number of at least -20 dB is refused."""
+    theirs; a threshold that is not a number from -20 to 300 dB is refused, naming the file."""
     from echoloc.tof.estimators import ENVELOPE_PEAK_THRESHOLD_DB, default_threshold_db
 
     calibration = Calibration(343.0, (0.0, 1e-6), threshold_db=1.25)
@@ -331,7 +351,7 @@ def test_the_detection_threshold_survives_the_file_and_sets_the_default(tmp_path
         write_calibration(Calibration(343.0, (0.0, 1e-6)), tmp_path / "d.json").read_text()
     )
     record = json.loads((tmp_path / "c.json").read_text())
-    for bad in ("3", -25.0, float("nan")):
+    for bad in ("3", -25.0, 500.0, float("nan")):
         (tmp_path / "c.json").write_text(json.dumps({**record, "threshold_db": bad}))
-        with pytest.raises(EchoLocError, match="threshold_db must be a number >= -20 dB"):
+        with pytest.raises(EchoLocError, match=r"c\.json: threshold_db must be a number from -20 to 300 dB"):
             read_calibration(tmp_path / "c.json")

@@ -139,6 +139,40 @@ def test_the_calibration_file_keeps_the_shape_and_the_path_sigma(tmp_path: Path)
         read_calibration(tmp_path / "bad.json")
 
 
+def test_calibrate_measures_the_threshold_that_locate_then_detects_with(tmp_path: Path) -> None:
+    """On the simulated CH101 head: calibrate writes the threshold its targets need (at most
+    the 3 dB default) and locate, evaluate and echoes detect with it; --threshold-db given to
+    calibrate writes none, and given to locate wins over the file's."""
+    from echoloc.cli.app import Processing
+
+    runner = CliRunner()
+    recording = tmp_path / "ch101.h5"
+    calibration = tmp_path / "calibration.json"
+    fixed = tmp_path / "fixed.json"
+    assert runner.invoke(cli, ["simulate", "ch101", "-o", str(recording), "--frames", "12"]).exit_code == 0
+    result = runner.invoke(cli, ["calibrate", str(recording), "-o", str(calibration)])
+    assert result.exit_code == 0, result.output
+    measured = json.loads(calibration.read_text())["threshold_db"]
+    assert 0.0 <= measured <= 3.0
+    assert "detection threshold" in result.output
+    result = runner.invoke(cli, ["calibrate", str(recording), "--threshold-db", "5", "-o", str(fixed)])
+    assert result.exit_code == 0, result.output
+    assert "threshold_db" not in json.loads(fixed.read_text())
+
+    def threshold(calibration_path: Path | None, given_db: float | None) -> float:
+        processing = Processing(recording, "auto", given_db, 0.0, None, None, False, calibration_path)
+        return processing.open()[1].echo_options.threshold_db
+
+    assert threshold(calibration, None) == measured
+    # This head's strong echoes need the whole default; a rig with fainter ones gets less.
+    lowered = tmp_path / "lowered.json"
+    lowered.write_text(json.dumps({**json.loads(calibration.read_text()), "threshold_db": 1.25}))
+    assert threshold(lowered, None) == 1.25
+    assert threshold(lowered, 7.5) == 7.5
+    assert threshold(fixed, None) == 3.0
+    assert threshold(None, None) == 3.0
+
+
 @pytest.mark.skipif(not DATA.exists(), reason="the real CH101 data (../shared) is not here")
 def test_real_ch101_flow_with_defaults_only(tmp_path: Path) -> None:
     """Calibrate on every other target position of a slice of the real recording, locate the

@@ -221,7 +221,8 @@ def _processing_options(
                 default=None,
                 help="Detection threshold on the echo's output SNR, dB "
                 f"[default: {EchoOptions.threshold_db:g}; "
-                f"envelope-peak {ENVELOPE_PEAK_THRESHOLD_DB:g}, on data without processing gain].",
+                f"envelope-peak {ENVELOPE_PEAK_THRESHOLD_DB:g}, on data without processing gain, or the "
+                "one `calibrate` measured, with --calibration].",
             ),
             click.option(
                 "--blanking-s",

@@ -49,6 +49,7 @@ from echoloc.pipeline import (
 )
 from echoloc.tof.echoes import FrameEchoes, frame_time_s
 from echoloc.tof.estimators import default_threshold_db
+from echoloc.tof.templates import read_template
 
 # --- echoes, locate, evaluate ------------------------------------------------------
 
@@ -447,7 +448,9 @@ def calibrate_command(processing: Processing, output: Path) -> None:
     """Fit the speed of sound and a delay per receiver from frames with known targets (truth_positions).
 
     The file also holds the path error measured from the fit's residuals, which `locate
-    --calibration` assumes, and, for envelope-peak (envelope or iq data without a
+    --calibration` assumes; for envelope-peak without --threshold-db, the detection threshold
+    that 99 % of the targets reach on three receivers (at most the default), which it then
+    detects with; and, for envelope-peak (envelope or iq data without a
     waveform), the echo shape learnt from these targets.
     """
     recording, chain, frames = processing.open()
@@ -461,9 +464,6 @@ def calibrate_command(processing: Processing, output: Path) -> None:
         shape = learn_chain_echo_shape(chain, frames, "truth", "learnt")
         chain = processing.chain(recording, shape)
     measure_threshold = peaks and processing.threshold_db is None
-    if measure_threshold:
-        # Look for the targets' echoes down to the noise, then measure what they need.
-        chain = replace(processing, threshold_db=SEARCH_THRESHOLD_DB).chain(recording, shape)
     echoes = []
     with _progress(len(frames), "finding echoes", True) as advance:
         for index in frames:
@@ -474,19 +474,27 @@ def calibrate_command(processing: Processing, output: Path) -> None:
     )
     threshold = ""
     if measure_threshold:
+        # With the rig calibrated, look for the targets' echoes again down to the noise and
+        # measure the threshold that they need (the fit above keeps the default's echoes).
+        template = shape
+        if template is None and processing.template_path is not None:
+            template = read_template(processing.template_path)
+        search = replace(processing, threshold_db=SEARCH_THRESHOLD_DB).chain(recording, template)
+        min_receivers = search.locate_options.min_receivers
         measured = detection_threshold_db(
             recording,
-            echoes,
+            [frame_echoes(search, index) for index in frames],
             calibration,
             ceiling_db=default_threshold_db("envelope-peak"),
-            min_receivers=chain.locate_options.min_receivers,
+            min_receivers=min_receivers,
         )
         calibration = replace(calibration, threshold_db=measured)
-        if measured is not None:
+        if measured is None:
+            threshold = f"; no target heard on {min_receivers} receivers, so no detection threshold measured"
+        else:
             threshold = (
                 f"; detection threshold {measured:.2f} dB "
-                f"({DETECTION_KEEP:.0%} of the targets keep echoes on "
-                f"{chain.locate_options.min_receivers} receivers)"
+                f"({DETECTION_KEEP:.0%} of the targets keep echoes on {min_receivers} receivers)"
             )
     written = write_calibration(calibration, output)
     delays = ", ".join(f"{d * 1e6:+.3f}" for d in calibration.receiver_delays_s)

@@ -50,7 +50,7 @@ from numpy.typing import NDArray
 from echoloc.errors import EchoLocError, read_text_input
 from echoloc.io.recording import Recording
 from echoloc.localise.locate import model_paths_m
-from echoloc.tof.echoes import ChannelEchoes, FrameEchoes
+from echoloc.tof.echoes import THRESHOLD_DB_LIMIT, ChannelEchoes, FrameEchoes
 from echoloc.tof.envelope_peaks import MAD_TO_SIGMA
 from echoloc.tof.templates import Template
 
@@ -229,9 +229,9 @@ def detection_threshold_db(
     """The detection threshold, dB, that keeps ``keep`` of the known targets locatable.
 
     ``echoes`` are the uncorrected echoes of frames of ``recording``, found with a threshold
-    below any that this may return. For each known target, the echo nearest its calibrated
-    arrival on each receiver counts when within :data:`DETECTION_GATE_SIGMAS` path sigmas;
-    the target needs the ``min_receivers``-th largest of those SNRs (dB). The result is the
+    below any that this may return. For each known target, each receiver's strongest echo
+    within :data:`DETECTION_GATE_SIGMAS` path sigmas of its calibrated arrival counts; the
+    target needs the ``min_receivers``-th largest of those SNRs (dB). The result is the
     ``1 - keep`` quantile of what the targets need (the lower sample: at least ``keep`` of
     them reach it), at most ``ceiling_db``; None when fewer than ``min_receivers`` receivers
     or no target has echoes on ``min_receivers`` receivers.
@@ -247,11 +247,11 @@ def detection_threshold_db(
         for k in range(len(paths_m)):
             snr = np.full(recording.n_receivers, -np.inf)
             for i, channel in enumerate(frame.channels):
-                if len(channel.tof_s):
-                    gap = np.abs(np.asarray(channel.tof_s) - arrivals[k, i])
-                    j = int(np.argmin(gap))
-                    if gap[j] <= gate_s:
-                        snr[i] = float(channel.snr_db[j])
+                inside = np.abs(np.asarray(channel.tof_s) - arrivals[k, i]) <= gate_s
+                if inside.any():
+                    # The strongest in the gate: a weak noise peak nearer the arrival does not
+                    # hide the target's echo, which any threshold up to its SNR keeps.
+                    snr[i] = float(np.max(np.asarray(channel.snr_db)[inside]))
             needed.append(float(np.sort(snr)[::-1][min_receivers - 1]))
     reachable = np.array([n for n in needed if math.isfinite(n)])
     if len(reachable) == 0:
@@ -374,9 +374,12 @@ def read_calibration(path: str | os.PathLike[str], n_receivers: int | None = Non
             f"{source}: path_sigma_m must be a number > 0 and <= {MAX_PATH_SIGMA_M:g} m, got {path_sigma!r}"
         )
     threshold = record.get("threshold_db")
-    if threshold is not None and not (_finite_number(threshold) and threshold >= MIN_THRESHOLD_DB):
+    if threshold is not None and not (
+        _finite_number(threshold) and MIN_THRESHOLD_DB <= threshold <= THRESHOLD_DB_LIMIT
+    ):
         raise EchoLocError(
-            f"{source}: threshold_db must be a number >= {MIN_THRESHOLD_DB:g} dB, got {threshold!r}"
+            f"{source}: threshold_db must be a number from {MIN_THRESHOLD_DB:g} to "
+            f"{THRESHOLD_DB_LIMIT:g} dB, got {threshold!r}"
         )
     speed_fitted = record.get("speed_of_sound_fitted", True)
     if not isinstance(speed_fitted, bool):
