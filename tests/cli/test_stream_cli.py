@@ -409,3 +409,36 @@ def test_stream_records_a_batch_before_processing_it(tmp_path, recording_path):
     assert kept.n_frames == 3
     # The recorder stores the samples as they came: float64 here, which float32 would round.
     np.testing.assert_array_equal(np.asarray(kept.frames), np.asarray(source.frames[:3]))
+
+
+def test_stream_detects_envelope_echoes_with_the_threshold_locate_takes(tmp_path):
+    """An envelope head streamed with a calibration: stream prints what `locate --calibration`
+    prints, both detecting with the calibration's threshold, not the matched filter's 14 dB
+    (which finds other echoes on this head)."""
+    recording = tmp_path / "ch101.h5"
+    calibration = tmp_path / "calibration.json"
+    echoloc("simulate", "ch101", "-o", recording, "--frames", "12", check=True)
+    echoloc("calibrate", recording, "-o", calibration, check=True)
+    record = json.loads(calibration.read_text())
+    calibration.write_text(json.dumps({**record, "threshold_db": 1.25}))
+    stream = Proc(
+        "stream",
+        "--listen",
+        "127.0.0.1:0",
+        "--once",
+        "--json",
+        "--estimator",
+        "envelope-peak",
+        "--calibration",
+        calibration,
+    )
+    port = stream.port()
+    echoloc("send", recording, "--to", f"127.0.0.1:{port}", "--speed", "0", check=True)
+    code, stdout = stream.finish()
+    assert code == 0, stream.lines
+    located = echoloc("locate", recording, "--json", "--calibration", calibration, check=True).stdout
+    at_14_db = echoloc(
+        "locate", recording, "--json", "--calibration", calibration, "--threshold-db", "14", check=True
+    ).stdout
+    assert stdout == located
+    assert located != at_14_db

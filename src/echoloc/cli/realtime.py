@@ -40,6 +40,8 @@ from echoloc.sim.simulation import simulate
 from echoloc.tof.echoes import EchoOptions
 from echoloc.tof.estimators import (
     ESTIMATORS,
+    default_threshold_db,
+    resolve_estimator,
 )
 
 # --- real time: send, stream, record, bench ----------------------------------------
@@ -270,9 +272,9 @@ def send_command(
 @click.option(
     "--threshold-db",
     type=float,
-    default=EchoOptions.threshold_db,
-    show_default=True,
-    help="Detection threshold on the echo's output SNR, dB.",
+    default=None,
+    help="Detection threshold on the echo's output SNR, dB [default: as `locate`'s, from the "
+    "estimator and the calibration].",
 )
 @click.option("--blanking-s", type=float, default=0.0, show_default=True, help="Ignore earlier echoes, s.")
 @click.option("--speed-of-sound", "speed_of_sound_m_s", type=float, default=None, help="Override, m/s.")
@@ -291,7 +293,7 @@ def stream_command(
     view_port: int,
     deadline_ms: float,
     estimator: str,
-    threshold_db: float,
+    threshold_db: float | None,
     blanking_s: float,
     speed_of_sound_m_s: float | None,
     calibration_path: Path | None,
@@ -314,8 +316,9 @@ def stream_command(
     _finite("--deadline-ms", deadline_ms, positive=True)
     _finite("--speed-of-sound", speed_of_sound_m_s, positive=True)
     _finite("--blanking-s", blanking_s, minimum=0.0)
-    _threshold_db(threshold_db)
-    options = EchoOptions(threshold_db=threshold_db, blanking_s=blanking_s, workers=workers)
+    if threshold_db is not None:
+        _threshold_db(threshold_db)
+    EchoOptions(blanking_s=blanking_s, workers=workers)  # refuses bad options before any frame
     if calibration_path is not None:
         read_calibration(calibration_path)  # a missing or broken file now, not when frames come
 
@@ -323,10 +326,16 @@ def stream_command(
         calibration = (
             None if calibration_path is None else read_calibration(calibration_path, header.n_receivers)
         )
+        # The threshold as locate takes it: given, else the estimator's default for this
+        # session's data, or the one the calibration measured.
+        threshold = threshold_db
+        if threshold is None:
+            measured = None if calibration is None else calibration.threshold_db
+            threshold = default_threshold_db(resolve_estimator(estimator, header), measured)
         chain = prepare(
             header,
             estimator=estimator,
-            echo_options=options,
+            echo_options=EchoOptions(threshold_db=threshold, blanking_s=blanking_s, workers=workers),
             speed_of_sound_m_s=speed_of_sound_m_s,
             calibration=calibration,
         )
