@@ -11,8 +11,8 @@ when detection and association are perfect:
    above the channel's noise, Gaussian sub-sample interpolation, as echoloc's envelope-peak)
    nearest to where the known target puts it, within 3 samples, is taken as the target's
    echo.
-2. **Calibration as echoloc's:** one delay per receiver (the median over the calibration
-   positions), the speed of sound fitted with them.
+2. **Calibration as echoloc's:** one delay per receiver and the speed of sound, least
+   squares over the calibration positions' matched echoes.
 3. **Least squares** over the receivers that have the echo (3 or 4), from a start near the
    array's axis.
 
@@ -204,8 +204,16 @@ def main() -> None:
             f"{robust_sigma(residual_m[:, r]) * 1e3:.1f} |"
         )
     # Are the offsets smooth over space, so that a correction learnt at the calibration
-    # positions could be carried to their neighbours? Predict each position's offsets by
-    # the mean of its nearest positions of the other half.
+    # positions could be carried to their neighbours? Under one calibration on every usable
+    # position (so that two halves' fits do not differ by their own error), predict each
+    # position's offsets by the mean of its nearest positions of the other half.
+    c_all, delay_all = calibrate(chosen[usable] / fs, paths[usable])
+    residual_all = (chosen / fs - delay_all) * c_all - paths
+    offsets = np.full((n_positions, len(rx)), np.nan)
+    for p in range(n_positions):
+        frames = (position == p) & usable
+        if np.isfinite(residual_all[frames]).any():
+            offsets[p] = np.nanmedian(residual_all[frames], axis=0)
     first = np.array([target[position == p][0] for p in range(n_positions)])
     kept = np.array([p not in flagged for p in range(n_positions)])
     print("\n| neighbours of the other half | offset sigma left, mm (was, all receivers) |\n|---|---|")
@@ -214,8 +222,8 @@ def main() -> None:
         for p in np.flatnonzero(kept):
             others = np.flatnonzero(kept & (np.arange(n_positions) % 2 != p % 2))
             nearest = others[np.argsort(np.linalg.norm(first[others] - first[p], axis=1))[:k]]
-            left.append(means[p] - np.nanmean(means[nearest], axis=0))
-        was = robust_sigma(means[kept].ravel())
+            left.append(offsets[p] - np.nanmean(offsets[nearest], axis=0))
+        was = robust_sigma(offsets[kept].ravel())
         print(f"| {k} | {robust_sigma(np.ravel(left)) * 1e3:.1f} ({was * 1e3:.1f}) |")
     complete = np.all(np.isfinite(means), axis=1)
     common = means[complete].mean(axis=1)

@@ -3,7 +3,9 @@
 The echo fits (:mod:`echoloc.tof._echoes_kernels`) and the localisation
 (:mod:`echoloc.localise._locate_kernels`) both solve small systems, once per fit step or echo
 combination, where numpy's LAPACK call would allocate and cost more than the work. One
-solver serves both, so that a fix to it reaches both.
+solver serves both, so that a fix to it reaches both. numba's cache checks only the file
+of the function it compiled: after editing this module, delete the kernel modules'
+``__pycache__`` folders (a fresh install has none).
 """
 
 from __future__ import annotations
