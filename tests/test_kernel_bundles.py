@@ -55,23 +55,37 @@ def test_the_finishing_constants_are_finish_channels_parameters() -> None:
     assert parameters[start : start + len(FinishingConstants._fields)] == list(FinishingConstants._fields)
 
 
-@pytest.mark.parametrize("name", ["seed_candidates", "refine", "candidates", "associate"])
-def test_every_association_kernel_starts_with_the_geometry(name: str) -> None:
+@pytest.mark.parametrize("name", ["seed_candidates", "refine"])
+def test_the_seed_and_refinement_kernels_start_with_the_geometry_s_fields(name: str) -> None:
     parameters = _parameters(getattr(locate_kernels, name))
     assert parameters[: len(KernelGeometry._fields)] == list(KernelGeometry._fields)
 
 
-@pytest.mark.parametrize("name", ["candidates", "associate"])
-def test_the_association_tail_follows_the_echo_offsets(name: str) -> None:
-    parameters = _parameters(getattr(locate_kernels, name))
-    start = parameters.index("offset") + 1
-    assert parameters[start : start + len(AssociationTail._fields)] == list(AssociationTail._fields)
+_ASSOCIATION = ["geometry", "paths", "sigmas", "amplitudes", "offset", "tail", "node_limit", "max_rows"]
+
+
+def test_candidates_and_associate_take_the_bundles_whole_and_read_every_field() -> None:
+    """``candidates`` and ``associate`` take the geometry and the tail whole; between them
+    they read every field (candidates for the seeds and the refinement, associate for the
+    choice), and associate hands both bundles on to candidates as they are."""
+    assert _parameters(locate_kernels.candidates) == _ASSOCIATION
+    assert _parameters(locate_kernels.associate) == [*_ASSOCIATION, "origin"]
+    for name, fields in (("geometry", KernelGeometry._fields), ("tail", AssociationTail._fields)):
+        read = _fields_read(locate_kernels.candidates, name) | _fields_read(locate_kernels.associate, name)
+        assert read == set(fields), name
+    calls = [
+        node
+        for node in ast.walk(_kernel_tree(locate_kernels.associate))
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "candidates"
+    ]
+    assert len(calls) == 1
+    assert [ast.unparse(a) for a in calls[0].args] == _ASSOCIATION
 
 
 def test_associate_frame_hands_every_field_to_associate_s_parameter_of_its_name() -> None:
     """associate_frame takes the locate bundle whole and the frame's echoes; it hands the
-    geometry's, the tail's and the bundle's limits to :func:`associate` by keyword, each field
-    to the parameter of its own name, and reads the rest (speed, prior variance, carrier)."""
+    geometry, the tail and the bundle's limits to :func:`associate`, each in the place of the
+    parameter of its own name, and reads the rest (speed, prior variance, carrier)."""
     kernel = locate_kernels.associate_frame
     assert _parameters(kernel) == ["arguments", "tof", "snr_db", "amplitudes", "offset"]
     assert _fields_read(kernel, "arguments") == set(LocateKernelArguments._fields)
@@ -81,13 +95,15 @@ def test_associate_frame_hands_every_field_to_associate_s_parameter_of_its_name(
         if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "associate"
     ]
     assert len(calls) == 1
-    handed: dict[str, set[str]] = {"geometry": set(), "tail": set(), "arguments": set()}
-    for keyword in calls[0].keywords:
-        value = keyword.value
+    parameters = _parameters(locate_kernels.associate)
+    assert len(calls[0].args) == len(parameters)
+    assert not calls[0].keywords
+    handed: set[str] = set()
+    for parameter, value in zip(parameters, calls[0].args, strict=True):
         if isinstance(value, ast.Attribute) and isinstance(value.value, ast.Name):
-            assert keyword.arg == value.attr, ast.unparse(keyword)
-            handed[value.value.id].add(value.attr)
-    assert handed["geometry"] == set(KernelGeometry._fields)
-    assert handed["tail"] == set(AssociationTail._fields)
-    assert handed["arguments"] == {"node_limit", "max_rows", "origin"}
-    assert {k.arg for k in calls[0].keywords} == set(_parameters(locate_kernels.associate))
+            assert value.value.id == "arguments", ast.unparse(value)
+            assert value.attr == parameter, ast.unparse(value)
+            handed.add(parameter)
+        else:
+            assert ast.unparse(value) == parameter
+    assert handed == {"geometry", "tail", "node_limit", "max_rows", "origin"}

@@ -40,7 +40,7 @@ from echoloc._jit import njit
 from echoloc._linear_kernels import solve_in_place
 
 if TYPE_CHECKING:
-    from echoloc.localise.locate import LocateKernelArguments
+    from echoloc.localise.locate import AssociationTail, KernelGeometry, LocateKernelArguments
 
 OWN, SHARED, NONE = 0, 1, 2
 
@@ -1758,35 +1758,28 @@ def first_of_each(
 
 @njit(cache=True)
 def candidates(
-    transmitters: NDArray[np.float64],  # (C, D), m
-    receivers: NDArray[np.float64],  # (C, D), m
-    transmitter_axes: NDArray[np.float64],  # (C, D), unit
-    receiver_axes: NDArray[np.float64],  # (C, D), unit
-    boresight: NDArray[np.float64],  # (D,)
-    required: NDArray[np.bool_],  # (C,)
+    geometry: KernelGeometry,
     paths: NDArray[np.float64],  # (E,) every channel's echoes, m
     sigmas: NDArray[np.float64],  # (E,), m
     amplitudes: NDArray[np.float64],  # (E,) or (0,): none
     offset: NDArray[np.int64],  # (C + 1,) channel c's echoes at offset[c]:offset[c + 1]
-    seeds: NDArray[np.int64],  # (S, D) channel indices
-    window_low: float,
-    window_high: float,
-    cos_fov: float,
-    k_gate: float,
-    merge_reach: float,
-    merge_sigma: float,
-    gates: NDArray[np.float64],  # (C + 1,) chi-square gate by echo count
-    check_beams: bool,
-    min_own: int,
-    sharing_rounds: int,
-    amplitude_log_sigma: float,
+    tail: AssociationTail,
     node_limit: int,
     max_rows: int,
 ) -> Any:  # pragma: no cover - compiled
     """Steps 1-3 of locate.associate (the arguments of :func:`associate`): seeds (sorted,
     deduplicated) and refined. Returns (overflow, candidates): ``overflow`` more seed rows
     than ``max_rows`` (rounded up to 4096 x 4^k; no candidates then), ``candidates`` =
-    refined (echo, use, positions, covariances, chi2, converged, amplitude_chi2)."""
+    refined (echo, use, positions, covariances, chi2, converged, amplitude_chi2).
+    ``geometry`` and ``tail`` (locate.KernelGeometry, locate.AssociationTail) are read by
+    name into the flat parameters of the kernels below."""
+    transmitters, receivers = geometry.transmitters, geometry.receivers
+    transmitter_axes, receiver_axes = geometry.transmitter_axes, geometry.receiver_axes
+    boresight, required = geometry.boresight, geometry.required
+    seeds, window_low, window_high = tail.seeds, tail.window_low, tail.window_high
+    cos_fov, k_gate, merge_reach, merge_sigma = tail.cos_fov, tail.k_gate, tail.merge_reach, tail.merge_sigma
+    gates, check_beams, min_own = tail.gates, tail.check_beams, tail.min_own
+    amplitude_log_sigma = tail.amplitude_log_sigma
     sorted_paths, sorted_index = sort_within_channels(paths, offset)
     limit = np.int64(4096)
     while limit < max_rows:
@@ -1883,28 +1876,12 @@ def _nearest_first(
 
 @njit(cache=True, nogil=True)
 def associate(
-    transmitters: NDArray[np.float64],  # (C, D), m
-    receivers: NDArray[np.float64],  # (C, D), m
-    transmitter_axes: NDArray[np.float64],  # (C, D), unit
-    receiver_axes: NDArray[np.float64],  # (C, D), unit
-    boresight: NDArray[np.float64],  # (D,)
-    required: NDArray[np.bool_],  # (C,)
+    geometry: KernelGeometry,
     paths: NDArray[np.float64],  # (E,) every channel's echoes, m
     sigmas: NDArray[np.float64],  # (E,), m
     amplitudes: NDArray[np.float64],  # (E,) or (0,): none
     offset: NDArray[np.int64],  # (C + 1,) channel c's echoes at offset[c]:offset[c + 1]
-    seeds: NDArray[np.int64],  # (S, D) channel indices
-    window_low: float,
-    window_high: float,
-    cos_fov: float,
-    k_gate: float,
-    merge_reach: float,
-    merge_sigma: float,
-    gates: NDArray[np.float64],  # (C + 1,) chi-square gate by echo count
-    check_beams: bool,
-    min_own: int,
-    sharing_rounds: int,
-    amplitude_log_sigma: float,
+    tail: AssociationTail,
     node_limit: int,
     max_rows: int,
     origin: NDArray[np.float64],  # (D,), m
@@ -1919,39 +1896,14 @@ def associate(
     2 tied weights (the caller chooses from :func:`candidates` with the reference):
     no objects then.
     """
-    overflow, refined = candidates(
-        transmitters,
-        receivers,
-        transmitter_axes,
-        receiver_axes,
-        boresight,
-        required,
-        paths,
-        sigmas,
-        amplitudes,
-        offset,
-        seeds,
-        window_low,
-        window_high,
-        cos_fov,
-        k_gate,
-        merge_reach,
-        merge_sigma,
-        gates,
-        check_beams,
-        min_own,
-        sharing_rounds,
-        amplitude_log_sigma,
-        node_limit,
-        max_rows,
-    )
+    overflow, refined = candidates(geometry, paths, sigmas, amplitudes, offset, tail, node_limit, max_rows)
     done, echo, use, position, covariance, chi2, _, good = choose(
-        transmitters,
-        receivers,
-        transmitter_axes,
-        receiver_axes,
-        boresight,
-        required,
+        geometry.transmitters,
+        geometry.receivers,
+        geometry.transmitter_axes,
+        geometry.receiver_axes,
+        geometry.boresight,
+        geometry.required,
         paths,
         sigmas,
         amplitudes,
@@ -1961,14 +1913,14 @@ def associate(
         refined[2],
         refined[4],
         refined[6],
-        merge_sigma,
-        merge_reach,
-        gates,
-        check_beams,
-        cos_fov,
-        min_own,
-        sharing_rounds,
-        amplitude_log_sigma,
+        tail.merge_sigma,
+        tail.merge_reach,
+        tail.gates,
+        tail.check_beams,
+        tail.cos_fov,
+        tail.min_own,
+        tail.sharing_rounds,
+        tail.amplitude_log_sigma,
         node_limit,
     )
     status = 1 if overflow else 0 if done else 2
@@ -1999,32 +1951,14 @@ def associate_frame(
     speed = arguments.speed_of_sound_m_s
     paths = tof * speed
     sigmas = path_sigmas(snr_db, speed, arguments.prior_variance_m2, arguments.omega_rad_s)
-    geometry, tail = arguments.geometry, arguments.tail
-    # (numba unpacks no named tuple into a call: each field goes to its parameter by keyword.)
     return associate(
-        transmitters=geometry.transmitters,
-        receivers=geometry.receivers,
-        transmitter_axes=geometry.transmitter_axes,
-        receiver_axes=geometry.receiver_axes,
-        boresight=geometry.boresight,
-        required=geometry.required,
-        paths=paths,
-        sigmas=sigmas,
-        amplitudes=amplitudes,
-        offset=offset,
-        seeds=tail.seeds,
-        window_low=tail.window_low,
-        window_high=tail.window_high,
-        cos_fov=tail.cos_fov,
-        k_gate=tail.k_gate,
-        merge_reach=tail.merge_reach,
-        merge_sigma=tail.merge_sigma,
-        gates=tail.gates,
-        check_beams=tail.check_beams,
-        min_own=tail.min_own,
-        sharing_rounds=tail.sharing_rounds,
-        amplitude_log_sigma=tail.amplitude_log_sigma,
-        node_limit=arguments.node_limit,
-        max_rows=arguments.max_rows,
-        origin=arguments.origin,
+        arguments.geometry,
+        paths,
+        sigmas,
+        amplitudes,
+        offset,
+        arguments.tail,
+        arguments.node_limit,
+        arguments.max_rows,
+        arguments.origin,
     )

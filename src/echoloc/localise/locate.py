@@ -418,11 +418,11 @@ def _gates(probability: float, dim: int, n_channels: int) -> NDArray[np.float64]
 
 
 class KernelGeometry(NamedTuple):
-    """The first six arguments of every compiled association kernel
-    (:mod:`echoloc.localise._locate_kernels`), named as its parameters are: the channels'
-    transmitters and receivers (C, D), m, their axes (C, D), the array's boresight (D,) and
-    the channels where an object must show an echo (C,). Passed as ``*geometry``; a test
-    holds the fields' names and order to the kernels' parameters."""
+    """The array as the compiled association (:mod:`echoloc.localise._locate_kernels`) takes
+    it: the channels' transmitters and receivers (C, D), m, their axes (C, D), the array's
+    boresight (D,) and the channels where an object must show an echo (C,). ``candidates``
+    and ``associate`` take it whole; the seed and refinement kernels take its fields first,
+    one by one, as ``*geometry``. Tests hold the fields to the kernels' parameters and reads."""
 
     transmitters: NDArray[np.float64]
     receivers: NDArray[np.float64]
@@ -433,8 +433,8 @@ class KernelGeometry(NamedTuple):
 
 
 class AssociationTail(NamedTuple):
-    """The compiled association's arguments between a frame's echoes and its limits
-    (:func:`echoloc.localise._locate_kernels.associate`), named as its parameters are: the
+    """The seeds and options of the compiled association, which ``candidates`` and
+    ``associate`` (:mod:`echoloc.localise._locate_kernels`) take whole and read by name: the
     seed sets (S, D) of channel indices, the path window (m), the field of view's cosine,
     the one-path gate (sigmas), the merge reach and sigma (m; sigma -1: no merging), the
     chi-square gates by count of echoes, whether beams are checked, the fewest own echoes,
@@ -887,17 +887,16 @@ def _associate_compiled(
 
     geometry = setup.geometry
     args = (
-        *geometry.kernel_arguments,
+        geometry.kernel_arguments,
         echoes.paths,
         echoes.sigmas,
         _NO_AMPLITUDES if echoes.amplitudes is None else echoes.amplitudes,
         echoes.offset,
-        *_kernel_tail(setup, options),
+        _kernel_tail(setup, options),
         _NODE_LIMIT,
         _MAX_SEED_ROWS,
     )
-    kernel: Any = kernels.associate
-    status, echo_use, position, covariance, chi2 = kernel(*args, setup.origin)
+    status, echo_use, position, covariance, chi2 = kernels.associate(*args, setup.origin)
     if status == 1:
         warnings.warn(
             f"frame skipped: more than {_MAX_SEED_ROWS} echo combinations to associate; "
@@ -907,8 +906,8 @@ def _associate_compiled(
         )
         return []
     if status == 2:
-        refined: Any = kernels.candidates  # the same seeds and refinement again (ties are rare)
-        echo, use, position, covariance, chi2, converged, amplitude_chi2 = refined(*args)[1]
+        # The same seeds and refinement again (ties are rare).
+        echo, use, position, covariance, chi2, converged, amplitude_chi2 = kernels.candidates(*args)[1]
         candidates = _Candidates(echo, use, Solution(position, covariance, chi2, converged), amplitude_chi2)
         return _choose_reference(geometry, candidates, echoes, options)
     return echo_use, position, covariance, chi2, status == 0
