@@ -412,7 +412,8 @@ def test_stream_records_a_batch_before_processing_it(tmp_path, recording_path):
 
 
 def test_stream_detects_envelope_echoes_with_the_threshold_locate_takes(tmp_path):
-    """An envelope head streamed with a calibration: stream prints what `locate --calibration`
+    """An envelope head streamed with a calibration and no estimator named: stream picks what
+    locate picks for envelope data (envelope-peak) and prints what `locate --calibration`
     prints, both detecting with the calibration's threshold, not the matched filter's 14 dB
     (which finds other echoes on this head)."""
     recording = tmp_path / "ch101.h5"
@@ -421,17 +422,7 @@ def test_stream_detects_envelope_echoes_with_the_threshold_locate_takes(tmp_path
     echoloc("calibrate", recording, "-o", calibration, check=True)
     record = json.loads(calibration.read_text())
     calibration.write_text(json.dumps({**record, "threshold_db": 1.25}))
-    stream = Proc(
-        "stream",
-        "--listen",
-        "127.0.0.1:0",
-        "--once",
-        "--json",
-        "--estimator",
-        "envelope-peak",
-        "--calibration",
-        calibration,
-    )
+    stream = Proc("stream", "--listen", "127.0.0.1:0", "--once", "--json", "--calibration", calibration)
     port = stream.port()
     echoloc("send", recording, "--to", f"127.0.0.1:{port}", "--speed", "0", check=True)
     code, stdout = stream.finish()

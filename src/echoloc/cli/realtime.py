@@ -39,6 +39,7 @@ from echoloc.pipeline import (
 from echoloc.sim.simulation import simulate
 from echoloc.tof.echoes import EchoOptions
 from echoloc.tof.estimators import (
+    AUTO,
     ESTIMATORS,
     default_threshold_db,
     resolve_estimator,
@@ -264,10 +265,11 @@ def send_command(
 )
 @click.option(
     "--estimator",
-    type=click.Choice(sorted(ESTIMATORS)),
-    default="matched",
+    type=click.Choice([AUTO, *sorted(ESTIMATORS)]),
+    default=AUTO,
     show_default=True,
-    help="Time-of-flight estimator.",
+    help="Time-of-flight estimator; auto, as locate's: matched for rf sessions, envelope-peak "
+    "for envelope and iq sessions without a waveform, envelope-fit with one.",
 )
 @click.option(
     "--threshold-db",
