@@ -114,6 +114,19 @@ def solve(
     return np.asarray(least_squares(residual, start).x)
 
 
+def position_offsets(
+    residual_m: NDArray[np.float64], position: NDArray[np.int64], usable: NDArray[np.bool_]
+) -> NDArray[np.float64]:
+    """(n_positions, n_rx) each position's median path residual (m) over its usable frames,
+    per receiver; NaN where it has none."""
+    offsets = np.full((int(position.max()) + 1, residual_m.shape[1]), np.nan)
+    for p in range(len(offsets)):
+        frames = (position == p) & usable
+        if np.isfinite(residual_m[frames]).any():
+            offsets[p] = np.nanmedian(residual_m[frames], axis=0)
+    return offsets
+
+
 def robust_sigma(values: NDArray[np.float64]) -> float:
     values = values[np.isfinite(values)]
     return (
@@ -190,13 +203,7 @@ def main() -> None:
     print("\n## Path residual at the test positions, mm (robust sigma)\n")
     print("| receiver | between positions | within a position (frame to frame) | all |")
     print("|---|---|---|---|")
-    means = np.full((n_positions, len(rx)), np.nan)
-    for p in range(n_positions):
-        frames = (position == p) & usable
-        if frames.any():
-            means[p] = (
-                np.nanmedian(residual_m[frames], axis=0) if np.isfinite(residual_m[frames]).any() else np.nan
-            )
+    means = position_offsets(residual_m, position, usable)
     for r in range(len(rx)):
         within = residual_m[:, r] - means[position, r]
         print(
@@ -209,11 +216,7 @@ def main() -> None:
     # position's offsets by the mean of its nearest positions of the other half.
     c_all, delay_all = calibrate(chosen[usable] / fs, paths[usable])
     residual_all = (chosen / fs - delay_all) * c_all - paths
-    offsets = np.full((n_positions, len(rx)), np.nan)
-    for p in range(n_positions):
-        frames = (position == p) & usable
-        if np.isfinite(residual_all[frames]).any():
-            offsets[p] = np.nanmedian(residual_all[frames], axis=0)
+    offsets = position_offsets(residual_all, position, usable)
     first = np.array([target[position == p][0] for p in range(n_positions)])
     kept = np.array([p not in flagged for p in range(n_positions)])
     print("\n| neighbours of the other half | offset sigma left, mm (was, all receivers) |\n|---|---|")
