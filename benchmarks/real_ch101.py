@@ -1,7 +1,8 @@
 """echoloc on real CH101 recordings, with defaults only: calibrate on every other target
 position, locate the frames of the others, and score them; the naive baseline beside it.
 
-Data: ``../shared/data/ch101-spiel/dev.h5``, converted from the data set of C. Hahne,
+Data: a real CH101 recording in the contract format (``--data``; by default ``DATA``, the
+development half kept beside this checkout), converted from the data set of C. Hahne,
 "3-Dimensional Sonic Phase-invariant Echo Localization", ICRA 2023, pp. 4121-4127,
 doi:10.1109/ICRA48891.2023.10161199 (github hahnec/spiel, Apache-2.0).
 

@@ -1,6 +1,7 @@
 """How well can any per-echo timing locate the target of a real CH101 recording? An oracle bound.
 
-Data: ``../shared/data/ch101-spiel/dev.h5``, converted from the data set of C. Hahne,
+Data: a real CH101 recording in the contract format (``--data``; by default ``DATA``, the
+development half kept beside this checkout), converted from the data set of C. Hahne,
 "3-Dimensional Sonic Phase-invariant Echo Localization", ICRA 2023, pp. 4121-4127,
 doi:10.1109/ICRA48891.2023.10161199 (github hahnec/spiel, Apache-2.0).
 
