@@ -32,6 +32,7 @@ from echoloc.localise.locate import (
     combine_frames,
     model_paths_m,
 )
+from echoloc.localise.reflector_kinds import locate_with_classes
 from echoloc.physics.air import speed_of_sound_m_s
 from echoloc.tof.channel_health import (
     ASSESS_FRAMES,
@@ -145,8 +146,13 @@ class Chain:
         where that path does not apply and the stages run one after the other: another
         estimator, a calibration (it corrects the echoes between the stages), several
         transmitters, a clipped channel re-read (:func:`echoloc.tof.channel_health.reread_clipped`
-        works between the stages), or a locator without a compiled path."""
-        if self.calibration is not None or len(self.recording.transmitters_m) != 1 or self.health.reread:
+        works between the stages), reflector classes, or a locator without a compiled path."""
+        if (
+            self.calibration is not None
+            or len(self.recording.transmitters_m) != 1
+            or self.health.reread
+            or self.locate_options.reflector_classes
+        ):
             return None
         estimator = self.estimator
         if not isinstance(estimator, MatchedEstimator):
@@ -557,8 +563,20 @@ def _frame_echoes(chain: Chain, index: int, time_s: float, channels: Sequence[An
 
 def transmitter_objects(chain: Chain, echoes: FrameEchoes, transmitter: int) -> FrameObjects:
     """Objects of one frame fired by ``transmitter``, as :func:`frame_objects` finds them
-    (:func:`echoloc.localise.locate.locate_frame`, its set-up done once: :attr:`Chain.locators`)."""
-    return chain.locators[transmitter](echoes)
+    (:func:`echoloc.localise.locate.locate_frame`, its set-up done once: :attr:`Chain.locators`),
+    with reflector classes when the chain's options ask for them."""
+    locator = chain.locators[transmitter]
+    if not chain.locate_options.reflector_classes:
+        return locator(echoes)
+    recording = chain.recording
+    return locate_with_classes(
+        [(transmitter, echoes)],
+        recording.transmitters_m,
+        recording.receivers_m,
+        chain.locate_options,
+        chain.working_receivers,
+        lambda frames: locator(frames[0][1]),
+    )
 
 
 def samples_results_batch(
@@ -711,11 +729,25 @@ def combine_latest(
     recording = chain.recording
     n_tx = len(recording.transmitters_m)
     kept = {t: e for t, e in {**latest, transmitter: echoes}.items() if 0 <= echoes.frame - e.frame < n_tx}
-    objects = combine_frames(
-        sorted(kept.items()),
+
+    def located(frames: list[tuple[int, FrameEchoes]]) -> FrameObjects:
+        return combine_frames(
+            frames,
+            recording.transmitters_m,
+            recording.receivers_m,
+            chain.locate_options,
+            chain.working_receivers,
+        )
+
+    frames = sorted(kept.items())
+    if not chain.locate_options.reflector_classes:
+        return kept, located(frames)
+    objects = locate_with_classes(
+        frames,
         recording.transmitters_m,
         recording.receivers_m,
         chain.locate_options,
         chain.working_receivers,
+        located,
     )
     return kept, objects

@@ -92,6 +92,7 @@ class Processing:
     method: str = "association"
     workers: int = 1
     positions_text: str | None = None
+    classes: bool = False
 
     def open(self) -> tuple[Recording, Chain, Sequence[int]]:
         """Check the options, read the recording, prepare the chain and pick the frames to run."""
@@ -154,6 +155,8 @@ class Processing:
                 chain,
                 locate_options=replace(chain.locate_options, field_of_view_deg=self.field_of_view_deg),
             )
+        if self.classes:
+            chain = replace(chain, locate_options=replace(chain.locate_options, reflector_classes=True))
         return chain
 
 
@@ -307,6 +310,15 @@ def _processing_options(
                     show_default=True,
                     help="Peaks to points (echoes combined across receivers) or points to peaks "
                     "(envelopes back-projected on a 5 mm grid of the cubic metre in front).",
+                )
+            )
+            decorators.append(
+                click.option(
+                    "--classes",
+                    is_flag=True,
+                    help="Tell points, planes and concave corners apart: a wall is located as a plane "
+                    "(its foot, normal and distance), a corner at its edge, and every object gets a "
+                    "kind and its confidence (association only).",
                 )
             )
             decorators.append(

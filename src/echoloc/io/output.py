@@ -3,9 +3,14 @@
 from __future__ import annotations
 
 import json
+import math
 from typing import Any
 
+import numpy as np
+from numpy.typing import NDArray
+
 from echoloc.localise.locate import FrameObjects
+from echoloc.localise.surfaces import Surface
 from echoloc.tof.echoes import FrameEchoes
 
 
@@ -53,10 +58,35 @@ def objects_record(objects: FrameObjects) -> dict[str, Any]:
                 "score": float(o.score),
                 "channels": len(o.receivers),
                 "shared_echoes": o.shared,
+                **({} if o.surface is None else surface_fields(o.surface)),
             }
             for o in objects.objects
         ],
     }
+
+
+def _angle_std_deg(covariance: NDArray[np.float64]) -> float:
+    """Angular standard deviation of a unit vector from its (tangent) covariance, degrees."""
+    return math.degrees(math.sqrt(max(float(np.trace(covariance)), 0.0)))
+
+
+def surface_fields(surface: Surface) -> dict[str, Any]:
+    """The optional class fields of a located object (docs/FORMATS.md 3.3): ``kind`` and
+    ``kind_confidence`` always; a plane's ``normal``, ``normal_std_deg``, ``distance_m``,
+    ``distance_std_m`` and ``extent_m``; a corner's ``edge_direction`` and ``edge_std_deg``."""
+    record: dict[str, Any] = {"kind": surface.kind, "kind_confidence": float(surface.confidence)}
+    if surface.normal is not None and surface.normal_covariance is not None:
+        record["normal"] = [float(v) for v in surface.normal]
+        record["normal_std_deg"] = _angle_std_deg(surface.normal_covariance)
+    if surface.distance_m is not None:
+        record["distance_m"] = float(surface.distance_m)
+        record["distance_std_m"] = float(surface.distance_std_m or 0.0)
+    if surface.extent_m is not None:
+        record["extent_m"] = float(surface.extent_m)
+    if surface.edge_direction is not None and surface.edge_covariance is not None:
+        record["edge_direction"] = [float(v) for v in surface.edge_direction]
+        record["edge_std_deg"] = _angle_std_deg(surface.edge_covariance)
+    return record
 
 
 def json_line(record: dict[str, Any]) -> str:

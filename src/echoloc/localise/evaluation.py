@@ -12,6 +12,7 @@ and a pair counts only when closer than ``match_radius_m``.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
@@ -160,3 +161,91 @@ def frames_at_positions(
     if not picked:
         raise EchoLocError(f"--positions {spec} picks no frame ({n_positions} target positions known)")
     return picked
+
+
+@dataclass(frozen=True, eq=False)
+class ClassEvaluation:
+    """Reflector classes against the truth's (:func:`evaluate_classes`).
+
+    ``confusion[i, j]`` counts true reflectors of class ``kinds[i]`` located (within the
+    match radius) and reported as ``kinds[j]``; its last column counts those not located.
+    ``normal_errors_deg`` and ``distance_errors_m`` hold, for each true plane located and
+    reported as a plane, the angle between the reported and true normals and the difference
+    of the distances from the frame's transmitter.
+    """
+
+    kinds: tuple[str, ...]
+    confusion: NDArray[np.int64]
+    n_located: int
+    n_false: int
+    normal_errors_deg: NDArray[np.float64]
+    distance_errors_m: NDArray[np.float64]
+
+    @property
+    def n_truth(self) -> int:
+        return int(self.confusion.sum())
+
+    @property
+    def right_class_rate(self) -> float:
+        """True reflectors located with the right class / all true reflectors."""
+        n = len(self.kinds)
+        return float(np.trace(self.confusion[:, :n]) / self.n_truth) if self.n_truth else float("nan")
+
+    @property
+    def false_rate(self) -> float:
+        return self.n_false / self.n_located if self.n_located else 0.0
+
+
+def evaluate_classes(
+    results: Iterable[FrameObjects],
+    truth_positions_m: NDArray[np.float64],
+    truth_kinds: Sequence[str],
+    frame_transmitters_m: NDArray[np.float64],
+    kinds: tuple[str, ...] = ("point", "plane", "corner"),
+    match_radius_m: float = 0.02,
+) -> ClassEvaluation:
+    """Score located objects and their classes against truth rows of known class.
+
+    ``truth_kinds`` gives the class of each truth row (the columns of
+    ``truth_positions_m``, NaN rows skipped); ``frame_transmitters_m`` (n_frames, 3) the
+    transmitter each frame fired, from which a true plane's foot gives its normal and
+    distance. Objects without a class count as points. Matching is :func:`match`'s.
+    """
+    confusion = np.zeros((len(kinds), len(kinds) + 1), dtype=np.int64)
+    n_located = n_matched = 0
+    normal_errors: list[float] = []
+    distance_errors: list[float] = []
+    for frame in results:
+        truth = truth_positions_m[frame.frame]
+        rows = np.flatnonzero(np.all(np.isfinite(truth), axis=1))
+        estimated = np.array([o.position_m for o in frame.objects]).reshape(-1, 3)
+        pairs = match(estimated, truth[rows], match_radius_m)
+        n_located += len(estimated)
+        n_matched += len(pairs)
+        found = {t: e for e, t in pairs}
+        tx = frame_transmitters_m[frame.frame]
+        for k, row in enumerate(rows):
+            truth_kind = kinds.index(truth_kinds[int(row)])
+            if k not in found:
+                confusion[truth_kind, -1] += 1
+                continue
+            obj = frame.objects[found[k]]
+            surface = obj.surface
+            reported = kinds.index(surface.kind) if surface is not None else 0
+            confusion[truth_kind, reported] += 1
+            if kinds[truth_kind] == kinds[reported] == "plane" and surface is not None:
+                assert surface.normal is not None
+                assert surface.distance_m is not None
+                offset = tx - truth[row]
+                distance = float(np.linalg.norm(offset))
+                cosine = float(np.clip(surface.normal @ (offset / distance), -1.0, 1.0))
+                normal_errors.append(math.degrees(math.acos(cosine)))
+                distance_errors.append(surface.distance_m - distance)
+    return ClassEvaluation(
+        kinds=kinds,
+        confusion=confusion,
+        n_located=n_located,
+        n_false=n_located - n_matched,
+        normal_errors_deg=np.array(normal_errors),
+        distance_errors_m=np.array(distance_errors),
+    )

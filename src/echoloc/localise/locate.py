@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 from scipy import special
 
 from echoloc.errors import GeometryError
+from echoloc.localise.surfaces import Surface
 from echoloc.tof.echoes import FrameEchoes
 
 _GN_ITERATIONS = 10
@@ -83,6 +84,14 @@ class LocateOptions:
         any one channel (each channel excused in turn, the answer with the best-scoring
         object kept): a ToF chip's channel that misses a weak echo still leaves a 3-of-4
         object, with the larger covariance of fewer ellipsoids. False: never.
+    reflector_classes
+        Tell points, planes and corners apart (:mod:`echoloc.localise.reflector_kinds`):
+        planes and corners are located as such, and every object carries its class.
+    edge_axis
+        With reflector classes: the direction of the straight edges looked for among the
+        echoes no point, plane or corner explains (table legs, door jambs, posts), in the
+        sensor frame; the default, y, is the vertical of a level head (REP 103 optical:
+        y down). None: no edges.
     """
 
     path_sigma_m: float = 0.5e-3
@@ -96,6 +105,8 @@ class LocateOptions:
     transmitter_axes: NDArray[np.float64] | None = field(default=None, compare=False)
     receiver_axes: NDArray[np.float64] | None = field(default=None, compare=False)
     excuse_one_channel: bool = False
+    reflector_classes: bool = False
+    edge_axis: tuple[float, float, float] | None = (0.0, 1.0, 0.0)
 
 
 class LocateWarning(UserWarning):
@@ -109,6 +120,8 @@ class LocatedObject:
     ``receivers`` and ``echo_indices`` name, per supporting channel, the receiver and
     the index of its echo in that channel; ``transmitters`` the channel's transmitter.
     ``shared`` counts the echoes this object shares with another (merged echoes).
+    ``surface`` is its class and, for a plane or corner, its geometry, when classes
+    were asked for (``LocateOptions.reflector_classes``); None otherwise.
     """
 
     position_m: NDArray[np.float64]
@@ -119,6 +132,7 @@ class LocatedObject:
     score: float
     transmitters: tuple[int, ...] = ()
     shared: int = 0
+    surface: Surface | None = None
 
     @property
     def std_m(self) -> NDArray[np.float64]:
@@ -682,7 +696,7 @@ def _located_object(
     shared: int,
 ) -> LocatedObject:
     """``LocatedObject(...)`` as its ``__init__`` builds it (every field given, no
-    ``__post_init__``), in one dict update instead of the frozen class's eight
+    ``__post_init__``), in one dict update instead of the frozen class's nine
     ``object.__setattr__`` calls: cheaper, and it runs for every object of every frame."""
     obj: LocatedObject = _new(LocatedObject)
     obj.__dict__.update(
@@ -694,6 +708,7 @@ def _located_object(
         score=score,
         transmitters=transmitters,
         shared=shared,
+        surface=None,
     )
     return obj
 

@@ -28,8 +28,10 @@ a mirror-like group is then reported as a plane. Two transmitters can: a plane's
 are related by a reflection, a corner's by a half turn, which differ unless the
 transmitters' baseline runs along the edge (R. Kleeman and R. Kuc, "Mobile robot sonar
 for target localization and classification", Int. J. Robotics Research 14 (1995)
-295-318; H. Peremans, K. Audenaert and J. M. Van Campenhout, IEEE Trans. Robotics and
-Automation 9 (1993) 801-813).
+295-318). One transmitter with three receivers tells walls from edges, but not walls
+from corners, from one snapshot (H. Peremans, K. Audenaert and J. M. Van Campenhout, "A
+high-resolution sensor based on tri-aural perception", IEEE Trans. Robotics and
+Automation 9 (1993) 36-48).
 
 The choice between hypotheses is by Schwarz's Bayesian information criterion: each
 fitted hypothesis k with chi-square ``chi2_k`` and ``p_k`` parameters on ``n`` paths has

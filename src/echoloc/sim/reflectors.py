@@ -327,13 +327,16 @@ class Edge:
     """A straight edge from ``start_m`` to ``end_m`` returning a point-like echo.
 
     The echo comes from the point of the segment with the shortest path (see the
-    module notes), with amplitude ``strength_m / (r1 r2)``.
+    module notes), with amplitude ``strength_m / (r1 r2)``. ``concave`` marks the edge
+    where a concave corner's two faces meet (:func:`corner` sets it): its truth class
+    (:func:`truth_kinds`) is then ``"corner"``, else ``"point"``.
     """
 
     start_m: FloatArray
     end_m: FloatArray
     strength_m: float = 0.1
     velocity_m_s: FloatArray = field(default_factory=_zeros3)
+    concave: bool = False
 
     def __post_init__(self) -> None:
         start = _vector(self.start_m, "Edge.start_m")
@@ -433,7 +436,13 @@ def corner(
                 velocity_m_s=np.asarray(velocity_m_s, dtype=float),
             )
         )
-    edge = Edge(start, end, strength_m=edge_strength_m, velocity_m_s=np.asarray(velocity_m_s, dtype=float))
+    edge = Edge(
+        start,
+        end,
+        strength_m=edge_strength_m,
+        velocity_m_s=np.asarray(velocity_m_s, dtype=float),
+        concave=True,
+    )
     return faces[0], faces[1], edge
 
 
@@ -1255,6 +1264,21 @@ def truth_positions_m(transmitter_m: ArrayLike, states: ReflectorStates) -> Floa
         planes = np.where(seen[..., None], foot, np.nan)
         edges = edge_point(tx, tx, states.edge_starts_m, states.edge_ends_m)
     return np.concatenate([states.points_m, spheres, planes, edges], axis=1)
+
+
+TRUTH_KINDS = ("point", "plane", "corner")
+"""The reflector classes a truth row can have (those :mod:`echoloc.localise.surfaces` reports)."""
+
+
+def truth_kinds(reflectors: Sequence[Reflector]) -> tuple[str, ...]:
+    """The class of each row of :func:`truth_positions_m` for these reflectors (in the order
+    :func:`states_at` takes them): points and spheres ``"point"``, planes ``"plane"``, a
+    corner's edge ``"corner"`` (its double bounce locates it), any other edge ``"point"``."""
+    points = ["point" for r in reflectors if isinstance(r, PointReflector)]
+    spheres = ["point" for r in reflectors if isinstance(r, Sphere)]
+    planes = ["plane" for r in reflectors if isinstance(r, Plane)]
+    edges = ["corner" if r.concave else "point" for r in reflectors if isinstance(r, Edge)]
+    return tuple(points + spheres + planes + edges)
 
 
 def surface_points_m(reflectors: Sequence[Reflector], spacing_m: float) -> FloatArray:

@@ -1,0 +1,116 @@
+"""Reflector classes on simulated rooms: found with the right class, false objects, plane accuracy.
+
+For each scene, with its own transmitter and again with a second one 17 cm away (fired in
+turn), simulate frames, locate them with reflector classes (``--classes``) and score
+them against the scene's truth (:func:`echoloc.localise.evaluation.evaluate_classes`):
+the confusion matrix of classes, the share of true reflectors found with the right
+class, the share of located objects that are false, and the median normal and distance
+errors of the planes. Writes ``benchmarks/results/reflector_classes.md``.
+
+    .venv/bin/python benchmarks/reflector_classes.py [--frames 1000] [--scenes a,b,...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import time
+from pathlib import Path
+
+import numpy as np
+
+from echoloc.localise.evaluation import ClassEvaluation, evaluate_classes
+from echoloc.pipeline import prepare, run
+from echoloc.sim.reflectors import truth_kinds
+from echoloc.sim.scene import Scene
+from echoloc.sim.scenefile import load_scene, preset_path
+from echoloc.sim.simulation import _objects, simulate
+
+SCENES = ("wall-and-corner", "rooms/corridor", "rooms/doorway", "rooms/desk")
+SECOND_TRANSMITTER_M = (0.12, 0.12, 0.0)
+RESULTS = Path(__file__).parent / "results" / "reflector_classes.md"
+
+
+def with_transmitters(scene: Scene, n_tx: int) -> Scene:
+    """The scene with its first transmitter only, or with a second one at :data:`SECOND_TRANSMITTER_M`."""
+    first = scene.array.transmitters_m[:1]
+    transmitters = first if n_tx == 1 else np.vstack([first, SECOND_TRANSMITTER_M])
+    axes = scene.array.transmitter_axes
+    if axes is not None:
+        axes = axes[:1] if n_tx == 1 else np.vstack([axes[:1], axes[:1]])
+    array = dataclasses.replace(scene.array, transmitters_m=transmitters, transmitter_axes=axes)
+    return dataclasses.replace(scene, array=array, transmitter_codes=None)
+
+
+def score(scene: Scene, n_frames: int) -> tuple[ClassEvaluation, float]:
+    """Simulate, locate with classes and score; also the seconds a frame took to locate."""
+    recording = simulate(scene, n_frames)
+    chain = prepare(recording)
+    chain = dataclasses.replace(
+        chain, locate_options=dataclasses.replace(chain.locate_options, reflector_classes=True)
+    )
+    start = time.perf_counter()
+    results = [objects for _, objects in run(chain)]
+    seconds = (time.perf_counter() - start) / n_frames
+    fired = (
+        np.zeros(n_frames, dtype=int) if recording.frame_transmitter is None else recording.frame_transmitter
+    )
+    assert recording.truth_positions_m is not None
+    evaluation = evaluate_classes(
+        results, recording.truth_positions_m, truth_kinds(_objects(scene)), recording.transmitters_m[fired]
+    )
+    return evaluation, seconds
+
+
+def table(name: str, n_tx: int, e: ClassEvaluation, seconds: float) -> list[str]:
+    """Markdown lines for one scene and transmitter count."""
+    lines = [
+        f"### {name}, {n_tx} transmitter{'s' if n_tx > 1 else ''}",
+        "",
+        f"right class {e.right_class_rate:.3f} of {e.n_truth} true reflectors; "
+        f"false objects {e.false_rate:.4f} ({e.n_false} of {e.n_located}); "
+        f"{seconds * 1e3:.2f} ms a frame",
+        "",
+    ]
+    if len(e.normal_errors_deg):
+        lines += [
+            f"planes: median normal error {np.median(e.normal_errors_deg):.3f} deg, "
+            f"median |distance error| {np.median(np.abs(e.distance_errors_m)) * 1e3:.3f} mm "
+            f"({len(e.normal_errors_deg)} plane sightings)",
+            "",
+        ]
+    lines += [
+        "| truth \\ reported | " + " | ".join(e.kinds) + " | missed |",
+        "|---" * (len(e.kinds) + 2) + "|",
+    ]
+    for kind, row in zip(e.kinds, e.confusion, strict=True):
+        if row.sum():
+            lines.append(f"| {kind} | " + " | ".join(str(v) for v in row) + " |")
+    return [*lines, ""]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=1000)
+    parser.add_argument("--scenes", default=",".join(SCENES))
+    parser.add_argument("--output", type=Path, default=RESULTS)
+    args = parser.parse_args()
+    lines = [
+        "# Reflector classes on simulated rooms",
+        "",
+        f"`python benchmarks/reflector_classes.py --frames {args.frames}`; match radius 20 mm.",
+        "",
+    ]
+    for name in args.scenes.split(","):
+        scene = load_scene(preset_path(name))
+        for n_tx in (1, 2):
+            evaluation, seconds = score(with_transmitters(scene, n_tx), args.frames)
+            part = table(name, n_tx, evaluation, seconds)
+            print("\n".join(part), flush=True)
+            lines += part
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,760 @@
+"""Locating with reflector classes: planes and corners found as such, points as before.
+
+A frame's echoes are explained in three steps (docs/METHOD.md, "Walls and corners"):
+
+1. **Mirror groups.** On each transmitter's channels, every choice of one echo per
+   receiver that a virtual source fits (``l_i = |V - R_i|``, the chi-square within the
+   gate) and a point does not (the point's chi-square at least :data:`DECISIVE_CHI2`
+   above) is a mirror: the echo of a plane, or a corner's double bounce. The best
+   disjoint groups are kept. With several transmitters, a group of the newest frame is
+   paired with the group of each other transmitter that the same plane or corner fits.
+2. **Points.** The rest of the echoes go to the point association (:mod:`echoloc.localise.locate`)
+   as without classes.
+3. **Classes.** Every object then gets its class by the hypotheses of
+   :mod:`echoloc.localise.surfaces`: a point whose echoes a plane explains as well
+   (on the boresight of a symmetric array with one transmitter) says so through its
+   class probabilities.
+
+Everything here is in the sensor frame, m.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from echoloc.localise import surfaces
+from echoloc.localise.locate import (
+    FrameObjects,
+    LocatedObject,
+    LocateOptions,
+    _chi2_gate,
+    _merge_sigma,
+    chi2_tail,
+    linear_start,
+    path_sigmas_m,
+)
+from echoloc.tof.echoes import ChannelEchoes, FrameEchoes
+
+FloatArray = NDArray[np.float64]
+
+DECISIVE_CHI2 = 9.0
+"""How much worse (in chi-square) a point must fit an echo group than a mirror for the group to be
+taken as a mirror before the point association sees it: a likelihood ratio of exp(4.5), 90 to 1."""
+
+MIRROR_AMPLITUDE_LOG_SIGMA = 0.25
+"""Spread allowed to a mirror group's amplitudes times paths about their mean, natural-log units
+(28 %): wider than the point association's 10 % because a corner's double bounce shares some
+receivers' echoes with its edge's own, which adds to them."""
+
+MOVED_M = 0.03
+"""How far (in path, m) a point may have moved between the frames of two transmitters and still
+count as seen by both (:func:`_seen_by_others`): 1.5 m/s at 100 frames a second."""
+
+PAIRING_MARGIN_M = 0.05
+"""Slack on the distance of two transmitters' mirror midpoints before their pairing is fitted, m."""
+
+MIRROR_CANDIDATE = 0.05
+"""A point found on one transmitter's echoes whose plane probability is at least this is tried
+as a mirror with the other transmitters' echoes (where one transmitter cannot tell them apart)."""
+
+MAX_COMBINATIONS = 200_000
+"""Most echo combinations one transmitter's mirror search weighs; beyond, the frame's mirror
+search stops at this many (the point association still runs)."""
+
+
+@dataclass(frozen=True, eq=False)
+class MirrorGroup:
+    """One echo per channel of one transmitter that a virtual source explains.
+
+    ``channels`` are receiver indices, ``echoes`` the echo index on each; ``image_m`` the
+    fitted virtual source, ``chi2`` its fit and ``point_chi2`` the point's on the same paths.
+    """
+
+    transmitter: int
+    channels: tuple[int, ...]
+    echoes: tuple[int, ...]
+    paths_m: FloatArray
+    sigmas_m: FloatArray
+    image_m: FloatArray
+    chi2: float
+    point_chi2: float
+
+
+def _combinations(
+    paths: list[FloatArray], receivers_m: FloatArray, slack: list[FloatArray]
+) -> NDArray[np.int64]:
+    """Echo indices (k, n_ch), one per channel, whose paths two by two differ by no more than
+    the receivers' distance plus the slack (a sphere about one source cannot reach further)."""
+    rows = np.arange(len(paths[0]), dtype=np.int64)[:, None]
+    for c in range(1, len(paths)):
+        n = len(paths[c])
+        if n == 0 or len(rows) == 0:
+            return np.zeros((0, len(paths)), dtype=np.int64)
+        grown = np.concatenate(
+            [np.repeat(rows, n, axis=0), np.tile(np.arange(n, dtype=np.int64), len(rows))[:, None]], axis=1
+        )
+        keep = np.ones(len(grown), dtype=bool)
+        for b in range(c):
+            reach = np.linalg.norm(receivers_m[c] - receivers_m[b])
+            gap = np.abs(paths[c][grown[:, c]] - paths[b][grown[:, b]])
+            keep &= gap <= reach + slack[c][grown[:, c]] + slack[b][grown[:, b]]
+        rows = grown[keep][:MAX_COMBINATIONS]
+    return rows
+
+
+def mirror_groups(
+    transmitter: int,
+    transmitter_m: FloatArray,
+    receivers_m: FloatArray,
+    echoes: FrameEchoes,
+    options: LocateOptions,
+    usable: NDArray[np.bool_] | None = None,
+    *,
+    decisive: bool = True,
+) -> list[MirrorGroup]:
+    """The disjoint mirror groups of one transmitter's frame, best fit first.
+
+    Every usable channel must hold an echo of the group, and there must be one more
+    channel than a virtual source has coordinates (a degree of freedom to test it).
+    ``decisive``: only groups a point fits :data:`DECISIVE_CHI2` worse (False: also those
+    a point fits as well, to be told apart with another transmitter's echoes).
+    """
+    n_rx = len(receivers_m)
+    use = np.ones(n_rx, dtype=bool) if usable is None else np.asarray(usable, dtype=bool)
+    channels = [c for c in range(n_rx) if use[c]]
+    if len(channels) < 4:
+        return []
+    c_m_s = echoes.speed_of_sound_m_s
+    paths = [echoes.channels[c].tof_s * c_m_s for c in channels]
+    sigmas = [path_sigmas_m(echoes.channels[c].snr_db, c_m_s, options) for c in channels]
+    rx = receivers_m[channels]
+    rows = _combinations(paths, rx, [4 * s for s in sigmas])
+    if len(rows) == 0:
+        return []
+    measured = np.stack([paths[k][rows[:, k]] for k in range(len(channels))], axis=1)
+    s = np.stack([sigmas[k][rows[:, k]] for k in range(len(channels))], axis=1)
+    boresight = np.asarray(options.boresight, dtype=float)
+    boresight = boresight / np.linalg.norm(boresight)
+    start = surfaces.image_start_m(rx, measured, boresight)
+    gate = _chi2_gate(options.gate_probability, len(channels) - 3)
+    # A cheap first cut: the closed form's own chi-square, with a wide margin.
+    with np.errstate(invalid="ignore"):
+        first = np.sum(((surfaces.mirror_paths_m(start, rx) - measured) / s) ** 2, axis=1)
+    near = np.flatnonzero(np.isfinite(first) & (first <= 100 * gate + 100))
+    if len(near) == 0:
+        return []
+    image = surfaces.fit(lambda v: surfaces.mirror_paths_m(v, rx), start[near], measured[near], s[near])
+    ahead = (image.parameters - transmitter_m) @ boresight > 0
+    # Spherical spreading from one image: amplitude x path the same on every channel. Echoes of
+    # different reflectors that happen to fit one image rarely agree in it.
+    amplitudes = np.stack(
+        [np.abs(echoes.channels[c].amplitude)[rows[near, k]] for k, c in enumerate(channels)], axis=1
+    )
+    with np.errstate(divide="ignore", invalid="ignore"):
+        strength = np.log(amplitudes * measured[near])
+    spread = (
+        np.sum((strength - strength.mean(axis=1, keepdims=True)) ** 2, axis=1) / MIRROR_AMPLITUDE_LOG_SIGMA**2
+    )
+    agree = np.nan_to_num(spread, nan=np.inf) <= _chi2_gate(options.gate_probability, len(channels) - 1)
+    passed = near[(image.chi2 <= gate) & ahead & agree]
+    if len(passed) == 0:
+        return []
+    image_at = {int(r): k for k, r in enumerate(near)}
+    tx = np.broadcast_to(transmitter_m, rx.shape)
+    point = surfaces.fit(
+        lambda p: surfaces.point_paths_m(p, tx, rx),
+        0.5 * (image.parameters[[image_at[int(r)] for r in passed]] + transmitter_m),
+        measured[passed],
+        s[passed],
+    )
+    margin = point.chi2 - image.chi2[[image_at[int(r)] for r in passed]]
+    decisive_rows = margin >= DECISIVE_CHI2 if decisive else np.ones(len(passed), dtype=bool)
+    chosen: list[MirrorGroup] = []
+    taken: set[tuple[int, int]] = set()
+    order = sorted(np.flatnonzero(decisive_rows), key=lambda k: image.chi2[image_at[int(passed[k])]])
+    for k in order:
+        r = int(passed[k])
+        picks = [(channels[c], int(rows[r, c])) for c in range(len(channels))]
+        if any(p in taken for p in picks):
+            continue
+        taken.update(picks)
+        chosen.append(
+            MirrorGroup(
+                transmitter=transmitter,
+                channels=tuple(channels),
+                echoes=tuple(int(rows[r, c]) for c in range(len(channels))),
+                paths_m=measured[r],
+                sigmas_m=s[r],
+                image_m=image.parameters[image_at[r]],
+                chi2=float(image.chi2[image_at[r]]),
+                point_chi2=float(point.chi2[k]),
+            )
+        )
+    return chosen
+
+
+@dataclass(frozen=True, eq=False)
+class EdgeGroup:
+    """One echo per channel of one transmitter that a straight edge along the edge axis explains.
+
+    ``line`` holds the edge's two coordinates across the axis (:func:`echoloc.localise.surfaces.edge_paths_m`)
+    with their covariance; ``chi2`` the edge's fit, ``point_chi2`` and ``mirror_chi2`` the other
+    hypotheses' on the same paths.
+    """
+
+    transmitter: int
+    channels: tuple[int, ...]
+    echoes: tuple[int, ...]
+    line: FloatArray
+    covariance: FloatArray
+    chi2: float
+    point_chi2: float
+    mirror_chi2: float
+
+
+def edge_groups(
+    transmitter: int,
+    transmitter_m: FloatArray,
+    receivers_m: FloatArray,
+    echoes: FrameEchoes,
+    options: LocateOptions,
+    usable: NDArray[np.bool_] | None = None,
+) -> list[EdgeGroup]:
+    """The disjoint edge groups of one transmitter's frame, best fit first.
+
+    An edge along ``options.edge_axis`` has two free coordinates, so four channels leave two
+    degrees of freedom to test it. A group counts when the edge fits within the gate, its
+    amplitudes agree with point-like spreading (amplitude x path^2 the same on every channel,
+    within :data:`MIRROR_AMPLITUDE_LOG_SIGMA`), and both a point and a mirror fit it
+    :data:`DECISIVE_CHI2` worse: a post, a table leg or a door jamb whose echo slides along it
+    from receiver to receiver, which no single point explains.
+    """
+    if options.edge_axis is None:
+        return []
+    n_rx = len(receivers_m)
+    use = np.ones(n_rx, dtype=bool) if usable is None else np.asarray(usable, dtype=bool)
+    channels = [c for c in range(n_rx) if use[c]]
+    if len(channels) < 4:
+        return []
+    c_m_s = echoes.speed_of_sound_m_s
+    paths = [echoes.channels[c].tof_s * c_m_s for c in channels]
+    sigmas = [path_sigmas_m(echoes.channels[c].snr_db, c_m_s, options) for c in channels]
+    rx = receivers_m[channels]
+    rows = _combinations(paths, rx, [4 * s for s in sigmas])
+    if len(rows) == 0:
+        return []
+    measured = np.stack([paths[k][rows[:, k]] for k in range(len(channels))], axis=1)
+    s = np.stack([sigmas[k][rows[:, k]] for k in range(len(channels))], axis=1)
+    axis = np.asarray(options.edge_axis, dtype=float)
+    e, a, b = surfaces.axis_basis(axis)
+    plane = np.stack([a, b])
+    tx = np.broadcast_to(transmitter_m, rx.shape)
+    # The start: the 2-D point problem across the axis, |Q - T'| + |Q - R'| = sqrt(l^2 - (e.(R - T))^2).
+    across = np.sqrt(np.maximum(measured**2 - ((rx - transmitter_m) @ e)[None] ** 2, 0.0))
+    boresight = np.asarray(options.boresight, dtype=float) @ plane.T
+    if not np.linalg.norm(boresight) > 1e-9:
+        return []
+    start = linear_start(transmitter_m @ plane.T, rx @ plane.T, across, boresight / np.linalg.norm(boresight))
+    gate = _chi2_gate(options.gate_probability, len(channels) - 2)
+    edge = surfaces.fit(lambda q: surfaces.edge_paths_m(q, axis, tx, rx), start, measured, s)
+    amplitudes = np.stack(
+        [np.abs(echoes.channels[c].amplitude)[rows[:, k]] for k, c in enumerate(channels)], axis=1
+    )
+    with np.errstate(divide="ignore", invalid="ignore"):
+        strength = np.log(amplitudes * measured**2)
+    spread = (
+        np.sum((strength - strength.mean(axis=1, keepdims=True)) ** 2, axis=1) / MIRROR_AMPLITUDE_LOG_SIGMA**2
+    )
+    agree = np.nan_to_num(spread, nan=np.inf) <= _chi2_gate(options.gate_probability, len(channels) - 1)
+    feet = surfaces.edge_foot_m(edge.parameters, axis, transmitter_m)
+    ahead = (feet - transmitter_m) @ np.asarray(options.boresight, dtype=float) > 0
+    passed = np.flatnonzero((edge.chi2 <= gate) & agree & ahead)
+    if len(passed) == 0:
+        return []
+    point = surfaces.fit(
+        lambda p: surfaces.point_paths_m(p, tx, rx), feet[passed], measured[passed], s[passed]
+    )
+    mirror_start = surfaces.image_start_m(rx, measured[passed], np.asarray(options.boresight, dtype=float))
+    mirror = surfaces.fit(lambda v: surfaces.mirror_paths_m(v, rx), mirror_start, measured[passed], s[passed])
+    best_other = np.minimum(point.chi2, mirror.chi2)
+    keep = best_other - edge.chi2[passed] >= DECISIVE_CHI2
+    chosen: list[EdgeGroup] = []
+    taken: set[tuple[int, int]] = set()
+    for k in sorted(np.flatnonzero(keep), key=lambda k: edge.chi2[passed[k]]):
+        r = int(passed[k])
+        picks = [(channels[c], int(rows[r, c])) for c in range(len(channels))]
+        if any(p in taken for p in picks):
+            continue
+        taken.update(picks)
+        chosen.append(
+            EdgeGroup(
+                transmitter=transmitter,
+                channels=tuple(channels),
+                echoes=tuple(int(rows[r, c]) for c in range(len(channels))),
+                line=edge.parameters[r],
+                covariance=edge.covariance[r],
+                chi2=float(edge.chi2[r]),
+                point_chi2=float(point.chi2[k]),
+                mirror_chi2=float(mirror.chi2[k]),
+            )
+        )
+    return chosen
+
+
+def _edge_object(group: EdgeGroup, transmitters_m: FloatArray, options: LocateOptions) -> LocatedObject:
+    """An edge group as a located point-like object: the edge's point nearest the transmitter, with
+    the edge's direction and the class probabilities of edge (a point-like class) against mirror."""
+    assert options.edge_axis is not None
+    axis = np.asarray(options.edge_axis, dtype=float)
+    e, a, b = surfaces.axis_basis(axis)
+    across = np.stack([a, b], axis=1)  # (3, 2)
+    n = len(group.channels)
+    evidence = np.array([-0.5 * group.chi2 - np.log(n), -0.5 * group.mirror_chi2 - 1.5 * np.log(n)])
+    weight = np.exp(evidence - evidence.max())
+    probability = weight / weight.sum()
+    surface = surfaces.Surface(
+        "point",
+        float(probability[0]),
+        {"point": float(probability[0]), "plane": float(probability[1])},
+        edge_direction=e,
+        edge_covariance=np.zeros((3, 3)),
+    )
+    dof = n - 2
+    return LocatedObject(
+        position_m=surfaces.edge_foot_m(group.line[None], axis, transmitters_m[group.transmitter])[0],
+        covariance_m2=across @ group.covariance @ across.T,
+        receivers=group.channels,
+        echo_indices=group.echoes,
+        chi2=group.chi2,
+        score=chi2_tail(dof, group.chi2),
+        transmitters=(group.transmitter,) * n,
+        surface=surface,
+    )
+
+
+def _without(
+    echoes: FrameEchoes, removed: set[tuple[int, int]]
+) -> tuple[FrameEchoes, list[NDArray[np.int64]]]:
+    """``echoes`` less the (channel, echo) pairs in ``removed``, and per channel the original index
+    of each echo kept."""
+    channels, kept_at = [], []
+    for c, ch in enumerate(echoes.channels):
+        keep = np.array([k for k in range(len(ch.tof_s)) if (c, k) not in removed], dtype=np.int64)
+        kept_at.append(keep)
+        channels.append(ChannelEchoes(ch.tof_s[keep], ch.amplitude[keep], ch.snr_db[keep]))
+    return replace(echoes, channels=tuple(channels)), kept_at
+
+
+@dataclass(frozen=True, eq=False)
+class _Channels:
+    """Channel geometry and paths of one echo group: transmitter positions, receivers, paths, sigmas."""
+
+    transmitters_m: FloatArray
+    receivers_m: FloatArray
+    paths_m: FloatArray
+    sigmas_m: FloatArray
+    transmitters: tuple[int, ...]
+    receivers: tuple[int, ...]
+    echoes: tuple[int, ...]
+
+
+def _group_channels(
+    groups: Sequence[MirrorGroup], transmitters_m: FloatArray, receivers_m: FloatArray
+) -> _Channels:
+    tx_of = [g.transmitter for g in groups for _ in g.channels]
+    return _Channels(
+        transmitters_m[tx_of],
+        receivers_m[[c for g in groups for c in g.channels]],
+        np.concatenate([g.paths_m for g in groups]),
+        np.concatenate([g.sigmas_m for g in groups]),
+        tuple(tx_of),
+        tuple(c for g in groups for c in g.channels),
+        tuple(e for g in groups for e in g.echoes),
+    )
+
+
+def _objects_of(
+    groups: Sequence[_Channels],
+    reference: int,
+    transmitters_m: FloatArray,
+    starts_m: FloatArray,
+    options: LocateOptions,
+    shared: Sequence[int] | None = None,
+) -> list[LocatedObject | None]:
+    """A located object of the hypotheses' best class for each echo group (None where none fits).
+
+    Groups on the same channels are fitted together, in one call of
+    :func:`echoloc.localise.surfaces.hypotheses`."""
+    found: list[LocatedObject | None] = [None] * len(groups)
+    by_channels: dict[tuple[tuple[int, ...], tuple[int, ...]], list[int]] = {}
+    for k, g in enumerate(groups):
+        by_channels.setdefault((g.transmitters, g.receivers), []).append(k)
+    reference_m = transmitters_m[reference]
+    for members in by_channels.values():
+        first = groups[members[0]]
+        fitted = surfaces.hypotheses(
+            first.transmitters_m,
+            first.receivers_m,
+            np.stack([groups[k].paths_m for k in members]),
+            np.stack([groups[k].sigmas_m for k in members]),
+            reference_m,
+            starts_m[members],
+            options.gate_probability,
+        )
+        for row, k in enumerate(members):
+            if not np.any(np.isfinite(fitted.chi2[row])) or not np.any(fitted.probability[row] > 0):
+                continue
+            surface, position, covariance = surfaces.describe(
+                fitted, row, first.transmitters_m, first.receivers_m, reference_m
+            )
+            kind = surfaces.KINDS.index(surface.kind)
+            chi2 = float(fitted.chi2[row, kind])
+            dof = int(fitted.n_paths[row]) - surfaces.PARAMETERS[surface.kind]
+            found[k] = LocatedObject(
+                position_m=np.asarray(position, dtype=float),
+                covariance_m2=np.asarray(covariance, dtype=float),
+                receivers=groups[k].receivers,
+                echo_indices=groups[k].echoes,
+                chi2=chi2,
+                score=chi2_tail(dof, chi2) if dof > 0 else 1.0,
+                transmitters=groups[k].transmitters,
+                shared=0 if shared is None else shared[k],
+                surface=surface,
+            )
+    return found
+
+
+def _object(
+    channels: _Channels,
+    reference: int,
+    transmitters_m: FloatArray,
+    start_m: FloatArray,
+    options: LocateOptions,
+) -> LocatedObject | None:
+    """:func:`_objects_of` for one echo group."""
+    return _objects_of([channels], reference, transmitters_m, start_m[None], options)[0]
+
+
+def _paired(
+    newest: MirrorGroup,
+    others: list[MirrorGroup],
+    transmitters_m: FloatArray,
+    receivers_m: FloatArray,
+    options: LocateOptions,
+) -> tuple[LocatedObject | None, MirrorGroup | None]:
+    """The newest frame's group with the other transmitter's group that one plane or corner fits
+    best (within the gate), or alone."""
+    start = 0.5 * (newest.image_m + transmitters_m[newest.transmitter])
+    alone = _object(
+        _group_channels([newest], transmitters_m, receivers_m),
+        newest.transmitter,
+        transmitters_m,
+        start,
+        options,
+    )
+    best: tuple[float, LocatedObject, MirrorGroup] | None = None
+    for other in others:
+        # A plane's or a corner's images lie across it from their transmitters: the midpoints of
+        # image and transmitter are on the plane, or on the edge, so two transmitters' midpoints
+        # are no farther apart than the transmitters (plus a margin for the fits' errors).
+        t_other = transmitters_m[other.transmitter]
+        apart = np.linalg.norm(0.5 * (other.image_m + t_other) - start)
+        if apart > np.linalg.norm(t_other - transmitters_m[newest.transmitter]) + PAIRING_MARGIN_M:
+            continue
+        channels = _group_channels([newest, other], transmitters_m, receivers_m)
+        found = _object(channels, newest.transmitter, transmitters_m, start, options)
+        if found is None or found.surface is None or found.surface.kind == "point":
+            continue
+        dof = len(channels.paths_m) - surfaces.PARAMETERS[found.surface.kind]
+        if found.chi2 <= _chi2_gate(options.gate_probability, dof) and (best is None or found.chi2 < best[0]):
+            best = (found.chi2, found, other)
+    if best is None:
+        return alone, None
+    return best[1], best[2]
+
+
+def locate_with_classes(
+    frames: Sequence[tuple[int, FrameEchoes]],
+    transmitters_m: FloatArray,
+    receivers_m: FloatArray,
+    options: LocateOptions,
+    usable: NDArray[np.bool_] | None,
+    locate_points: Callable[[list[tuple[int, FrameEchoes]]], FrameObjects],
+) -> FrameObjects:
+    """The objects of the newest of ``frames`` ((transmitter, echoes), one per transmitter), each
+    with its class (:class:`echoloc.localise.surfaces.Surface`).
+
+    ``locate_points`` is the point association for the same frames (one frame: its transmitter's
+    :class:`~echoloc.localise.locate.FrameLocator`; several: :func:`~echoloc.localise.locate.combine_frames`).
+    """
+    newest_t = max(frames, key=lambda f: f[1].frame)[0]
+    points = locate_points(list(frames))
+    objects = _classified(points.objects, frames, newest_t, transmitters_m, receivers_m, options)
+    objects = _explained_away(objects, frames, transmitters_m, receivers_m, options)
+
+    # The echoes no object took may still hold planes and corners the point association cannot fit.
+    # With several transmitters, the other frames' mirror groups may also be the other half of
+    # a plane or corner the association found on the newest frame alone.
+    used = _used_echoes(objects, frames)
+    groups: dict[int, list[MirrorGroup]] = {}
+    for t, echoes in frames:
+        rest, kept_at = _without(echoes, used[t])
+        found = mirror_groups(
+            t, transmitters_m[t], receivers_m, rest, options, usable, decisive=t == newest_t
+        )
+        groups[t] = [
+            replace(g, echoes=tuple(int(kept_at[c][e]) for c, e in zip(g.channels, g.echoes, strict=True)))
+            for g in found
+        ]
+    others = [g for t, gs in groups.items() if t != newest_t for g in gs]
+    if others:
+        for k, o in enumerate(objects):
+            group = _as_mirror_group(o, frames, newest_t, transmitters_m, options)
+            if group is None:
+                continue
+            paired, partner = _paired(group, others, transmitters_m, receivers_m, options)
+            if partner is not None and paired is not None:
+                objects[k] = paired
+                others.remove(partner)
+    for group in groups[newest_t]:
+        found_object, partner = _paired(group, others, transmitters_m, receivers_m, options)
+        if found_object is None:
+            continue
+        objects.append(found_object)
+        if partner is not None:
+            others.remove(partner)
+    # Then edges, on what is left of the newest frame.
+    newest_echoes = dict(frames)[newest_t]
+    rest, kept_at = _without(newest_echoes, _used_echoes(objects, frames)[newest_t])
+    for edge in edge_groups(newest_t, transmitters_m[newest_t], receivers_m, rest, options, usable):
+        echoes_back = tuple(int(kept_at[c][e]) for c, e in zip(edge.channels, edge.echoes, strict=True))
+        objects.append(_edge_object(replace(edge, echoes=echoes_back), transmitters_m, options))
+    real = _explained_away(objects, frames, transmitters_m, receivers_m, options)
+    if len(frames) > 1:
+        real = [o for o in real if _seen_by_others(o, frames, newest_t, transmitters_m, receivers_m)]
+    return FrameObjects(points.frame, points.time_s, tuple(real))
+
+
+def _seen_by_others(
+    o: LocatedObject,
+    frames: Sequence[tuple[int, FrameEchoes]],
+    newest_t: int,
+    transmitters_m: FloatArray,
+    receivers_m: FloatArray,
+) -> bool:
+    """Whether a point that only the newest frame's echoes support has, in every other
+    transmitter's frame, echoes within :data:`MOVED_M` of its paths on at least three channels.
+
+    A real reflector echoes to every transmitter; if it moved between the frames the
+    association leaves the older frame out, but its echoes are still near. A point seen
+    through an unheard wall (the receivers' mirror images) lies elsewhere for another
+    transmitter, and its older echoes are not there. Planes and corners, and points that
+    other frames already support, pass.
+    """
+    if o.surface is not None and o.surface.kind != "point":
+        return True
+    if any(t != newest_t for t in _channel_transmitters(o, frames)):
+        return True
+    for t, echoes in frames:
+        if t == newest_t:
+            continue
+        predicted = surfaces.point_paths_m(
+            o.position_m[None], np.broadcast_to(transmitters_m[t], receivers_m.shape), receivers_m
+        )[0]
+        c = echoes.speed_of_sound_m_s
+        near = sum(
+            bool(np.any(np.abs(ch.tof_s * c - predicted[r]) <= MOVED_M))
+            for r, ch in enumerate(echoes.channels)
+        )
+        if near < 3:
+            return False
+    return True
+
+
+def _used_echoes(
+    objects: Sequence[LocatedObject], frames: Sequence[tuple[int, FrameEchoes]]
+) -> dict[int, set[tuple[int, int]]]:
+    """The (receiver, echo) pairs each transmitter's frame lends to ``objects``."""
+    used: dict[int, set[tuple[int, int]]] = {t: set() for t, _ in frames}
+    for o in objects:
+        for t, r, e in zip(_channel_transmitters(o, frames), o.receivers, o.echo_indices, strict=True):
+            used[t].add((r, e))
+    return used
+
+
+def _as_mirror_group(
+    o: LocatedObject,
+    frames: Sequence[tuple[int, FrameEchoes]],
+    newest_t: int,
+    transmitters_m: FloatArray,
+    options: LocateOptions,
+) -> MirrorGroup | None:
+    """An object the association found on the newest frame's channels alone that may be a mirror (a
+    plane, or a point a plane fits nearly as well), as a mirror group to pair with the other
+    transmitters' (None for anything else)."""
+    if len(frames) == 1 or o.surface is None or o.surface.probabilities.get("plane", 0.0) < MIRROR_CANDIDATE:
+        return None
+    tx_of = _channel_transmitters(o, frames)
+    if any(t != newest_t for t in tx_of):
+        return None
+    paths, sigmas = _group_paths(o, tx_of, frames, options)
+    image = 2 * o.position_m - transmitters_m[newest_t]  # a point's position is near the foot
+    return MirrorGroup(newest_t, o.receivers, o.echo_indices, paths, sigmas, image, o.chi2, np.inf)
+
+
+def _channel_transmitters(o: LocatedObject, frames: Sequence[tuple[int, FrameEchoes]]) -> list[int]:
+    """The transmitter of each of an object's channels: its own record when several frames were
+    combined, else the one frame's transmitter (a single frame's locator numbers it 0)."""
+    if len(frames) == 1:
+        return [frames[0][0]] * len(o.receivers)
+    return list(o.transmitters)
+
+
+def _classified(
+    objects: Sequence[LocatedObject],
+    frames: Sequence[tuple[int, FrameEchoes]],
+    newest_t: int,
+    transmitters_m: FloatArray,
+    receivers_m: FloatArray,
+    options: LocateOptions,
+) -> list[LocatedObject]:
+    """Point objects with their classes: each as located when a point is likeliest, else as the
+    plane or corner its echoes fit."""
+    if not objects:
+        return []
+    groups = []
+    for o in objects:
+        tx_of = _channel_transmitters(o, frames)
+        paths, sigmas = _group_paths(o, tx_of, frames, options)
+        groups.append(
+            _Channels(
+                transmitters_m[tx_of],
+                receivers_m[list(o.receivers)],
+                paths,
+                sigmas,
+                tuple(tx_of),
+                o.receivers,
+                o.echo_indices,
+            )
+        )
+    starts = np.array([o.position_m for o in objects])
+    fitted = _objects_of(groups, newest_t, transmitters_m, starts, options, [o.shared for o in objects])
+    classified = []
+    for o, f in zip(objects, fitted, strict=True):
+        if f is None or f.surface is None:
+            classified.append(o)
+        elif f.surface.kind == "point":
+            # The association's own fit (shared echoes weighted as it weighs them) stays the answer.
+            classified.append(replace(o, surface=f.surface))
+        else:
+            classified.append(replace(f, score=o.score))
+    return classified
+
+
+def _group_paths(
+    o: LocatedObject, tx_of: list[int], frames: Sequence[tuple[int, FrameEchoes]], options: LocateOptions
+) -> tuple[FloatArray, FloatArray]:
+    """The paths and sigmas (m) of an object's echoes."""
+    by_tx = dict(frames)
+    paths, sigmas = [], []
+    for t, r, e in zip(tx_of, o.receivers, o.echo_indices, strict=True):
+        ch = by_tx[t].channels[r]
+        c = by_tx[t].speed_of_sound_m_s
+        paths.append(ch.tof_s[e] * c)
+        sigmas.append(float(path_sigmas_m(ch.snr_db[e : e + 1], c, options)[0]))
+    return np.array(paths), np.array(sigmas)
+
+
+def _mirrored(points_m: FloatArray, surface: surfaces.Surface, foot_m: FloatArray) -> FloatArray:
+    """``points_m`` (..., 3) mirrored in a plane through ``foot_m`` with the surface's normal."""
+    assert surface.normal is not None
+    n = surface.normal
+    return np.asarray(points_m - 2 * ((points_m - foot_m) @ n)[..., None] * n)
+
+
+def _second_order_paths(
+    a: LocatedObject, b: LocatedObject, tx: FloatArray, rx: FloatArray
+) -> FloatArray | None:
+    """Paths (m,) of the channels (tx, rx) (m, 3) that go to ``a`` first and then to ``b``, or None
+    when the pair makes none here: point-point, plane-point (the transmitter's image), point-plane
+    (the receiver's image) and plane-plane (the image of the image). Corners make none of their own:
+    their double bounce is their echo."""
+    kind_a = "point" if a.surface is None else a.surface.kind
+    kind_b = "point" if b.surface is None else b.surface.kind
+    pa, pb = a.position_m, b.position_m
+    if kind_a == "point" and kind_b == "point":
+        return np.asarray(
+            np.linalg.norm(pa - tx, axis=1) + np.linalg.norm(pb - pa) + np.linalg.norm(pb - rx, axis=1)
+        )
+    if kind_a == "plane" and kind_b == "point":
+        assert a.surface is not None
+        image = _mirrored(tx, a.surface, pa)
+        return np.asarray(np.linalg.norm(pb - image, axis=1) + np.linalg.norm(pb - rx, axis=1))
+    if kind_a == "point" and kind_b == "plane":
+        assert b.surface is not None
+        image = _mirrored(rx, b.surface, pb)
+        return np.asarray(np.linalg.norm(pa - tx, axis=1) + np.linalg.norm(pa - image, axis=1))
+    if kind_a == "plane" and kind_b == "plane":
+        assert a.surface is not None
+        assert b.surface is not None
+        image = _mirrored(_mirrored(tx, a.surface, pa), b.surface, pb)
+        return np.asarray(np.linalg.norm(image - rx, axis=1))
+    return None
+
+
+def _explained_away(
+    objects: list[LocatedObject],
+    frames: Sequence[tuple[int, FrameEchoes]],
+    transmitters_m: FloatArray,
+    receivers_m: FloatArray,
+    options: LocateOptions,
+) -> list[LocatedObject]:
+    """``objects`` less those whose echoes two others with shorter paths explain as double
+    reflections: ghosts, not reflectors. The objects come back shortest mean path first.
+
+    Each channel's echo is compared with the pair's double reflection in either order (the
+    two orders have different lengths, and a ghost's echoes may mix them), within the
+    chi-square gate over the object's channels. A double reflection overlaps other echoes
+    often, so each channel's sigma includes that of a merged peak (the association's
+    ``resolution_m / (4 sqrt 3)``). A double reflection is longer than either reflector's own
+    echo, so the objects are settled in order of their mean path, and only those settled can
+    explain a later one.
+    """
+    merge = 0.0 if options.resolution_m is None else _merge_sigma(options.resolution_m)
+    measured = []
+    for o in objects:
+        tx_of = _channel_transmitters(o, frames)
+        measured.append((o, tx_of, *_group_paths(o, tx_of, frames, options)))
+    newest_t = max(frames, key=lambda f: f[1].frame)[0]
+    measured.sort(key=lambda m: float(np.mean(m[2])))
+    kept: list[LocatedObject] = []
+    for o, tx_of, observed, sigma in measured:
+        # The newest frame's channels: older frames only lend support, and may hold other echoes there.
+        own = (
+            np.array([t == newest_t for t in tx_of])
+            if sum(t == newest_t for t in tx_of) >= 3
+            else np.ones(len(tx_of), bool)
+        )
+        observed, sigma = observed[own], np.sqrt(sigma[own] ** 2 + merge**2)
+        tx, rx = transmitters_m[np.array(tx_of)[own]], receivers_m[np.array(o.receivers)[own]]
+        gate = _chi2_gate(options.gate_probability, len(observed))
+        ghost = False
+        for i, a in enumerate(kept):
+            for b in kept[i + 1 :]:
+                orders = [_second_order_paths(a, b, tx, rx), _second_order_paths(b, a, tx, rx)]
+                known = [p for p in orders if p is not None]
+                if not known:
+                    continue
+                residual = np.min(np.abs(np.stack(known) - observed), axis=0) / sigma
+                if np.sum(residual**2) <= gate:
+                    ghost = True
+                    break
+            if ghost:
+                break
+        if not ghost:
+            kept.append(o)
+    return kept

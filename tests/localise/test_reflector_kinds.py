@@ -1,0 +1,217 @@
+"""Locating with reflector classes (``--classes``) on simulated rooms: walls as planes, corners
+at their edges, posts as edges, double reflections explained away."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from echoloc.cli.commands import main
+from echoloc.io.output import objects_record
+from echoloc.io.recording import Recording, write_recording
+from echoloc.localise.evaluation import evaluate_classes
+from echoloc.localise.locate import FrameObjects, LocatedObject
+from echoloc.localise.surfaces import Surface
+from echoloc.pipeline import prepare, run
+from echoloc.sim.reflectors import Edge, PointReflector, corner, truth_kinds
+from echoloc.sim.scene import Scene
+from echoloc.sim.scenefile import load_scene, preset_path
+from echoloc.sim.simulation import _objects, simulate
+
+SECOND_TRANSMITTER_M = (0.12, 0.12, 0.0)
+
+
+def _with_transmitters(scene: Scene, n_tx: int) -> Scene:
+    first = scene.array.transmitters_m[:1]
+    transmitters = first if n_tx == 1 else np.vstack([first, SECOND_TRANSMITTER_M])
+    return dataclasses.replace(scene, array=dataclasses.replace(scene.array, transmitters_m=transmitters))
+
+
+def _located(recording: Recording, classes: bool = True) -> list[FrameObjects]:
+    chain = prepare(recording)
+    options = dataclasses.replace(chain.locate_options, reflector_classes=classes)
+    return [objects for _, objects in run(dataclasses.replace(chain, locate_options=options))]
+
+
+def _nearest(frame: FrameObjects, position: np.ndarray) -> tuple[float, LocatedObject]:
+    distances = [float(np.linalg.norm(o.position_m - position)) for o in frame.objects]
+    k = int(np.argmin(distances))
+    return distances[k], frame.objects[k]
+
+
+@pytest.fixture(scope="module")
+def corridor() -> Scene:
+    return load_scene(preset_path("rooms/corridor"))
+
+
+def test_the_corridor_with_one_transmitter(corridor: Scene) -> None:
+    """The end wall is a plane (normal within 0.1 degree, distance within 1 mm), the post a point,
+    and the corner, which one transmitter cannot tell from a plane, is reported at its edge."""
+    recording = simulate(corridor, 6)
+    wall = next(o for o in corridor.objects if hasattr(o, "normal") and o.width_m > 1.0)
+    assert recording.truth_positions_m is not None
+    truth = recording.truth_positions_m[0]
+    for frame in _located(recording):
+        distance, found = _nearest(frame, truth[1])  # the end wall's foot
+        assert distance < 1e-3
+        assert found.surface is not None
+        assert found.surface.kind == "plane"
+        assert found.surface.normal is not None
+        assert math.degrees(math.acos(min(1.0, found.surface.normal @ wall.normal))) < 0.1
+        assert found.surface.distance_m == pytest.approx(float(np.linalg.norm(truth[1])), abs=1e-3)
+        distance, post = _nearest(frame, truth[0])
+        assert distance < 3e-3
+        assert post.surface is not None
+        assert post.surface.kind == "point"
+        distance, edge = _nearest(frame, truth[3])  # the corner's edge
+        assert distance < 3e-3
+        assert edge.surface is not None
+        assert edge.surface.kind == "plane"
+        assert len(frame.objects) == 3
+
+
+def test_the_corridor_with_two_transmitters_finds_the_corner(corridor: Scene) -> None:
+    """Once both transmitters have fired, the corner is a corner with a vertical edge."""
+    recording = simulate(_with_transmitters(corridor, 2), 6)
+    assert recording.truth_positions_m is not None
+    for frame in _located(recording)[1:]:
+        truth = recording.truth_positions_m[frame.frame]
+        distance, found = _nearest(frame, truth[3])
+        assert distance < 3e-3
+        assert found.surface is not None
+        assert found.surface.kind == "corner"
+        assert found.surface.edge_direction is not None
+        assert abs(found.surface.edge_direction[1]) > math.cos(math.radians(2.0))
+        assert len(set(found.transmitters)) == 2
+
+
+def test_double_scattering_between_two_balls_is_explained_away() -> None:
+    """Two balls 0.35 m apart: the echo that goes from one to the other locates as a third ball
+    without classes; with them, the two nearer balls explain it and it goes."""
+    scene = load_scene(preset_path("wall-and-corner"))
+    scene = dataclasses.replace(scene, objects=())  # its two balls alone, with max_order = 2
+    recording = simulate(scene, 4)
+    truth = recording.truth_positions_m
+    assert truth is not None
+    plain = _located(recording, classes=False)
+    classes = _located(recording)
+    for without, with_classes in zip(plain, classes, strict=True):
+        assert len(without.objects) > 2  # the ghosts of the double scattering
+        assert len(with_classes.objects) == 2
+        for row in truth[with_classes.frame]:
+            assert _nearest(with_classes, row)[0] < 2e-3
+
+
+def test_a_vertical_post_is_located_as_an_edge() -> None:
+    """A pole through the head's height across the cross: no point fits its echoes (they slide
+    along it), so it is lost without classes and found, as an edge, with them."""
+    scene = load_scene(preset_path("rooms/corridor"))
+    pole = Edge([0.2, -1.0, 1.0], [0.2, 1.0, 1.0], strength_m=0.3)
+    scene = dataclasses.replace(
+        scene,
+        objects=(pole,),
+        reflector_positions_m=np.zeros((0, 3)),
+        reflector_strengths=np.zeros(0),
+        max_order=1,
+    )
+    recording = simulate(scene, 3)
+    foot = np.array([0.2, 0.0, 1.0])
+    for frame in _located(recording, classes=False):
+        assert all(np.linalg.norm(o.position_m - foot) > 0.01 for o in frame.objects)
+    for frame in _located(recording):
+        distance, found = _nearest(frame, foot)
+        assert distance < 2e-3
+        assert found.surface is not None
+        assert found.surface.kind == "point"
+        assert found.surface.edge_direction is not None
+        np.testing.assert_allclose(abs(found.surface.edge_direction @ [0.0, 1.0, 0.0]), 1.0)
+
+
+def test_truth_kinds_name_a_corners_edge_a_corner() -> None:
+    faces_and_edge = corner([0, -1, 1.5], [0, 1, 1.5], [0, 0, -1], [1, 0, 0], 1.0)
+    post = Edge([0.5, -1, 1], [0.5, 1, 1])
+    assert truth_kinds([PointReflector([0, 0, 1]), *faces_and_edge, post]) == (
+        "point",
+        "plane",
+        "plane",
+        "corner",
+        "point",
+    )
+    assert truth_kinds(_objects(load_scene(preset_path("rooms/corridor")))) == (
+        "point",
+        "plane",
+        "plane",
+        "corner",
+    )
+
+
+def _object(position: list[float], kind: str | None) -> LocatedObject:
+    surface = (
+        None
+        if kind is None
+        else Surface(
+            kind,
+            0.9,
+            {kind: 0.9},
+            normal=np.array([0.0, 0.0, -1.0]),
+            normal_covariance=np.eye(3) * 1e-6,
+            distance_m=1.0,
+            distance_std_m=1e-4,
+            extent_m=0.2,
+        )
+    )
+    return LocatedObject(
+        np.array(position), np.eye(3) * 1e-6, (0, 1, 2, 3), (0, 0, 0, 0), 0.0, 1.0, surface=surface
+    )
+
+
+def test_evaluate_classes_counts_the_confusion_matrix() -> None:
+    """Truth: a point and a plane; located: the plane right, the point as a plane, and a stray."""
+    truth = np.array([[[0.0, 0.0, 1.0], [0.3, 0.0, 1.0]]])
+    frame = FrameObjects(
+        0,
+        0.0,
+        (
+            _object([0.0, 0.0, 1.0], "plane"),
+            _object([0.3, 0.0, 1.001], "plane"),
+            _object([1.0, 1.0, 1.0], None),
+        ),
+    )
+    scored = evaluate_classes([frame], truth, ("plane", "point"), np.zeros((1, 3)))
+    np.testing.assert_array_equal(scored.confusion, [[0, 1, 0, 0], [0, 1, 0, 0], [0, 0, 0, 0]])
+    assert scored.right_class_rate == 0.5
+    assert scored.n_false == 1
+    np.testing.assert_allclose(scored.normal_errors_deg, [0.0], atol=1e-6)
+    np.testing.assert_allclose(scored.distance_errors_m, [0.0], atol=1e-12)
+
+
+def test_the_json_gains_the_class_fields_only_when_asked() -> None:
+    """docs/FORMATS.md 3.3: the contract's fields as before; kind and the rest added."""
+    plain = objects_record(FrameObjects(0, 0.0, (_object([0.0, 0.0, 1.0], None),)))["objects"][0]
+    assert set(plain) == {"position_m", "std_m", "receivers", "score", "channels", "shared_echoes"}
+    classed = objects_record(FrameObjects(0, 0.0, (_object([0.0, 0.0, 1.0], "plane"),)))["objects"][0]
+    assert {k: classed[k] for k in plain} == plain
+    assert classed["kind"] == "plane"
+    assert classed["normal"] == [0.0, 0.0, -1.0]
+    assert classed["normal_std_deg"] == pytest.approx(math.degrees(math.sqrt(3e-6)))
+    assert classed["distance_m"] == 1.0
+    assert classed["extent_m"] == 0.2
+
+
+def test_locate_classes_on_the_command_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    recording = simulate(load_scene(preset_path("rooms/corridor")), 2)
+    path = tmp_path / "corridor.h5"
+    write_recording(recording, path)
+    with pytest.raises(SystemExit) as exit_info:
+        main(["locate", str(path), "--classes", "--json"])
+    assert exit_info.value.code in (0, None)
+    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    kinds = sorted(o["kind"] for o in lines[0]["objects"])
+    assert kinds == ["plane", "plane", "point"]
+    plane = next(o for o in lines[0]["objects"] if o["kind"] == "plane" and "extent_m" in o)
+    assert np.linalg.norm(plane["normal"]) == pytest.approx(1.0)
