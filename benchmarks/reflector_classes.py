@@ -1,13 +1,15 @@
 """Reflector classes on simulated rooms: found with the right class, false objects, plane accuracy.
 
-For each scene, with its own transmitter and again with a second one 17 cm away (fired in
+First the point scenes of the localisation issue (1-6 random points, the report's three
+balls), with and without classes: the point figures must hold. Then for each scene,
+with its own transmitter and again with a second one 17 cm away (fired in
 turn), simulate frames, locate them with reflector classes (``--classes``) and score
 them against the scene's truth (:func:`echoloc.localise.evaluation.evaluate_classes`):
 the confusion matrix of classes, the share of true reflectors found with the right
 class, the share of located objects that are false, and the median normal and distance
 errors of the planes. Writes ``benchmarks/results/reflector_classes.md``.
 
-    .venv/bin/python benchmarks/reflector_classes.py [--frames 1000] [--scenes a,b,...]
+    .venv/bin/python benchmarks/reflector_classes.py [--frames 1000] [--scenes a,b,...] [--points a,b]
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from echoloc.localise.evaluation import ClassEvaluation, evaluate_classes
+from echoloc.localise.evaluation import ClassEvaluation, evaluate, evaluate_classes
 from echoloc.pipeline import prepare, run
 from echoloc.sim.reflectors import truth_kinds
 from echoloc.sim.scene import Scene
@@ -62,6 +64,32 @@ def score(scene: Scene, n_frames: int) -> tuple[ClassEvaluation, float]:
     return evaluation, seconds
 
 
+POINT_SCENES = ("random-1m3-six", "report-three-balls")
+
+
+def point_figures(name: str, n_frames: int) -> list[str]:
+    """The point-reflector figures of the localisation issue, with and without classes."""
+    recording = simulate(load_scene(preset_path(name)), n_frames)
+    assert recording.truth_positions_m is not None
+    lines = [f"### {name} (points), {n_frames} frames", ""]
+    for classes in (False, True):
+        chain = prepare(recording)
+        chain = dataclasses.replace(
+            chain, locate_options=dataclasses.replace(chain.locate_options, reflector_classes=classes)
+        )
+        results = [objects for _, objects in run(chain)]
+        e = evaluate(results, recording.truth_positions_m)
+        worst = float(np.max(np.linalg.norm(e.errors_m, axis=1))) if len(e.errors_m) else float("nan")
+        kinds = [o.surface.kind for f in results for o in f.objects if o.surface is not None]
+        pointed = kinds.count("point") / len(kinds) if kinds else float("nan")
+        lines.append(
+            f"- {'with' if classes else 'without'} classes: recall {e.recall:.4f}, false objects "
+            f"{e.false_rate:.4f}, largest error {worst * 1e3:.2f} mm"
+            + (f", classed as points {pointed:.4f}" if classes else "")
+        )
+    return [*lines, ""]
+
+
 def table(name: str, n_tx: int, e: ClassEvaluation, seconds: float) -> list[str]:
     """Markdown lines for one scene and transmitter count."""
     lines = [
@@ -93,6 +121,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=1000)
     parser.add_argument("--scenes", default=",".join(SCENES))
+    parser.add_argument("--points", default=",".join(POINT_SCENES), help="point scenes ('' for none)")
     parser.add_argument("--output", type=Path, default=RESULTS)
     args = parser.parse_args()
     lines = [
@@ -101,6 +130,10 @@ def main() -> None:
         f"`python benchmarks/reflector_classes.py --frames {args.frames}`; match radius 20 mm.",
         "",
     ]
+    for name in args.points.split(",") if args.points else ():
+        part = point_figures(name, args.frames if name.startswith("random") else 50)
+        print("\n".join(part), flush=True)
+        lines += part
     for name in args.scenes.split(","):
         scene = load_scene(preset_path(name))
         for n_tx in (1, 2):

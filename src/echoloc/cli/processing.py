@@ -40,7 +40,7 @@ from echoloc.localise.calibrate import (
     write_calibration,
 )
 from echoloc.localise.evaluation import Evaluation, evaluate
-from echoloc.localise.locate import FrameObjects
+from echoloc.localise.locate import FrameObjects, LocatedObject
 from echoloc.pipeline import (
     check_locatable,
     frame_echoes,
@@ -102,10 +102,11 @@ def locate(processing: Processing, as_json: bool) -> None:
             click.echo(json_line(objects_record(objects)))
         return
     table = Table(title=f"Objects in {processing.recording_path} ({processing.estimator_name(recording)})")
-    for column in ("frame", "x mm", "y mm", "z mm", "±σ x, y, z mm", "range mm", "rx", "score"):
+    columns = ["frame", "x mm", "y mm", "z mm", "±σ x, y, z mm", "range mm", "rx", "score"]
+    for column in columns + (["kind", "normal or edge"] if processing.classes else []):
         table.add_column(column, justify="right")
     for objects in _located(processing, recording, chain, frames):
-        _object_rows(table, objects)
+        _object_rows(table, objects, processing.classes)
     stdout.print(table)
 
 
@@ -114,11 +115,21 @@ def _output_option(help_text: str) -> Callable[[_Decorated], _Decorated]:
     return _path_option("-o", "--output", "output_path", required=True, help=help_text)
 
 
-def _object_rows(table: Table, result: FrameObjects) -> None:
+def _object_rows(table: Table, result: FrameObjects, classes: bool = False) -> None:
     if not result.objects:
-        table.add_row(str(result.frame), "-", "-", "-", "-", "-", "-", "-")
+        table.add_row(str(result.frame), *["-"] * (9 if classes else 7))
     for obj in result.objects:
-        table.add_row(str(result.frame), *_object_cells(obj))
+        table.add_row(str(result.frame), *_object_cells(obj), *(_class_cells(obj) if classes else []))
+
+
+def _class_cells(obj: LocatedObject) -> list[str]:
+    """The class with its confidence, and a plane's normal or a corner's or edge's direction."""
+    surface = obj.surface
+    if surface is None:
+        return ["-", "-"]
+    direction = surface.normal if surface.normal is not None else surface.edge_direction
+    shown = "-" if direction is None else "(" + ", ".join(f"{v:+.3f}" for v in direction) + ")"
+    return [f"{surface.kind} {surface.confidence:.2f}", shown]
 
 
 @cli.command(name="image")

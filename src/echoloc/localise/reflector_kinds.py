@@ -1,25 +1,31 @@
 """Locating with reflector classes: planes and corners found as such, points as before.
 
-A frame's echoes are explained in three steps (docs/METHOD.md, "Walls and corners"):
+A frame's echoes are explained in five steps (docs/METHOD.md 10.10):
 
-1. **Mirror groups.** On each transmitter's channels, every choice of one echo per
-   receiver that a virtual source fits (``l_i = |V - R_i|``, the chi-square within the
-   gate) and a point does not (the point's chi-square at least :data:`DECISIVE_CHI2`
-   above) is a mirror: the echo of a plane, or a corner's double bounce. The best
-   disjoint groups are kept. With several transmitters, a group of the newest frame is
-   paired with the group of each other transmitter that the same plane or corner fits.
-2. **Points.** The rest of the echoes go to the point association (:mod:`echoloc.localise.locate`)
-   as without classes.
-3. **Classes.** Every object then gets its class by the hypotheses of
-   :mod:`echoloc.localise.surfaces`: a point whose echoes a plane explains as well
-   (on the boresight of a symmetric array with one transmitter) says so through its
-   class probabilities.
+1. **Points, then classes.** The point association (:mod:`echoloc.localise.locate`) runs as
+   without classes, and each object is classified by the hypotheses of
+   :mod:`echoloc.localise.surfaces`. It becomes a plane or corner only when that fits within
+   the chi-square gate and explains its echoes decisively better (a likelihood ratio of
+   exp(:data:`DECISIVE_CHI2` / 2));
+   one a plane explains about as well (on the boresight or the diagonals of a symmetric
+   array with one transmitter) stays a point and says so through its ``kind_confidence``.
+2. **Ghosts.** An object whose echoes two others with shorter paths explain as double
+   reflections goes (:func:`_explained_away`).
+3. **Mirror groups** among the echoes no object took (:func:`mirror_groups`): every choice
+   of one echo per receiver that one image fits, with amplitudes that agree, and that a
+   point fits decisively worse. With several transmitters, a group of the newest frame,
+   or an object step 1 could not tell from a plane, is paired with another transmitter's
+   group that one plane or corner fits (:func:`_paired`).
+4. **Edges** along ``LocateOptions.edge_axis`` among what is left (:func:`edge_groups`).
+5. **Ghosts again**, and, with several transmitters, a point that only the newest frame
+   supports must echo to the other transmitters too (:func:`_seen_by_others`).
 
 Everything here is in the sensor frame, m.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
@@ -493,8 +499,11 @@ def locate_with_classes(
     """
     newest_t = max(frames, key=lambda f: f[1].frame)[0]
     points = locate_points(list(frames))
-    objects = _classified(points.objects, frames, newest_t, transmitters_m, receivers_m, options)
-    objects = _explained_away(objects, frames, transmitters_m, receivers_m, options)
+    alternatives: dict[int, LocatedObject] = {}
+    objects = _classified(
+        points.objects, frames, newest_t, transmitters_m, receivers_m, options, alternatives
+    )
+    objects = _explained_away(objects, frames, transmitters_m, receivers_m, options, alternatives)
 
     # The echoes no object took may still hold planes and corners the point association cannot fit.
     # With several transmitters, the other frames' mirror groups may also be the other half of
@@ -533,7 +542,7 @@ def locate_with_classes(
     for edge in edge_groups(newest_t, transmitters_m[newest_t], receivers_m, rest, options, usable):
         echoes_back = tuple(int(kept_at[c][e]) for c, e in zip(edge.channels, edge.echoes, strict=True))
         objects.append(_edge_object(replace(edge, echoes=echoes_back), transmitters_m, options))
-    real = _explained_away(objects, frames, transmitters_m, receivers_m, options)
+    real = _explained_away(objects, frames, transmitters_m, receivers_m, options, alternatives)
     if len(frames) > 1:
         real = [o for o in real if _seen_by_others(o, frames, newest_t, transmitters_m, receivers_m)]
     return FrameObjects(points.frame, points.time_s, tuple(real))
@@ -621,9 +630,12 @@ def _classified(
     transmitters_m: FloatArray,
     receivers_m: FloatArray,
     options: LocateOptions,
+    alternatives: dict[int, LocatedObject],
 ) -> list[LocatedObject]:
     """Point objects with their classes: each as located when a point is likeliest, else as the
-    plane or corner its echoes fit."""
+    plane or corner its echoes fit decisively better. A point kept as such although a plane or
+    corner fits it best has that fit stored in ``alternatives`` under the returned object's
+    ``id``: a double reflection off it may take that shape (:func:`_explained_away`)."""
     if not objects:
         return []
     groups = []
@@ -645,14 +657,41 @@ def _classified(
     fitted = _objects_of(groups, newest_t, transmitters_m, starts, options, [o.shared for o in objects])
     classified = []
     for o, f in zip(objects, fitted, strict=True):
+        if f is not None and f.surface is not None and f.surface.kind != "point":
+            alternatives[id(o)] = f
         if f is None or f.surface is None:
             classified.append(o)
-        elif f.surface.kind == "point":
-            # The association's own fit (shared echoes weighted as it weighs them) stays the answer.
-            classified.append(replace(o, surface=f.surface))
+        elif f.surface.kind == "point" or not _decisive(f.surface) or not _fits(f, options):
+            # A point, or a mirror that does not explain the echoes decisively better: the
+            # association's own fit stays the answer (shared echoes weighted as it weighs them).
+            surface = f.surface
+            if surface.kind != "point":
+                surface = replace(surface, kind="point", confidence=surface.probabilities["point"])
+                surface = replace(surface, normal=None, normal_covariance=None, distance_m=None)
+                surface = replace(surface, distance_std_m=None, specular_points_m=None, extent_m=None)
+                surface = replace(surface, edge_direction=None, edge_covariance=None)
+            kept = replace(o, surface=surface)
+            if id(o) in alternatives:
+                alternatives[id(kept)] = alternatives.pop(id(o))
+            classified.append(kept)
         else:
+            alternatives.pop(id(o), None)
             classified.append(replace(f, score=o.score))
     return classified
+
+
+def _fits(o: LocatedObject, options: LocateOptions) -> bool:
+    """Whether an object's fit passes the chi-square gate for its degrees of freedom."""
+    assert o.surface is not None
+    dof = len(o.receivers) - surfaces.PARAMETERS[o.surface.kind]
+    return dof <= 0 or o.chi2 <= _chi2_gate(options.gate_probability, dof)
+
+
+def _decisive(surface: surfaces.Surface) -> bool:
+    """Whether a plane or corner explains a point association's echoes decisively better than the
+    point: by a likelihood ratio of at least exp(DECISIVE_CHI2 / 2), with Schwarz's penalty."""
+    point = surface.probabilities.get("point", 0.0)
+    return surface.confidence >= point * math.exp(0.5 * DECISIVE_CHI2)
 
 
 def _group_paths(
@@ -706,15 +745,23 @@ def _second_order_paths(
     return None
 
 
+def _versions(o: LocatedObject, alternatives: dict[int, LocatedObject]) -> list[LocatedObject]:
+    """The object, and the plane or corner it could also be."""
+    other = alternatives.get(id(o))
+    return [o] if other is None else [o, other]
+
+
 def _explained_away(
     objects: list[LocatedObject],
     frames: Sequence[tuple[int, FrameEchoes]],
     transmitters_m: FloatArray,
     receivers_m: FloatArray,
     options: LocateOptions,
+    alternatives: dict[int, LocatedObject],
 ) -> list[LocatedObject]:
     """``objects`` less those whose echoes two others with shorter paths explain as double
-    reflections: ghosts, not reflectors. The objects come back shortest mean path first.
+    reflections: ghosts, not reflectors. The objects come back shortest mean path first. An
+    object with an alternative (a plane it was not decisively told from) explains as either.
 
     Each channel's echo is compared with the pair's double reflection in either order (the
     two orders have different lengths, and a ghost's echoes may mix them), within the
@@ -743,15 +790,16 @@ def _explained_away(
         tx, rx = transmitters_m[np.array(tx_of)[own]], receivers_m[np.array(o.receivers)[own]]
         gate = _chi2_gate(options.gate_probability, len(observed))
         ghost = False
-        for i, a in enumerate(kept):
-            for b in kept[i + 1 :]:
-                orders = [_second_order_paths(a, b, tx, rx), _second_order_paths(b, a, tx, rx)]
-                known = [p for p in orders if p is not None]
-                if not known:
-                    continue
-                residual = np.min(np.abs(np.stack(known) - observed), axis=0) / sigma
-                if np.sum(residual**2) <= gate:
-                    ghost = True
+        for i, first in enumerate(kept):
+            for second in kept[i + 1 :]:
+                for a in _versions(first, alternatives):
+                    for b in _versions(second, alternatives):
+                        orders = [_second_order_paths(a, b, tx, rx), _second_order_paths(b, a, tx, rx)]
+                        known = [p for p in orders if p is not None]
+                        if known:
+                            residual = np.min(np.abs(np.stack(known) - observed), axis=0) / sigma
+                            ghost = ghost or bool(np.sum(residual**2) <= gate)
+                if ghost:
                     break
             if ghost:
                 break
