@@ -19,6 +19,7 @@ from echoloc.io.export import (
     OBJECTS_TOPIC,
     POINT_FIELDS,
     SENSOR_FRAME_ID,
+    SURFACES_TOPIC,
     TF_STATIC_TOPIC,
     receiver_frame_id,
     ros_time,
@@ -344,3 +345,67 @@ def test_mcap_bad_inputs_raise(located: tuple[Recording, list[FrameObjects]], tm
     (tmp_path / "dir.mcap").mkdir()
     with pytest.raises(EchoLocError, match="is a directory"):
         write_mcap(tmp_path / "dir.mcap", None, _synthetic())
+
+
+# --- reflector classes: planes and corners as markers ---------------------------------------
+
+
+def _quaternion_matrix(q: Any) -> np.ndarray:
+    """Rotation matrix of a decoded geometry_msgs/Quaternion (x, y, z, w)."""
+    x, y, z, w = q.x, q.y, q.z, q.w
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def test_mcap_draws_planes_and_corners_as_markers(tmp_path: Path) -> None:
+    """The corridor with two transmitters, located with classes: each frame's MarkerArray decodes
+    with mcap_ros2, clears the last frame's markers, lays a thin box in the plane over the patch its
+    echoes met, and draws the corner's edge along its direction through its foot."""
+    from echoloc.sim.scenefile import load_scene, preset_path
+
+    rec = simulate(load_scene(preset_path("rooms/corridor")), 3)
+    chain = pipeline.prepare(rec)
+    chain = replace(chain, locate_options=replace(chain.locate_options, reflector_classes=True))
+    frames = [objects for _, objects in pipeline.run(chain)]
+    out = tmp_path / "classes.mcap"
+    write_mcap(out, rec, frames)
+    markers = [m for m in _read_mcap(out) if m[0] == SURFACES_TOPIC]
+    assert {m[1] for m in markers} == {"visualization_msgs/msg/MarkerArray"}
+    assert len(markers) == len(frames)
+    planes = corners = 0
+    for (_, _, _, message), frame in zip(markers, frames, strict=True):
+        assert message.markers[0].action == 3  # DELETEALL
+        for marker in message.markers[1:]:
+            obj = frame.objects[marker.id]
+            assert obj.surface is not None
+            if marker.ns == "planes":
+                planes += 1
+                rotation = _quaternion_matrix(marker.pose.orientation)
+                np.testing.assert_allclose(rotation[:, 2], obj.surface.normal, atol=1e-9)
+                centre = np.array([marker.pose.position.x, marker.pose.position.y, marker.pose.position.z])
+                assert obj.surface.normal @ (centre - obj.position_m) == pytest.approx(0.0, abs=1e-6)
+                assert obj.surface.specular_points_m is not None
+                span = (obj.surface.specular_points_m - centre) @ rotation[:, :2]
+                np.testing.assert_allclose(np.abs(span).max(axis=0), [marker.scale.x / 2, marker.scale.y / 2])
+            else:
+                corners += 1
+                ends = np.array([[p.x, p.y, p.z] for p in marker.points])
+                np.testing.assert_allclose(ends.mean(axis=0), obj.position_m, atol=1e-9)
+                direction = (ends[1] - ends[0]) / np.linalg.norm(ends[1] - ends[0])
+                assert abs(direction @ obj.surface.edge_direction) == pytest.approx(1.0)
+    assert planes >= 2
+    assert corners >= 2
+
+
+def test_mcap_without_classes_has_no_marker_channel(
+    located: tuple[Recording, list[FrameObjects]], tmp_path: Path
+) -> None:
+    rec, frames = located
+    out = tmp_path / "plain.mcap"
+    write_mcap(out, rec, frames)
+    assert SURFACES_TOPIC not in {m[0] for m in _read_mcap(out)}

@@ -16,6 +16,7 @@ from echoloc import pipeline
 from echoloc.errors import EchoLocError
 from echoloc.io.recording import Recording
 from echoloc.localise.locate import FrameObjects, LocatedObject
+from echoloc.localise.surfaces import Surface
 from echoloc.maps.mapping import (
     GridSpec,
     MapAccumulator,
@@ -314,6 +315,42 @@ def test_a_located_object_adds_a_blob_at_its_position() -> None:
     peak = np.unravel_index(int(np.argmax(grid.log_odds)), spec.shape)
     index, _ = spec.cell_indices([point])
     assert tuple(int(i) for i in peak) == tuple(int(i) for i in index[0])
+
+
+def test_a_located_plane_adds_the_segment_its_echoes_met() -> None:
+    """A plane (reflector classes) marks the cells of the rectangle spanned by its specular
+    points, a segment across the floor plan along the wall, not a blob at its foot: every
+    marked cell's centre lies within a cell of the plane, and the segment is as long as the
+    points' spread."""
+    rec = _recording([[0.0, 0.0, 0.0]], fov_deg=20.0)
+    spec = _floor()
+    acc = MapAccumulator(spec, rec, SensorModel(min_support=1))
+    turn = math.radians(30.0)
+    normal = np.array([-math.sin(turn), 0.0, -math.cos(turn)])  # towards the sensor
+    foot = -1.2 * normal
+    along = np.array([math.cos(turn), 0.0, -math.sin(turn)])  # in the plane, horizontal
+    specular = foot + np.outer([-0.1, -0.03, 0.05, 0.1], along) + np.outer([0, 0.004, -0.004, 0], [0, 1, 0])
+    surface = Surface(
+        "plane",
+        1.0,
+        {"plane": 1.0},
+        normal=normal,
+        normal_covariance=np.zeros((3, 3)),
+        distance_m=1.2,
+        distance_std_m=1e-4,
+        specular_points_m=specular,
+        extent_m=0.2,
+    )
+    obj = LocatedObject(foot, np.diag([1e-6] * 3), (0,), (0,), 0.0, 1.0, surface=surface)
+    acc.add_frame(_echoes([[]]), IDENTITY, objects=FrameObjects(0, 0.0, (obj,)))
+    grid = acc.grid()
+    marked = np.argwhere(grid.log_odds > 0)
+    centres = spec.origin_m + (marked + 0.5) * spec.cell_m
+    assert np.all(np.abs((centres - foot) @ normal) < spec.cell_m)
+    spread = (centres - foot) @ along
+    assert spread.min() == pytest.approx(-0.1, abs=spec.cell_m)
+    assert spread.max() == pytest.approx(0.1, abs=spec.cell_m)
+    assert 20 <= len(marked) <= 40  # 0.2 m of wall at 1 cm, a staircase of cells
 
 
 # --- trajectories ------------------------------------------------------------------------

@@ -18,6 +18,10 @@ ROS 2 **Jazzy** embedded as schemas:
   boresight, as ``Range`` measures along ``x``).
 - ``/tf_static``: one ``tf2_msgs/msg/TFMessage`` placing every ``echoloc_rx{N}`` in
   :data:`SENSOR_FRAME_ID`.
+- ``/echoloc/surfaces``, when objects carry reflector classes (``--classes``): one
+  ``visualization_msgs/msg/MarkerArray`` per frame (:func:`surface_markers`): a
+  DELETEALL, then each plane as a thin CUBE over the patch its echoes met and each
+  corner as a LINE_LIST along its edge.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ SENSOR_FRAME_ID = "echoloc_sensor_optical_frame"
 """ROS frame id of the sensor frame (REP 103 optical convention: x right, y down, z boresight)."""
 
 OBJECTS_TOPIC = "/echoloc/objects"
+SURFACES_TOPIC = "/echoloc/surfaces"
 RANGE_TOPIC_PREFIX = "/echoloc/range/rx"
 TF_STATIC_TOPIC = "/tf_static"
 ROS_DISTRIBUTION = "jazzy"
@@ -119,6 +124,75 @@ Transform transform
 """
 _TF_MESSAGE_MSG = """geometry_msgs/TransformStamped[] transforms
 """
+_MARKER_ARRAY_MSG = """Marker[] markers
+"""
+_MARKER_MSG = """int32 ARROW=0
+int32 CUBE=1
+int32 SPHERE=2
+int32 CYLINDER=3
+int32 LINE_STRIP=4
+int32 LINE_LIST=5
+int32 CUBE_LIST=6
+int32 SPHERE_LIST=7
+int32 POINTS=8
+int32 TEXT_VIEW_FACING=9
+int32 MESH_RESOURCE=10
+int32 TRIANGLE_LIST=11
+
+int32 ADD=0
+int32 MODIFY=0
+int32 DELETE=2
+int32 DELETEALL=3
+
+std_msgs/Header header
+string ns
+int32 id
+int32 type
+int32 action
+geometry_msgs/Pose pose
+geometry_msgs/Vector3 scale
+std_msgs/ColorRGBA color
+builtin_interfaces/Duration lifetime
+bool frame_locked
+
+geometry_msgs/Point[] points
+std_msgs/ColorRGBA[] colors
+
+string texture_resource
+sensor_msgs/CompressedImage texture
+UVCoordinate[] uv_coordinates
+
+string text
+
+string mesh_resource
+MeshFile mesh_file
+bool mesh_use_embedded_materials
+"""
+_POSE_MSG = """Point position
+Quaternion orientation
+"""
+_POINT_MSG = """float64 x
+float64 y
+float64 z
+"""
+_COLOR_RGBA_MSG = """float32 r
+float32 g
+float32 b
+float32 a
+"""
+_DURATION_MSG = """int32 sec
+uint32 nanosec
+"""
+_COMPRESSED_IMAGE_MSG = """std_msgs/Header header
+string format
+uint8[] data
+"""
+_UV_COORDINATE_MSG = """float32 u
+float32 v
+"""
+_MESH_FILE_MSG = """string filename
+uint8[] data
+"""
 
 
 def _schema_text(main: str, *dependencies: tuple[str, str]) -> str:
@@ -146,6 +220,22 @@ TF_MESSAGE_SCHEMA = _schema_text(
     ("geometry_msgs/Transform", _TRANSFORM_MSG),
     ("geometry_msgs/Vector3", _VECTOR3_MSG),
     ("geometry_msgs/Quaternion", _QUATERNION_MSG),
+)
+
+MARKER_ARRAY_SCHEMA = _schema_text(
+    _MARKER_ARRAY_MSG,
+    ("visualization_msgs/Marker", _MARKER_MSG),
+    ("std_msgs/Header", _HEADER_MSG),
+    ("builtin_interfaces/Time", _TIME_MSG),
+    ("geometry_msgs/Pose", _POSE_MSG),
+    ("geometry_msgs/Point", _POINT_MSG),
+    ("geometry_msgs/Quaternion", _QUATERNION_MSG),
+    ("geometry_msgs/Vector3", _VECTOR3_MSG),
+    ("std_msgs/ColorRGBA", _COLOR_RGBA_MSG),
+    ("builtin_interfaces/Duration", _DURATION_MSG),
+    ("sensor_msgs/CompressedImage", _COMPRESSED_IMAGE_MSG),
+    ("visualization_msgs/UVCoordinate", _UV_COORDINATE_MSG),
+    ("visualization_msgs/MeshFile", _MESH_FILE_MSG),
 )
 
 POINT_FIELDS = ("x", "y", "z", "intensity", "cov_xx", "cov_yy", "cov_zz")
@@ -384,6 +474,100 @@ def point_cloud2(
     }
 
 
+PLANE_THICKNESS_M = 0.005
+"""How thick a plane's marker is drawn, m."""
+CORNER_MARKER_LENGTH_M = 0.3
+"""How long a corner's edge is drawn, centred on its foot, m (the echoes tell where the edge is,
+not where it ends)."""
+_PLANE_COLOUR = {"r": 0.2, "g": 0.6, "b": 1.0, "a": 0.7}
+_CORNER_COLOUR = {"r": 1.0, "g": 0.5, "b": 0.1, "a": 1.0}
+_MARKER_CUBE, _MARKER_LINE_LIST, _MARKER_DELETEALL = 1, 5, 3
+
+
+def _marker(header: dict[str, Any], ns: str, marker_id: int, kind: int, action: int = 0) -> dict[str, Any]:
+    """A ``visualization_msgs/msg/Marker`` with every field at its default."""
+    return {
+        "header": header,
+        "ns": ns,
+        "id": marker_id,
+        "type": kind,
+        "action": action,
+        "pose": {
+            "position": {"x": 0.0, "y": 0.0, "z": 0.0},
+            "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+        },
+        "scale": {"x": 1.0, "y": 1.0, "z": 1.0},
+        "color": {"r": 0.0, "g": 0.0, "b": 0.0, "a": 0.0},
+        "lifetime": {"sec": 0, "nanosec": 0},
+        "frame_locked": False,
+        "points": [],
+        "colors": [],
+        "texture_resource": "",
+        "texture": {"header": header, "format": "", "data": b""},
+        "uv_coordinates": [],
+        "text": "",
+        "mesh_resource": "",
+        "mesh_file": {"filename": "", "data": b""},
+        "mesh_use_embedded_materials": False,
+    }
+
+
+def surface_markers(
+    frame: FrameObjects, stamp_s: float, *, frame_id: str = SENSOR_FRAME_ID
+) -> dict[str, Any]:
+    """A ``visualization_msgs/msg/MarkerArray`` (as a dict) of one frame's planes and corners.
+
+    First a DELETEALL (the markers of the previous frame go), then per plane a CUBE
+    (namespace ``planes``) centred on the patch its echoes met: its z axis along the
+    normal, x and y spanning the specular points (at least 1 cm), :data:`PLANE_THICKNESS_M`
+    thick; per corner a LINE_LIST (namespace ``corners``) of :data:`CORNER_MARKER_LENGTH_M`
+    along the edge through its foot. The id is the object's index in the frame.
+    """
+    header = {"stamp": ros_time(stamp_s), "frame_id": frame_id}
+    markers = [_marker(header, "", 0, _MARKER_CUBE, _MARKER_DELETEALL)]
+    for index, obj in enumerate(frame.objects):
+        surface = obj.surface
+        if surface is None:
+            continue
+        if surface.kind == "plane" and surface.normal is not None and surface.specular_points_m is not None:
+            normal = np.asarray(surface.normal, dtype=float)
+            rotation = _plane_frame(normal)
+            points = np.asarray(surface.specular_points_m, dtype=float)
+            centre = points.mean(axis=0)
+            span = (points - centre) @ rotation[:, :2]
+            size = np.maximum(span.max(axis=0) - span.min(axis=0), 0.01)
+            middle = centre + rotation[:, :2] @ (0.5 * (span.max(axis=0) + span.min(axis=0)))
+            marker = _marker(header, "planes", index, _MARKER_CUBE)
+            qx, qy, qz, qw = (float(v) for v in _matrix_quaternion(rotation))
+            marker["pose"] = {
+                "position": dict(zip("xyz", (float(v) for v in middle), strict=True)),
+                "orientation": {"x": qx, "y": qy, "z": qz, "w": qw},
+            }
+            marker["scale"] = {"x": float(size[0]), "y": float(size[1]), "z": PLANE_THICKNESS_M}
+            marker["color"] = _PLANE_COLOUR
+            markers.append(marker)
+        elif surface.kind == "corner" and surface.edge_direction is not None:
+            along = 0.5 * CORNER_MARKER_LENGTH_M * np.asarray(surface.edge_direction, dtype=float)
+            foot = np.asarray(obj.position_m, dtype=float)
+            marker = _marker(header, "corners", index, _MARKER_LINE_LIST)
+            marker["points"] = [
+                dict(zip("xyz", (float(v) for v in end), strict=True)) for end in (foot - along, foot + along)
+            ]
+            marker["scale"] = {"x": 0.01, "y": 0.0, "z": 0.0}
+            marker["color"] = _CORNER_COLOUR
+            markers.append(marker)
+    return {"markers": markers}
+
+
+def _plane_frame(normal: NDArray[np.float64]) -> NDArray[np.float64]:
+    """A rotation matrix whose third column is ``normal`` (a right-handed orthonormal basis)."""
+    helper = np.array([0.0, 1.0, 0.0]) if abs(normal[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    x = np.cross(helper, normal)
+    x /= np.linalg.norm(x)
+    y = np.cross(normal, x)
+    return np.column_stack([x, y, normal])
+
+
 def receiver_ranges_m(
     frame: FrameObjects, receivers_m: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -484,7 +668,9 @@ def write_mcap(
     recording's ``field_of_view_deg`` in radians, or pi, the half-space in front, when
     unknown; ``min_range`` = ``min_range_m``, ``max_range`` from the recording window,
     :func:`_max_range_m`). With ``tf_static`` one ``/tf_static`` message places the
-    receiver frames in ``frame_id``.
+    receiver frames in ``frame_id``. When any object carries a reflector class, each
+    frame also gets a ``visualization_msgs/msg/MarkerArray`` of its planes and corners on
+    ``/echoloc/surfaces`` (:func:`surface_markers`).
 
     Stamps (header and MCAP log time) are ``start_time_s`` (e.g. the Unix time of the
     first emission) plus the frame's time: the recording's ``frame_times`` (or
@@ -579,6 +765,9 @@ def write_mcap(
                 else 2.0 * math.radians(recording.field_of_view_deg)
             )
             max_ranges = [_max_range_m(recording, speed, rx) for rx in range(recording.n_receivers)]
+        classified = any(obj.surface is not None for frame in frames for obj in frame.objects)
+        if classified:
+            marker_schema = writer.register_msgdef("visualization_msgs/msg/MarkerArray", MARKER_ARRAY_SCHEMA)
         for index, (frame, stamp) in enumerate(zip(frames, stamps, strict=True)):
             t_ns = round(stamp * 1e9)
             intensity = _intensity_for(intensities, index, len(frames), source)
@@ -587,6 +776,12 @@ def write_mcap(
                 OBJECTS_TOPIC, cloud_schema, cloud, log_time=t_ns, publish_time=t_ns, sequence=index
             )
             count += 1
+            if classified:
+                markers = surface_markers(frame, stamp, frame_id=frame_id)
+                writer.write_message(
+                    SURFACES_TOPIC, marker_schema, markers, log_time=t_ns, publish_time=t_ns, sequence=index
+                )
+                count += 1
             if recording is None or not with_ranges:
                 continue
             distances, variances = receiver_ranges_m(frame, recording.receivers_m)

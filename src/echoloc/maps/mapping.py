@@ -37,7 +37,8 @@ window) and marks nothing. Three rules keep one reading from undoing another's
   surface returns nothing at oblique incidence; after Konolige's MURIEL, 1997).
 
 Located objects (:mod:`echoloc.localise.locate`) with their covariance are added as Gaussian
-blobs of ``object_probability``.
+blobs of ``object_probability``; a plane (``--classes``) as the segment of it its echoes
+met (the rectangle in the plane spanned by its specular points), not as an arc.
 
 **Frames.** The map lives in the fixed frame of the sensor poses (``sensor_poses`` in
 the recording, ``p_world = R(q) p_sensor + t``, or a trajectory file,
@@ -61,7 +62,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from echoloc.errors import EchoLocError, read_text_input
 from echoloc.io.recording import Recording
-from echoloc.localise.locate import FrameObjects
+from echoloc.localise.locate import FrameObjects, LocatedObject
 from echoloc.physics.transducer import X_FIRST_NULL, X_MINUS_3DB
 from echoloc.pipeline import Chain
 from echoloc.tof.echoes import FrameEchoes, frame_time_s
@@ -740,11 +741,16 @@ class MapAccumulator:
         frame_id: int,
         n_touched: int,
     ) -> int:
-        """Each located object as a Gaussian blob of its covariance (plus the cell's own spread)."""
+        """Each located object as a Gaussian blob of its covariance (plus the cell's own spread);
+        a plane (reflector classes) as the patch of it that was heard (:meth:`_add_plane`)."""
         spec = self.spec
         h = spec.cell_m
         ny, nz = spec.shape[1], spec.shape[2]
         for obj in objects.objects:
+            surface = obj.surface
+            if surface is not None and surface.kind == "plane" and surface.specular_points_m is not None:
+                n_touched = self._add_plane(obj, rotation, translation, frame_id, n_touched)
+                continue
             mean = rotation @ np.asarray(obj.position_m, dtype=float) + translation
             covariance = rotation @ np.asarray(obj.covariance_m2, dtype=float) @ rotation.T
             covariance = covariance + np.eye(3) * (h * h / 12.0)
@@ -772,6 +778,51 @@ class MapAccumulator:
                 n_touched,
             )
         return n_touched
+
+    def _add_plane(
+        self, obj: LocatedObject, rotation: FloatArray, translation: FloatArray, frame_id: int, n_touched: int
+    ) -> int:
+        """A plane as a surface segment: the rectangle in the plane spanned by the points where the
+        channels' echoes met it (their specular points), sampled every half cell, each cell it
+        crosses marked with ``object_probability``; a single specular point marks its cell."""
+        surface = obj.surface
+        assert surface is not None
+        assert surface.specular_points_m is not None
+        assert surface.normal is not None
+        spec = self.spec
+        h = spec.cell_m
+        ny, nz = spec.shape[1], spec.shape[2]
+        points = np.asarray(surface.specular_points_m, dtype=float) @ rotation.T + translation
+        normal = rotation @ np.asarray(surface.normal, dtype=float)
+        helper = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        u = np.cross(normal, helper)
+        u /= np.linalg.norm(u)
+        v = np.cross(normal, u)
+        centre = points.mean(axis=0)
+        along_u, along_v = (points - centre) @ u, (points - centre) @ v
+        steps_u = np.arange(along_u.min(), along_u.max() + h / 4, h / 2)
+        steps_v = np.arange(along_v.min(), along_v.max() + h / 4, h / 2)
+        grid_u, grid_v = np.meshgrid(steps_u, steps_v, indexing="ij")
+        samples = centre + grid_u.reshape(-1, 1) * u + grid_v.reshape(-1, 1) * v
+        index = np.floor((samples - spec.origin_m) / h).astype(np.int64)
+        inside = np.all((index >= 0) & (index < np.array(spec.shape)), axis=1)
+        index = np.unique(index[inside], axis=0)
+        if not len(index):
+            return n_touched
+        cells = (index[:, 0] * ny + index[:, 1]) * nz + index[:, 2]
+        p = self.model.object_probability
+        return int(
+            self._kernels.add_supported_evidence(
+                cells,
+                np.full(len(cells), math.log(p / (1 - p))),
+                self._occupied,
+                self._support,
+                self._stamp,
+                frame_id,
+                self._touched,
+                n_touched,
+            )
+        )
 
     def grid(self) -> OccupancyGrid:
         """A frozen snapshot of the map as it is now."""
