@@ -262,3 +262,36 @@ def test_an_edge_is_no_point() -> None:
     )
     assert edge.chi2[0] < 15.0
     assert found.chi2[0, 0] > 100.0
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    position=st.tuples(coordinate, coordinate, st.floats(0.5, 2.0)),
+    transmitter=st.integers(0, 1),
+)
+def test_the_analytic_jacobians_are_the_models_derivatives(position, transmitter) -> None:
+    """Point, plane and image paths: the closed-form gradients against central differences."""
+    p = np.array([position], dtype=float)
+    transmitters = np.broadcast_to(TRANSMITTERS[transmitter], CROSS.shape)
+    reference = TRANSMITTERS[0]
+    cases = [
+        (
+            lambda q: surfaces.point_paths_m(q, transmitters, CROSS),
+            surfaces.point_jacobian(p, transmitters, CROSS),
+        ),
+        (
+            lambda q: surfaces.plane_paths_m(q, transmitters, CROSS, reference),
+            surfaces.plane_jacobian(p, transmitters, CROSS, reference),
+        ),
+        (lambda q: surfaces.mirror_paths_m(q, CROSS), surfaces.mirror_jacobian(CROSS)(p)),
+    ]
+    for model, exact in cases:
+        step = 1e-6
+        numeric = np.stack(
+            [
+                (model(p + step * np.eye(3)[k]) - model(p - step * np.eye(3)[k])) / (2 * step)
+                for k in range(3)
+            ],
+            axis=-1,
+        )
+        np.testing.assert_allclose(exact, numeric, atol=1e-7)

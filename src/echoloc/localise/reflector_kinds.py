@@ -153,7 +153,13 @@ def mirror_groups(
     near = np.flatnonzero(np.isfinite(first) & (first <= 100 * gate + 100))
     if len(near) == 0:
         return []
-    image = surfaces.fit(lambda v: surfaces.mirror_paths_m(v, rx), start[near], measured[near], s[near])
+    image = surfaces.fit(
+        lambda v: surfaces.mirror_paths_m(v, rx),
+        start[near],
+        measured[near],
+        s[near],
+        jacobian=surfaces.mirror_jacobian(rx),
+    )
     ahead = (image.parameters - transmitter_m) @ boresight > 0
     # Spherical spreading from one image: amplitude x path the same on every channel. Echoes of
     # different reflectors that happen to fit one image rarely agree in it.
@@ -176,6 +182,7 @@ def mirror_groups(
         0.5 * (image.parameters[[image_at[int(r)] for r in passed]] + transmitter_m),
         measured[passed],
         s[passed],
+        jacobian=lambda p: surfaces.point_jacobian(p, tx, rx),
     )
     margin = point.chi2 - image.chi2[[image_at[int(r)] for r in passed]]
     decisive_rows = margin >= DECISIVE_CHI2 if decisive else np.ones(len(passed), dtype=bool)
@@ -282,10 +289,20 @@ def edge_groups(
     if len(passed) == 0:
         return []
     point = surfaces.fit(
-        lambda p: surfaces.point_paths_m(p, tx, rx), feet[passed], measured[passed], s[passed]
+        lambda p: surfaces.point_paths_m(p, tx, rx),
+        feet[passed],
+        measured[passed],
+        s[passed],
+        jacobian=lambda p: surfaces.point_jacobian(p, tx, rx),
     )
     mirror_start = surfaces.image_start_m(rx, measured[passed], np.asarray(options.boresight, dtype=float))
-    mirror = surfaces.fit(lambda v: surfaces.mirror_paths_m(v, rx), mirror_start, measured[passed], s[passed])
+    mirror = surfaces.fit(
+        lambda v: surfaces.mirror_paths_m(v, rx),
+        mirror_start,
+        measured[passed],
+        s[passed],
+        jacobian=surfaces.mirror_jacobian(rx),
+    )
     best_other = np.minimum(point.chi2, mirror.chi2)
     keep = best_other - edge.chi2[passed] >= DECISIVE_CHI2
     chosen: list[EdgeGroup] = []
@@ -455,31 +472,30 @@ def _paired(
     """The newest frame's group with the other transmitter's group that one plane or corner fits
     best (within the gate), or alone."""
     start = 0.5 * (newest.image_m + transmitters_m[newest.transmitter])
-    alone = _object(
-        _group_channels([newest], transmitters_m, receivers_m),
-        newest.transmitter,
-        transmitters_m,
-        start,
-        options,
-    )
+    # A plane's or a corner's images lie across it from their transmitters: the midpoints of
+    # image and transmitter are on the plane, or on the edge, so two transmitters' midpoints
+    # are no farther apart than the transmitters (plus a margin for the fits' errors).
+    t_newest = transmitters_m[newest.transmitter]
+    near = [
+        other
+        for other in others
+        if np.linalg.norm(0.5 * (other.image_m + transmitters_m[other.transmitter]) - start)
+        <= np.linalg.norm(transmitters_m[other.transmitter] - t_newest) + PAIRING_MARGIN_M
+    ]
+    groups = [_group_channels([newest], transmitters_m, receivers_m)]
+    groups += [_group_channels([newest, other], transmitters_m, receivers_m) for other in near]
+    found = _objects_of(groups, newest.transmitter, transmitters_m, np.tile(start, (len(groups), 1)), options)
     best: tuple[float, LocatedObject, MirrorGroup] | None = None
-    for other in others:
-        # A plane's or a corner's images lie across it from their transmitters: the midpoints of
-        # image and transmitter are on the plane, or on the edge, so two transmitters' midpoints
-        # are no farther apart than the transmitters (plus a margin for the fits' errors).
-        t_other = transmitters_m[other.transmitter]
-        apart = np.linalg.norm(0.5 * (other.image_m + t_other) - start)
-        if apart > np.linalg.norm(t_other - transmitters_m[newest.transmitter]) + PAIRING_MARGIN_M:
+    for other, channels, candidate in zip(near, groups[1:], found[1:], strict=True):
+        if candidate is None or candidate.surface is None or candidate.surface.kind == "point":
             continue
-        channels = _group_channels([newest, other], transmitters_m, receivers_m)
-        found = _object(channels, newest.transmitter, transmitters_m, start, options)
-        if found is None or found.surface is None or found.surface.kind == "point":
-            continue
-        dof = len(channels.paths_m) - surfaces.PARAMETERS[found.surface.kind]
-        if found.chi2 <= _chi2_gate(options.gate_probability, dof) and (best is None or found.chi2 < best[0]):
-            best = (found.chi2, found, other)
+        dof = len(channels.paths_m) - surfaces.PARAMETERS[candidate.surface.kind]
+        if candidate.chi2 <= _chi2_gate(options.gate_probability, dof) and (
+            best is None or candidate.chi2 < best[0]
+        ):
+            best = (candidate.chi2, candidate, other)
     if best is None:
-        return alone, None
+        return found[0], None
     return best[1], best[2]
 
 
@@ -555,21 +571,21 @@ def _seen_by_others(
     transmitters_m: FloatArray,
     receivers_m: FloatArray,
 ) -> bool:
-    """Whether a point that only the newest frame's echoes support has, in every other
-    transmitter's frame, echoes within :data:`MOVED_M` of its paths on at least three channels.
+    """Whether a point echoes to every other transmitter: three or more of its channels come
+    from that transmitter's frame, or that frame has echoes within :data:`MOVED_M` of its
+    paths on three channels.
 
     A real reflector echoes to every transmitter; if it moved between the frames the
-    association leaves the older frame out, but its echoes are still near. A point seen
-    through an unheard wall (the receivers' mirror images) lies elsewhere for another
-    transmitter, and its older echoes are not there. Planes and corners, and points that
-    other frames already support, pass.
+    association leaves the older frame out (or takes a channel or two of it by chance), but
+    its echoes are still near. A point seen through an unheard wall (the receivers' mirror
+    images) lies elsewhere for another transmitter, and its older echoes are not there.
+    Planes and corners pass.
     """
     if o.surface is not None and o.surface.kind != "point":
         return True
-    if any(t != newest_t for t in _channel_transmitters(o, frames)):
-        return True
+    own = _channel_transmitters(o, frames)
     for t, echoes in frames:
-        if t == newest_t:
+        if t == newest_t or sum(k == t for k in own) >= 3:
             continue
         predicted = surfaces.point_paths_m(
             o.position_m[None], np.broadcast_to(transmitters_m[t], receivers_m.shape), receivers_m
@@ -708,47 +724,72 @@ def _group_paths(
     return np.array(paths), np.array(sigmas)
 
 
-def _mirrored(points_m: FloatArray, surface: surfaces.Surface, foot_m: FloatArray) -> FloatArray:
-    """``points_m`` (..., 3) mirrored in a plane through ``foot_m`` with the surface's normal."""
-    assert surface.normal is not None
-    n = surface.normal
-    return np.asarray(points_m - 2 * ((points_m - foot_m) @ n)[..., None] * n)
+def _mirror_points(points_m: FloatArray, feet_m: FloatArray, normals: FloatArray) -> FloatArray:
+    """``points_m`` (m, 3) mirrored in each plane (feet and normals (L, 3)): (L, m, 3)."""
+    height = np.einsum("lmk,lk->lm", points_m[None] - feet_m[:, None], normals)
+    return np.asarray(points_m[None] - 2 * height[..., None] * normals[:, None])
 
 
-def _second_order_paths(
-    a: LocatedObject, b: LocatedObject, tx: FloatArray, rx: FloatArray
-) -> FloatArray | None:
-    """Paths (m,) of the channels (tx, rx) (m, 3) that go to ``a`` first and then to ``b``, or None
-    when the pair makes none here: point-point, plane-point (the transmitter's image), point-plane
-    (the receiver's image) and plane-plane (the image of the image). Corners make none of their own:
-    their double bounce is their echo."""
-    kind_a = "point" if a.surface is None else a.surface.kind
-    kind_b = "point" if b.surface is None else b.surface.kind
-    pa, pb = a.position_m, b.position_m
-    if kind_a == "point" and kind_b == "point":
-        return np.asarray(
-            np.linalg.norm(pa - tx, axis=1) + np.linalg.norm(pb - pa) + np.linalg.norm(pb - rx, axis=1)
-        )
-    if kind_a == "plane" and kind_b == "point":
-        assert a.surface is not None
-        image = _mirrored(tx, a.surface, pa)
-        return np.asarray(np.linalg.norm(pb - image, axis=1) + np.linalg.norm(pb - rx, axis=1))
-    if kind_a == "point" and kind_b == "plane":
-        assert b.surface is not None
-        image = _mirrored(rx, b.surface, pb)
-        return np.asarray(np.linalg.norm(pa - tx, axis=1) + np.linalg.norm(pa - image, axis=1))
-    if kind_a == "plane" and kind_b == "plane":
-        assert a.surface is not None
-        assert b.surface is not None
-        image = _mirrored(_mirrored(tx, a.surface, pa), b.surface, pb)
-        return np.asarray(np.linalg.norm(image - rx, axis=1))
-    return None
+def _double_reflections(
+    points_m: FloatArray, feet_m: FloatArray, normals: FloatArray, tx: FloatArray, rx: FloatArray
+) -> FloatArray:
+    """Every double reflection's path on the channels (tx, rx) (m, 3): (N, m).
+
+    Between two different points A, B: ``|A - T| + |B - A| + |B - R|``; a plane then a point
+    B: ``|B - T'| + |B - R|`` (T' the transmitter's image); a point A then a plane:
+    ``|A - T| + |A - R'|`` (the receiver's image); a plane then another: ``|T'' - R|``
+    (the image of the image). Points (K, 3); planes by their feet and normals (L, 3).
+    Corners make none of their own: their double bounce is their echo.
+    """
+    m = len(tx)
+    parts = [np.zeros((0, m))]
+    if len(points_m) >= 2:
+        to_tx = np.linalg.norm(points_m[:, None] - tx[None], axis=-1)  # (K, m)
+        to_rx = np.linalg.norm(points_m[:, None] - rx[None], axis=-1)
+        between = np.linalg.norm(points_m[:, None] - points_m[None], axis=-1)  # (K, K)
+        first, second = np.nonzero(~np.eye(len(points_m), dtype=bool))
+        parts.append(to_tx[first] + between[first, second][:, None] + to_rx[second])
+    if len(feet_m) and len(points_m):
+        tx_images = _mirror_points(tx, feet_m, normals)  # (L, m, 3)
+        rx_images = _mirror_points(rx, feet_m, normals)
+        to_rx = np.linalg.norm(points_m[:, None] - rx[None], axis=-1)  # (K, m)
+        to_tx = np.linalg.norm(points_m[:, None] - tx[None], axis=-1)
+        plane_first = np.linalg.norm(points_m[None, :, None] - tx_images[:, None], axis=-1) + to_rx[None]
+        plane_last = to_tx[None] + np.linalg.norm(points_m[None, :, None] - rx_images[:, None], axis=-1)
+        parts += [plane_first.reshape(-1, m), plane_last.reshape(-1, m)]
+    if len(feet_m) >= 2:
+        tx_images = _mirror_points(tx, feet_m, normals)  # (L, m, 3)
+        for i, j in zip(*np.nonzero(~np.eye(len(feet_m), dtype=bool)), strict=True):
+            twice = _mirror_points(tx_images[i], feet_m[j : j + 1], normals[j : j + 1])[0]
+            parts.append(np.linalg.norm(twice - rx, axis=-1)[None])
+    return np.asarray(np.concatenate(parts))
 
 
 def _versions(o: LocatedObject, alternatives: dict[int, LocatedObject]) -> list[LocatedObject]:
     """The object, and the plane or corner it could also be."""
     other = alternatives.get(id(o))
     return [o] if other is None else [o, other]
+
+
+def _primitives(
+    kept: Sequence[LocatedObject], alternatives: dict[int, LocatedObject]
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The points (K, 3) and the planes' feet and normals (L, 3) of settled objects, with the
+    plane each point might also be."""
+    points, feet, normals = [], [], []
+    for o in kept:
+        for version in _versions(o, alternatives):
+            surface = version.surface
+            if surface is None or surface.kind == "point":
+                points.append(version.position_m)
+            elif surface.kind == "plane" and surface.normal is not None:
+                feet.append(version.position_m)
+                normals.append(surface.normal)
+    return (
+        np.array(points, dtype=float).reshape(-1, 3),
+        np.array(feet, dtype=float).reshape(-1, 3),
+        np.array(normals, dtype=float).reshape(-1, 3),
+    )
 
 
 def _explained_away(
@@ -759,13 +800,14 @@ def _explained_away(
     options: LocateOptions,
     alternatives: dict[int, LocatedObject],
 ) -> list[LocatedObject]:
-    """``objects`` less those whose echoes two others with shorter paths explain as double
+    """``objects`` less those whose echoes others with shorter paths explain as double
     reflections: ghosts, not reflectors. The objects come back shortest mean path first. An
     object with an alternative (a plane it was not decisively told from) explains as either.
 
-    Each channel's echo is compared with the pair's double reflection in either order (the
-    two orders have different lengths, and a ghost's echoes may mix them), within the
-    chi-square gate over the object's channels. A double reflection overlaps other echoes
+    Each channel's echo is compared with the nearest of every double reflection between the
+    settled objects, in either order (:func:`_double_reflections`; a ghost's echoes may mix
+    several, since each receiver hears the nearest), within the chi-square gate over the
+    object's channels. A double reflection overlaps other echoes
     often, so each channel's sigma includes that of a merged peak (the association's
     ``resolution_m / (4 sqrt 3)``). A double reflection is longer than either reflector's own
     echo, so the objects are settled in order of their mean path, and only those settled can
@@ -786,23 +828,49 @@ def _explained_away(
             if sum(t == newest_t for t in tx_of) >= 3
             else np.ones(len(tx_of), bool)
         )
-        observed, sigma = observed[own], np.sqrt(sigma[own] ** 2 + merge**2)
+        observed, sigma = observed[own], sigma[own]
         tx, rx = transmitters_m[np.array(tx_of)[own]], receivers_m[np.array(o.receivers)[own]]
-        gate = _chi2_gate(options.gate_probability, len(observed))
-        ghost = False
-        for i, first in enumerate(kept):
-            for second in kept[i + 1 :]:
-                for a in _versions(first, alternatives):
-                    for b in _versions(second, alternatives):
-                        orders = [_second_order_paths(a, b, tx, rx), _second_order_paths(b, a, tx, rx)]
-                        known = [p for p in orders if p is not None]
-                        if known:
-                            residual = np.min(np.abs(np.stack(known) - observed), axis=0) / sigma
-                            ghost = ghost or bool(np.sum(residual**2) <= gate)
-                if ghost:
-                    break
-            if ghost:
-                break
-        if not ghost:
+        if not _double_reflection(observed, sigma, merge, kept, alternatives, tx, rx, options):
             kept.append(o)
     return kept
+
+
+def _double_reflection(
+    observed: FloatArray,
+    sigma: FloatArray,
+    merge: float,
+    kept: Sequence[LocatedObject],
+    alternatives: dict[int, LocatedObject],
+    tx: FloatArray,
+    rx: FloatArray,
+    options: LocateOptions,
+) -> bool:
+    """Whether the double reflections between ``kept`` explain the paths ``observed`` (sigma ``sigma``):
+    one pair's, in either order per channel, with every sigma widened by a merged peak's
+    ``merge``; or the nearest of all of them per channel (a ghost may mix several pairs), within
+    the plain sigmas but for the worst channel, which is widened. With many objects many double
+    reflections lie about, so the mixture must fit tighter than one pair."""
+    gate = _chi2_gate(options.gate_probability, len(observed))
+    widened = np.sqrt(sigma**2 + merge**2)
+    points, feet, normals = _primitives(kept, alternatives)
+    predicted = _double_reflections(points, feet, normals, tx, rx)
+    if not len(predicted):
+        return False
+    nearest = np.min(np.abs(predicted - observed), axis=0)
+    mixed = (nearest / sigma) ** 2
+    worst = int(np.argmax(mixed))
+    mixed[worst] = (nearest[worst] / widened[worst]) ** 2
+    if np.sum(mixed) <= gate:
+        return True
+    for i, first in enumerate(kept):
+        for second in kept[i + 1 :]:
+            for a in _versions(first, alternatives):
+                for b in _versions(second, alternatives):
+                    p_a, f_a, n_a = _primitives([a], {})
+                    p_b, f_b, n_b = _primitives([b], {})
+                    pair = _double_reflections(
+                        np.vstack([p_a, p_b]), np.vstack([f_a, f_b]), np.vstack([n_a, n_b]), tx, rx
+                    )
+                    if len(pair) and np.sum((np.min(np.abs(pair - observed), axis=0) / widened) ** 2) <= gate:
+                        return True
+    return False

@@ -210,10 +210,12 @@ def fit(
     paths_m: FloatArray,
     sigmas_m: FloatArray,
     iterations: int = _ITERATIONS,
+    jacobian: Callable[[FloatArray], FloatArray] | None = None,
 ) -> Fit:
     """Weighted least squares of ``paths_m`` (n, m) against ``model(parameters)`` from ``start`` (n, k).
 
-    Gauss-Newton; a step that raises the chi-square is halved up to 8 times, then the
+    ``jacobian(parameters)`` gives d model / d parameters (n, m, k); without it, forward
+    differences. Gauss-Newton; a step that raises the chi-square is halved up to 8 times, then the
     row stays where it is. Weights ``1 / sigma^2``; a NaN path or an infinite sigma
     leaves the channel out. The covariance is ``(J^T W J)^-1`` at the solution
     (a pseudo-inverse where a parameter is not determined).
@@ -224,8 +226,16 @@ def fit(
     with np.errstate(invalid="ignore", divide="ignore"):
         predicted = model(p)
     chi2 = _weighted_chi2(paths - predicted, w)
+
+    def derivative(q: FloatArray, at_q: FloatArray) -> FloatArray:
+        if jacobian is None:
+            return _jacobian(model, q, at_q)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            exact = jacobian(q)
+        return np.asarray(np.where(np.isfinite(exact), exact, 0.0))
+
     for _ in range(iterations):
-        jac = _jacobian(model, p, predicted)
+        jac = derivative(p, predicted)
         r = np.where(w > 0, paths - predicted, 0.0)
         r = np.where(np.isfinite(r), r, 0.0)
         jtw = np.swapaxes(jac, 1, 2) * w[:, None, :]
@@ -253,7 +263,7 @@ def fit(
             factor = np.where(done, factor, 0.5 * factor)
         if largest < _CONVERGED:
             break
-    jac = _jacobian(model, p, predicted)
+    jac = derivative(p, predicted)
     normal = np.swapaxes(jac, 1, 2) * w[:, None, :] @ jac
     covariance = np.asarray(np.linalg.pinv(normal, hermitian=True), dtype=float)
     return Fit(p, covariance, chi2)
@@ -380,9 +390,17 @@ def hypotheses(
     start = np.atleast_2d(np.asarray(start_m, dtype=float))
     n_paths = np.sum(np.isfinite(paths) & np.isfinite(sigmas), axis=1)
 
-    point = fit(lambda p: point_paths_m(p, tx, rx), start, paths, sigmas)
+    point = fit(
+        lambda p: point_paths_m(p, tx, rx), start, paths, sigmas, jacobian=lambda p: point_jacobian(p, tx, rx)
+    )
     feet = start - ref
-    plane = fit(lambda f: plane_paths_m(f, tx, rx, ref), feet, paths, sigmas)
+    plane = fit(
+        lambda f: plane_paths_m(f, tx, rx, ref),
+        feet,
+        paths,
+        sigmas,
+        jacobian=lambda f: plane_jacobian(f, tx, rx, ref),
+    )
     chi2 = np.full((len(paths), 3), np.inf)
     chi2[:, 0] = point.chi2
     chi2[:, 1] = plane.chi2
@@ -416,21 +434,140 @@ def _fit_corner(
     sigmas: FloatArray,
     feet_at: FloatArray,
 ) -> tuple[Fit, FloatArray]:
-    """The corner fit from several edge directions through the plane fit's foot; the best per row."""
+    """The corner fit through the plane fit's foot, the best per row.
+
+    The edge's direction starts from each transmitter's own image (fitted on its channels
+    alone): the edge is perpendicular to every ``V_k - T_k``, so it lies along their cross
+    product. Rows where that start does not reach the chi-square of a good fit (under
+    ``2 n`` for n paths), or where no two transmitters have four channels each, try
+    :data:`_CORNER_STARTS` directions spread over half a turn.
+    """
     n = len(paths)
     helper = _helper(feet_at - ref)
-    # Evenly spread edge angles over half a turn (e and -e are one line) cover every direction.
-    k = _CORNER_STARTS
-    angles = np.tile(np.arange(k) * math.pi / k, n)
-    start = np.concatenate([np.repeat(feet_at, k, axis=0), angles[:, None]], axis=1)
-    helper_rows = np.repeat(helper, k, axis=0)
 
-    def model(q: FloatArray) -> FloatArray:
-        return mirror_paths_images(corner_images_m(q, tx, ref, helper_rows), rx)
+    def fitted(start: FloatArray, rows: NDArray[np.int64], helpers: FloatArray) -> Fit:
+        def model(q: FloatArray) -> FloatArray:
+            return mirror_paths_images(corner_images_m(q, tx, ref, helpers), rx)
 
-    tried = fit(model, start, np.repeat(paths, k, axis=0), np.repeat(sigmas, k, axis=0))
-    best = np.argmin(tried.chi2.reshape(n, k), axis=1) + np.arange(n) * k
-    return Fit(tried.parameters[best], tried.covariance[best], tried.chi2[best]), helper
+        return fit(model, start, paths[rows], sigmas[rows])
+
+    guessed = _edge_guess(tx, rx, paths, sigmas)
+    result = Fit(np.full((n, 4), np.nan), np.full((n, 4, 4), np.nan), np.full(n, np.inf))
+    if guessed is not None:
+        angle = _edge_angle(feet_at, ref, helper, guessed)
+        first = fitted(np.concatenate([feet_at, angle[:, None]], axis=1), np.arange(n), helper)
+        result = first
+    retry = np.flatnonzero(~(result.chi2 <= 2.0 * paths.shape[1]))
+    if len(retry):
+        # Evenly spread edge angles over half a turn (e and -e are one line) cover every direction.
+        k = _CORNER_STARTS
+        angles = np.tile(np.arange(k) * math.pi / k, len(retry))
+        start = np.concatenate([np.repeat(feet_at[retry], k, axis=0), angles[:, None]], axis=1)
+        tried = fitted(start, np.repeat(retry, k), np.repeat(helper[retry], k, axis=0))
+        best = np.argmin(tried.chi2.reshape(len(retry), k), axis=1) + np.arange(len(retry)) * k
+        parameters, covariance, chi2 = result.parameters.copy(), result.covariance.copy(), result.chi2.copy()
+        better = tried.chi2[best] < chi2[retry]
+        parameters[retry[better]] = tried.parameters[best[better]]
+        covariance[retry[better]] = tried.covariance[best[better]]
+        chi2[retry[better]] = tried.chi2[best[better]]
+        result = Fit(parameters, covariance, chi2)
+    return result, helper
+
+
+def _edge_guess(tx: FloatArray, rx: FloatArray, paths: FloatArray, sigmas: FloatArray) -> FloatArray | None:
+    """The edge direction (n, 3) across the images of the first two transmitters with four or more
+    channels each (``(V_0 - T_0) x (V_1 - T_1)``), or None when there are no two such."""
+    groups: list[NDArray[np.int64]] = []
+    for t in np.unique(tx, axis=0):
+        channels = np.flatnonzero(np.all(np.abs(tx - t) <= 1e-9, axis=1))
+        if len(channels) >= 4:
+            groups.append(channels)
+    if len(groups) < 2:
+        return None
+    offsets = []
+    for channels in groups[:2]:
+        receivers = rx[channels]
+        start = image_start_m(receivers, paths[:, channels], np.array([0.0, 0.0, 1.0]))
+        image = fit(
+            _mirror_model(receivers),
+            start,
+            paths[:, channels],
+            sigmas[:, channels],
+            4,
+            mirror_jacobian(receivers),
+        )
+        offsets.append(image.parameters - tx[channels[0]])
+    across = np.cross(offsets[0], offsets[1])
+    size = np.linalg.norm(across, axis=1, keepdims=True)
+    return np.asarray(np.where(size > 0, across / np.where(size > 0, size, 1.0), np.nan))
+
+
+def _mirror_model(receivers: FloatArray) -> Callable[[FloatArray], FloatArray]:
+    """The one-way paths from images (n, 3) to ``receivers``, as a model for :func:`fit`."""
+
+    def model(images: FloatArray) -> FloatArray:
+        return mirror_paths_m(images, receivers)
+
+    return model
+
+
+def mirror_jacobian(receivers: FloatArray) -> Callable[[FloatArray], FloatArray]:
+    """d|V - R| / dV = (V - R) / |V - R| for images (n, 3): (n, m, 3)."""
+
+    def jacobian(images: FloatArray) -> FloatArray:
+        offset = images[:, None, :] - receivers[None]
+        return np.asarray(offset / np.linalg.norm(offset, axis=-1, keepdims=True))
+
+    return jacobian
+
+
+def point_jacobian(points_m: FloatArray, transmitters_m: FloatArray, receivers_m: FloatArray) -> FloatArray:
+    """d(|P - T| + |P - R|) / dP = (P - T)/|P - T| + (P - R)/|P - R|: (n, m, 3)."""
+    to_t = points_m[:, None, :] - transmitters_m[None]
+    to_r = points_m[:, None, :] - receivers_m[None]
+    return np.asarray(
+        to_t / np.linalg.norm(to_t, axis=-1, keepdims=True)
+        + to_r / np.linalg.norm(to_r, axis=-1, keepdims=True)
+    )
+
+
+def plane_jacobian(
+    feet_m: FloatArray, transmitters_m: FloatArray, receivers_m: FloatArray, reference_m: FloatArray
+) -> FloatArray:
+    """d|V - R| / dF for the plane of foot offset F (n, 3): (n, m, 3).
+
+    With ``h = |F|``, ``u = F / h``, ``d = T - T_ref`` and ``V = T + 2 (h - u.d) u``:
+    ``dV/dF = 2 [u u^T - u d^T P / h + (h - u.d) P / h]``, ``P = I - u u^T``, and the
+    path's gradient is the unit vector ``(V - R) / |V - R|`` times that.
+    """
+    h = np.linalg.norm(feet_m, axis=-1)
+    u = feet_m / h[:, None]
+    d = transmitters_m - reference_m  # (m, 3)
+    projector = np.eye(3)[None] - u[:, :, None] * u[:, None, :]  # (n, 3, 3)
+    height = h[:, None] - np.einsum("nk,mk->nm", u, d)  # (n, m)
+    d_projected = np.einsum("mk,nkj->nmj", d, projector) / h[:, None, None]  # (n, m, 3): d^T P / h
+    images = transmitters_m[None] + 2 * height[..., None] * u[:, None, :]
+    offset = images - receivers_m[None]
+    g = offset / np.linalg.norm(offset, axis=-1, keepdims=True)  # (n, m, 3)
+    g_u = np.einsum("nmk,nk->nm", g, u)
+    # g . dV/dF = 2 [ (g.u) u^T - (g.u) d^T P / h + (h - u.d) g^T P / h ]
+    g_projected = np.einsum("nmk,nkj->nmj", g, projector) / h[:, None, None]
+    return np.asarray(
+        2 * (g_u[..., None] * u[:, None, :] - g_u[..., None] * d_projected + height[..., None] * g_projected)
+    )
+
+
+def _edge_angle(
+    feet_at: FloatArray, ref: FloatArray, helper: FloatArray, direction: FloatArray
+) -> FloatArray:
+    """The corner parameter psi (n,) of an edge direction, in the basis :func:`_edge_directions` uses."""
+    w = feet_at - ref
+    w = w / np.linalg.norm(w, axis=-1, keepdims=True)
+    a = helper - np.sum(helper * w, axis=-1, keepdims=True) * w
+    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    b = np.cross(w, a)
+    angle = np.arctan2(np.sum(direction * b, axis=1), np.sum(direction * a, axis=1))
+    return np.asarray(np.where(np.isfinite(angle), angle, 0.0))
 
 
 # ---------------------------------------------------------------------------------------
