@@ -23,10 +23,9 @@ import numpy as np
 
 from echoloc.localise.evaluation import ClassEvaluation, evaluate, evaluate_classes
 from echoloc.pipeline import prepare, run
-from echoloc.sim.reflectors import truth_kinds
 from echoloc.sim.scene import Scene
 from echoloc.sim.scenefile import load_scene, preset_path
-from echoloc.sim.simulation import _objects, simulate
+from echoloc.sim.simulation import simulate
 
 SCENES = ("wall-and-corner", "rooms/corridor", "rooms/doorway", "rooms/desk")
 SECOND_TRANSMITTER_M = (0.12, 0.12, 0.0)
@@ -58,8 +57,9 @@ def score(scene: Scene, n_frames: int) -> tuple[ClassEvaluation, float]:
         np.zeros(n_frames, dtype=int) if recording.frame_transmitter is None else recording.frame_transmitter
     )
     assert recording.truth_positions_m is not None
+    assert recording.truth_kinds is not None
     evaluation = evaluate_classes(
-        results, recording.truth_positions_m, truth_kinds(_objects(scene)), recording.transmitters_m[fired]
+        results, recording.truth_positions_m, recording.truth_kinds, recording.transmitters_m[fired]
     )
     return evaluation, seconds
 

@@ -68,6 +68,7 @@ def make_recording(*, full: bool = False, seed: int = 0, **changes: Any) -> Reco
             transmitter_waveforms=np.pad(rec.waveform, (0, 4))[None, :],  # type: ignore[arg-type]
             firing="sequential",
             field_of_view_deg=18.0,
+            truth_kinds=("point", "plane", "corner"),
         )
     return dataclasses.replace(rec, **changes)
 
@@ -90,6 +91,8 @@ def file_items(rec: Recording) -> tuple[Attrs, Data]:
     ):
         if getattr(rec, name) is not None:
             attrs[name] = getattr(rec, name)
+    if rec.truth_kinds is not None:
+        attrs["truth_kinds"] = ",".join(rec.truth_kinds)
     fields = {
         "transmitters": rec.transmitters_m,
         "receivers": rec.receivers_m,
@@ -552,6 +555,22 @@ def test_validate_unknown_firing_message() -> None:
     with pytest.raises(RecordingError) as info:
         validate_recording(make_recording(source="mem", firing="alternate"))
     assert str(info.value) == "mem: firing is 'alternate', expected one of 'sequential', 'simultaneous'"
+
+
+@pytest.mark.parametrize(
+    ("kinds", "message"),
+    [
+        (
+            ("point", "wall", "corner"),
+            "mem: truth_kinds names 'wall', expected one of 'point', 'plane', 'corner'",
+        ),
+        (("point", "plane"), "mem: truth_kinds names 2 classes for the 3 columns of truth_positions"),
+    ],
+)
+def test_validate_truth_kinds_message(kinds: tuple[str, ...], message: str) -> None:
+    with pytest.raises(RecordingError) as info:
+        validate_recording(make_recording(full=True, source="mem", truth_kinds=kinds))
+    assert str(info.value) == message
 
 
 def test_validate_waveform_and_transmitter_0_may_differ_only_by_zero_padding() -> None:

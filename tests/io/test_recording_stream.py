@@ -50,6 +50,7 @@ def stream_recording(*, iq: bool = False) -> Recording:
         frame_times_s=np.arange(N_STREAM) * 0.02,
         frame_transmitter=np.arange(N_STREAM) % 2,
         truth_positions_m=truth,
+        truth_kinds=("point",) * truth.shape[1],
         sensor_poses=poses,
         waveform=codes[0],
         transmitter_waveforms=codes,

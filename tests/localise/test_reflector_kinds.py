@@ -236,3 +236,19 @@ def test_locate_classes_on_the_command_line(tmp_path: Path, capsys: pytest.Captu
     assert plane["extent_m"] > 0
     corner_edge = next(o for o in lines[1]["objects"] if o["kind"] == "corner")["edge_direction"]
     assert abs(corner_edge[1]) > math.cos(math.radians(2.0))
+
+
+def test_evaluate_classes_on_the_command_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The simulator writes truth_kinds; `evaluate --classes --json` scores them: every true
+    reflector of the corridor is counted once in the confusion matrix."""
+    path = tmp_path / "corridor.h5"
+    write_recording(simulate(load_scene(preset_path("rooms/corridor")), 4), path)
+    with pytest.raises(SystemExit) as exit_info:
+        main(["evaluate", str(path), "--classes", "--json"])
+    assert exit_info.value.code in (0, None)
+    record = json.loads(capsys.readouterr().out)
+    classes = record["classes"]
+    assert classes["kinds"] == ["point", "plane", "corner"]
+    assert int(np.sum(classes["confusion"])) == record["truth_objects"] == 12
+    assert classes["confusion"][2][2] >= 2  # the corner, once both transmitters fired
+    assert classes["median_normal_error_deg"] < 0.1

@@ -13,6 +13,7 @@ from typing import Any
 
 import click
 import numpy as np
+from numpy.typing import NDArray
 from rich.table import Table
 
 from echoloc.cli.app import (
@@ -39,7 +40,7 @@ from echoloc.localise.calibrate import (
     fit_calibration,
     write_calibration,
 )
-from echoloc.localise.evaluation import Evaluation, evaluate
+from echoloc.localise.evaluation import ClassEvaluation, Evaluation, evaluate, evaluate_classes
 from echoloc.localise.locate import FrameObjects, LocatedObject
 from echoloc.pipeline import (
     check_locatable,
@@ -409,15 +410,66 @@ def evaluate_command(processing: Processing, match_radius_m: float, as_json: boo
             results.append(objects)
             advance(1)
     report = evaluate(results, recording.truth_positions_m, match_radius_m)
-    if as_json:
-        click.echo(
-            json.dumps(
-                _json_safe(_evaluation_record(report, processing.estimator_name(recording))),
-                allow_nan=False,
-            )
+    classes = None
+    if processing.classes and recording.truth_kinds is not None:
+        fired = (
+            np.zeros(recording.n_frames, dtype=int)
+            if recording.frame_transmitter is None
+            else recording.frame_transmitter
         )
+        classes = evaluate_classes(
+            results,
+            recording.truth_positions_m,
+            recording.truth_kinds,
+            recording.transmitters_m[fired],
+            match_radius_m=match_radius_m,
+        )
+    if as_json:
+        record = _evaluation_record(report, processing.estimator_name(recording))
+        if classes is not None:
+            record["classes"] = _classes_record(classes)
+        click.echo(json.dumps(_json_safe(record), allow_nan=False))
         return
     _print_evaluation(report, processing.recording_path, processing.estimator_name(recording))
+    if classes is not None:
+        _print_classes(classes)
+    elif processing.classes:
+        stdout.print("(no truth_kinds in the recording: the classes are not scored)")
+
+
+def _classes_record(scored: ClassEvaluation) -> dict[str, Any]:
+    """The class figures of ``evaluate --classes --json``."""
+    return {
+        "kinds": list(scored.kinds),
+        "confusion": scored.confusion.tolist(),
+        "right_class_rate": scored.right_class_rate,
+        "false_rate": scored.false_rate,
+        "median_normal_error_deg": _median(scored.normal_errors_deg),
+        "median_abs_distance_error_m": _median(np.abs(scored.distance_errors_m)),
+    }
+
+
+def _median(values: NDArray[np.float64]) -> float:
+    return float(np.median(values)) if len(values) else float("nan")
+
+
+def _print_classes(scored: ClassEvaluation) -> None:
+    """The confusion matrix of classes, and the planes' normal and distance errors."""
+    table = Table(title=f"classes: right for {scored.right_class_rate:.4f} of the true reflectors")
+    table.add_column("truth \\ reported")
+    for kind in (*scored.kinds, "missed"):
+        table.add_column(kind, justify="right")
+    for kind, row in zip(scored.kinds, scored.confusion, strict=True):
+        if row.sum():
+            table.add_row(kind, *(str(int(v)) for v in row))
+    stdout.print(table)
+    if len(scored.normal_errors_deg):
+        normal = _median(scored.normal_errors_deg)
+        distance_mm = _median(np.abs(scored.distance_errors_m)) * 1e3
+        stdout.print(
+            f"planes: median normal error {normal:.3f}°, median |distance error| {distance_mm:.3f} mm "
+            f"({len(scored.normal_errors_deg)} sightings)"
+        )
 
 
 def _evaluation_record(report: Evaluation, estimator: str) -> dict[str, Any]:

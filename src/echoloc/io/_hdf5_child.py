@@ -39,6 +39,7 @@ ATTRIBUTES = (
     "sample_rate_hz",
     "signal_kind",
     "firing",
+    "truth_kinds",
     "carrier_hz",
     "speed_of_sound_m_s",
     "temperature_c",

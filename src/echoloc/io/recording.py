@@ -48,6 +48,8 @@ FORMAT_NAME = "echoloc-recording"
 FORMAT_VERSION = 1
 SIGNAL_KINDS = ("rf", "envelope", "iq")
 FIRING_MODES = ("sequential", "simultaneous")
+REFLECTOR_KINDS = ("point", "plane", "corner")
+"""The classes a ``truth_kinds`` entry may name (those ``locate --classes`` reports)."""
 QUATERNION_NORM_TOLERANCE = 1e-6
 
 
@@ -88,6 +90,9 @@ class Recording:
         Half-angle of the cone around each transducer's axis outside which it can
         neither send nor receive an echo (the first null of its beam), degrees;
         localisation rejects points outside it. None: the half-space in front.
+    truth_kinds
+        The class of each column of ``truth_positions_m`` (:data:`REFLECTOR_KINDS`), for
+        scoring reflector classes; a file holds it as one comma-separated string.
     firing
         ``"sequential"`` (each frame fires the transmitter in ``frame_transmitter``;
         also the meaning of ``None``) or ``"simultaneous"`` (every transmitter fires
@@ -116,6 +121,7 @@ class Recording:
     receiver_gain: NDArray[np.float64] | None = None
     transmitter_waveforms: NDArray[np.float64] | NDArray[np.complex128] | None = None
     firing: str | None = None
+    truth_kinds: tuple[str, ...] | None = None
     field_of_view_deg: float | None = None
     source: str = "<memory>"
 
@@ -138,7 +144,7 @@ class RecordingWarning(UserWarning):
 
 # Contract (file) names of the root attributes and datasets, mapped to Recording fields.
 _REQUIRED_ATTRS = ("format", "version", "sample_rate_hz")
-_STR_ATTRS = ("signal_kind", "firing")
+_STR_ATTRS = ("signal_kind", "firing", "truth_kinds")
 _OPTIONAL_FLOAT_ATTRS = (
     "carrier_hz",
     "speed_of_sound_m_s",
@@ -357,6 +363,24 @@ def _check_samples(source: str, frames: _AnyArray, signal_kind: str, allow_nonfi
         _check_nonnegative(source, "frames", frames)
 
 
+def _check_truth_kinds(source: str, kinds: object, truth_positions_m: object) -> None:
+    """``truth_kinds``: known classes, one per column of ``truth_positions`` when it is given."""
+    if kinds is None:
+        return
+    if not isinstance(kinds, tuple) or not all(isinstance(k, str) for k in kinds):
+        raise _error(source, f"truth_kinds must be a tuple of strings, got {kinds!r}")
+    unknown = [k for k in kinds if k not in REFLECTOR_KINDS]
+    if unknown:
+        allowed = ", ".join(repr(k) for k in REFLECTOR_KINDS)
+        raise _error(source, f"truth_kinds names {unknown[0]!r}, expected one of {allowed}")
+    if isinstance(truth_positions_m, np.ndarray) and truth_positions_m.ndim == 3:
+        columns = int(truth_positions_m.shape[1])
+        if columns != len(kinds):
+            raise _error(
+                source, f"truth_kinds names {len(kinds)} classes for the {columns} columns of truth_positions"
+            )
+
+
 def _check_per_frame(
     source: str,
     n_frames: int,
@@ -513,6 +537,7 @@ def _validate(rec: Recording, *, allow_nonfinite: bool, header_only: bool = Fals
             raise _error(src, f"frames has shape {frames.shape}: no frames")
         _check_samples(src, frames, rec.signal_kind, allow_nonfinite)
         _check_per_frame(src, n_frames, n_tx, *per_frame.values())
+    _check_truth_kinds(src, rec.truth_kinds, rec.truth_positions_m)
 
     # Templates.
     _check_templates(src, rec.signal_kind, rec.waveform, rec.transmitter_waveforms, n_tx)
@@ -761,6 +786,9 @@ def _build(source: str, attrs: dict[str, object], data: dict[str, _AnyArray]) ->
     sample_rate_hz = _attr_float(source, "sample_rate_hz", attrs["sample_rate_hz"])
     signal_kind = _attr_str(source, "signal_kind", attrs.get("signal_kind", "rf"))
     firing = _attr_str(source, "firing", attrs["firing"]) if "firing" in attrs else None
+    truth_kinds = None
+    if "truth_kinds" in attrs:
+        truth_kinds = tuple(_attr_str(source, "truth_kinds", attrs["truth_kinds"]).split(","))
     optional = {
         name: _attr_float(source, name, attrs[name]) if name in attrs else None
         for name in _OPTIONAL_FLOAT_ATTRS
@@ -794,6 +822,7 @@ def _build(source: str, attrs: dict[str, object], data: dict[str, _AnyArray]) ->
         relative_humidity=optional["relative_humidity"],
         field_of_view_deg=optional["field_of_view_deg"],
         firing=firing,
+        truth_kinds=truth_kinds,
         source=source,
         **fields,
     )
@@ -1342,6 +1371,8 @@ def _file_items(rec: Recording) -> tuple[dict[str, object], dict[str, _AnyArray]
     }
     if rec.firing is not None:
         attrs["firing"] = rec.firing
+    if rec.truth_kinds is not None:
+        attrs["truth_kinds"] = ",".join(rec.truth_kinds)
     for name in _OPTIONAL_FLOAT_ATTRS:
         value = getattr(rec, name)
         if value is not None:
@@ -1707,6 +1738,7 @@ def _append_batch(
         if present[name] != row_shape:
             shape = (n, *present[name])
             raise _error(source, f"{name} has shape {shape}, expected {(n, *row_shape)} as in batch 0")
+    _check_truth_kinds(source, header.truth_kinds, values["truth_positions"])
     if n == 0:
         return 0, present
 

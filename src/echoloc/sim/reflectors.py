@@ -1266,14 +1266,11 @@ def truth_positions_m(transmitter_m: ArrayLike, states: ReflectorStates) -> Floa
     return np.concatenate([states.points_m, spheres, planes, edges], axis=1)
 
 
-TRUTH_KINDS = ("point", "plane", "corner")
-"""The reflector classes a truth row can have (those :mod:`echoloc.localise.surfaces` reports)."""
-
-
 def truth_kinds(reflectors: Sequence[Reflector]) -> tuple[str, ...]:
     """The class of each row of :func:`truth_positions_m` for these reflectors (in the order
     :func:`states_at` takes them): points and spheres ``"point"``, planes ``"plane"``, a
-    corner's edge ``"corner"`` (its double bounce locates it), any other edge ``"point"``."""
+    corner's edge ``"corner"`` (its double bounce locates it), any other edge ``"point"``
+    (:data:`echoloc.io.recording.REFLECTOR_KINDS` are the classes)."""
     points = ["point" for r in reflectors if isinstance(r, PointReflector)]
     spheres = ["point" for r in reflectors if isinstance(r, Sphere)]
     planes = ["plane" for r in reflectors if isinstance(r, Plane)]

@@ -63,6 +63,7 @@ from echoloc.sim.reflectors import (
     ReflectorStates,
     echo_paths,
     states_at,
+    truth_kinds,
     truth_positions_m,
 )
 from echoloc.sim.scene import Scene
@@ -531,7 +532,17 @@ def recording_header(scene: Scene) -> Recording:
         transmitter_waveforms=transmitter_waveforms,
         firing=scene.firing if n_tx > 1 else None,
         field_of_view_deg=_field_of_view_deg(scene),
+        truth_kinds=scene_truth_kinds(scene),
     )
+
+
+def scene_truth_kinds(scene: Scene) -> tuple[str, ...]:
+    """The class of each truth column of ``scene``'s recordings: its random points (drawn after
+    the fixed ones, all points) and :func:`echoloc.sim.reflectors.truth_kinds` of the rest."""
+    n_random = 0 if scene.random is None else scene.random.count[1]
+    kinds = truth_kinds(_objects(scene))
+    n_points = sum(1 for k in _objects(scene) if isinstance(k, PointReflector))
+    return kinds[:n_points] + ("point",) * n_random + kinds[n_points:]
 
 
 def _field_of_view_deg(scene: Scene) -> float | None:
