@@ -295,3 +295,24 @@ def test_the_analytic_jacobians_are_the_models_derivatives(position, transmitter
             axis=-1,
         )
         np.testing.assert_allclose(exact, numeric, atol=1e-7)
+
+
+@settings(max_examples=60, deadline=None)
+@given(across=st.tuples(st.floats(-1.0, 1.0), st.floats(0.4, 2.0)), axis=unit_vectors)
+def test_the_edges_jacobian_is_its_derivative(across, axis) -> None:
+    line = np.array([across])
+    transmitters = np.broadcast_to(TRANSMITTERS[1], CROSS.shape)
+    exact = surfaces.edge_jacobian(line, np.asarray(axis), transmitters, CROSS)
+    step = 1e-6
+    numeric = np.stack(
+        [
+            (
+                surfaces.edge_paths_m(line + step * np.eye(2)[k], np.asarray(axis), transmitters, CROSS)
+                - surfaces.edge_paths_m(line - step * np.eye(2)[k], np.asarray(axis), transmitters, CROSS)
+            )
+            / (2 * step)
+            for k in range(2)
+        ],
+        axis=-1,
+    )
+    np.testing.assert_allclose(exact, numeric, atol=1e-6)

@@ -273,7 +273,20 @@ def edge_groups(
         return []
     start = linear_start(transmitter_m @ plane.T, rx @ plane.T, across, boresight / np.linalg.norm(boresight))
     gate = _chi2_gate(options.gate_probability, len(channels) - 2)
-    edge = surfaces.fit(lambda q: surfaces.edge_paths_m(q, axis, tx, rx), start, measured, s)
+    # A cheap first cut: the 2-D closed form's own chi-square, with a wide margin.
+    with np.errstate(invalid="ignore"):
+        first = np.sum(((surfaces.edge_paths_m(start, axis, tx, rx) - measured) / s) ** 2, axis=1)
+    near = np.flatnonzero(np.isfinite(first) & (first <= 100 * gate + 100))
+    if len(near) == 0:
+        return []
+    rows, measured, s, start = rows[near], measured[near], s[near], start[near]
+    edge = surfaces.fit(
+        lambda q: surfaces.edge_paths_m(q, axis, tx, rx),
+        start,
+        measured,
+        s,
+        jacobian=lambda q: surfaces.edge_jacobian(q, axis, tx, rx),
+    )
     amplitudes = np.stack(
         [np.abs(echoes.channels[c].amplitude)[rows[:, k]] for k, c in enumerate(channels)], axis=1
     )

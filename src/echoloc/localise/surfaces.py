@@ -42,6 +42,7 @@ the dimension of a model", Ann. Statist. 6 (1978) 461-464).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -140,11 +141,31 @@ def mirror_paths_m(images_m: FloatArray, receivers_m: FloatArray) -> FloatArray:
 
 def axis_basis(axis: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     """The unit ``axis`` and two unit vectors (a, b) completing a right-handed orthonormal basis."""
+    return _axis_basis(tuple(float(v) for v in np.asarray(axis, dtype=float).reshape(3)))
+
+
+@functools.lru_cache(maxsize=16)
+def _axis_basis(axis: tuple[float, float, float]) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """:func:`axis_basis`, once per axis (a frame asks for it at every step of every fit)."""
     e = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
     helper = np.array([1.0, 0.0, 0.0]) if abs(e[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     a = helper - (helper @ e) * e
     a = a / np.linalg.norm(a)
     return e, a, np.cross(e, a)
+
+
+def _edge_terms(
+    lines: FloatArray, axis: FloatArray, transmitters_m: FloatArray, receivers_m: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The channels across the axis (t2, r2 (m, 2)), their distances from each line (n, m) and
+    the offsets along the axis (m,)."""
+    e, a, b = axis_basis(axis)
+    plane = np.stack([a, b])  # (2, 3)
+    t2 = transmitters_m @ plane.T  # (m, 2)
+    r2 = receivers_m @ plane.T
+    d_t = np.linalg.norm(t2[None] - lines[:, None, :], axis=-1)
+    d_r = np.linalg.norm(r2[None] - lines[:, None, :], axis=-1)
+    return t2, r2, d_t, d_r, (receivers_m - transmitters_m) @ e
 
 
 def edge_paths_m(
@@ -157,14 +178,21 @@ def edge_paths_m(
     path about the line (Keller's law of edge diffraction: the rays make equal angles with the
     edge) gives ``l = sqrt((d_T + d_R)^2 + (e.(R - T))^2)``, d the distances from the line.
     """
-    e, a, b = axis_basis(axis)
-    plane = np.stack([a, b])  # (2, 3)
-    t2 = transmitters_m @ plane.T  # (m, 2)
-    r2 = receivers_m @ plane.T
-    d_t = np.linalg.norm(t2[None] - lines[:, None, :], axis=-1)
-    d_r = np.linalg.norm(r2[None] - lines[:, None, :], axis=-1)
-    along = (receivers_m - transmitters_m) @ e
+    _, _, d_t, d_r, along = _edge_terms(lines, axis, transmitters_m, receivers_m)
     return np.asarray(np.sqrt((d_t + d_r) ** 2 + along[None] ** 2))
+
+
+def edge_jacobian(
+    lines: FloatArray, axis: FloatArray, transmitters_m: FloatArray, receivers_m: FloatArray
+) -> FloatArray:
+    """d l / d line (n, m, 2) of :func:`edge_paths_m`: ``(S / l) ((q - t)/d_T + (q - r)/d_R)``,
+    S = d_T + d_R, q the line's crossing and t, r the channel's ends across the axis."""
+    t2, r2, d_t, d_r, along = _edge_terms(lines, axis, transmitters_m, receivers_m)
+    total = d_t + d_r
+    length = np.sqrt(total**2 + along[None] ** 2)
+    q = lines[:, None, :]
+    gradient = (q - t2[None]) / d_t[..., None] + (q - r2[None]) / d_r[..., None]
+    return np.asarray((total / length)[..., None] * gradient)
 
 
 def edge_foot_m(lines: FloatArray, axis: FloatArray, point_m: FloatArray) -> FloatArray:
