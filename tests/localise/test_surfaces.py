@@ -316,3 +316,82 @@ def test_the_edges_jacobian_is_its_derivative(across, axis) -> None:
         axis=-1,
     )
     np.testing.assert_allclose(exact, numeric, atol=1e-6)
+
+
+@pytest.mark.skipif(not surfaces.HAVE_NUMBA, reason="the kernels run compiled only with numba")
+@settings(max_examples=40, deadline=None)
+@given(
+    position=st.tuples(coordinate, coordinate, st.floats(0.6, 1.8)),
+    noise_seed=st.integers(0, 2**16),
+)
+def test_the_compiled_fits_are_the_numpy_fits(position, noise_seed) -> None:
+    """Point, plane, image, edge and corner fits, compiled and in numpy (with the Jacobians the
+    numpy path uses), from the same noisy paths and rough starts: the same parameters,
+    chi-squares and covariances (to rounding)."""
+    rng = np.random.default_rng(noise_seed)
+    p = np.asarray(position, dtype=float)
+    tx = np.repeat(TRANSMITTERS, 4, axis=0)
+    rx = np.tile(CROSS, (2, 1))
+    paths = surfaces.point_paths_m(p[None], tx, rx) + rng.normal(0.0, SIGMA_M, (1, 8))
+    sigmas = np.full(paths.shape, SIGMA_M)
+    start = p[None] + rng.normal(0.0, 0.05, (1, 3))
+    axis = np.array([0.0, 1.0, 0.0])
+    _, a, b = surfaces.axis_basis(axis)
+    t0 = TRANSMITTERS[0]
+    cases = [
+        (
+            surfaces.CompiledModel(surfaces.POINT_MODEL, tx, rx),
+            lambda q: surfaces.point_paths_m(q, tx, rx),
+            lambda q: surfaces.point_jacobian(q, tx, rx),
+            start,
+        ),
+        (
+            surfaces.CompiledModel(surfaces.PLANE_MODEL, tx, rx, t0),
+            lambda q: surfaces.plane_paths_m(q, tx, rx, t0),
+            lambda q: surfaces.plane_jacobian(q, tx, rx, t0),
+            start,
+        ),
+        (
+            surfaces.CompiledModel(surfaces.IMAGE_MODEL, rx, rx),
+            lambda q: surfaces.mirror_paths_m(q, rx),
+            surfaces.mirror_jacobian(rx),
+            2 * start,
+        ),
+        (
+            surfaces.CompiledModel(surfaces.EDGE_MODEL, tx, rx, axis=axis),
+            lambda q: surfaces.edge_paths_m(q, axis, tx, rx),
+            lambda q: surfaces.edge_jacobian(q, axis, tx, rx),
+            np.array([[start[0] @ a, start[0] @ b]]),
+        ),
+    ]
+    corner_start = np.array([[*start[0], 0.3]])
+    helpers = surfaces._helper(start - t0)
+    corner_paths = surfaces.mirror_paths_images(
+        surfaces.corner_images_m(np.array([[*p, 0.2]]), tx, t0, helpers), rx
+    ) + rng.normal(0.0, SIGMA_M, (1, 8))
+    corner = surfaces.fit(
+        lambda q: surfaces.mirror_paths_images(surfaces.corner_images_m(q, tx, t0, helpers), rx),
+        corner_start,
+        corner_paths,
+        sigmas,
+        kernel=surfaces.CompiledModel(surfaces.CORNER_MODEL, tx, rx, t0, helpers=helpers),
+    )
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(surfaces, "_COMPILED", False)
+        corner_reference = surfaces.fit(
+            lambda q: surfaces.mirror_paths_images(surfaces.corner_images_m(q, tx, t0, helpers), rx),
+            corner_start,
+            corner_paths,
+            sigmas,
+        )
+    np.testing.assert_allclose(corner.parameters, corner_reference.parameters, atol=1e-6)
+    np.testing.assert_allclose(corner.chi2, corner_reference.chi2, rtol=1e-4, atol=1e-5)
+    for kernel, model, jacobian, first in cases:
+        compiled = surfaces.fit(model, first, paths, sigmas, jacobian=jacobian, kernel=kernel)
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(surfaces, "_COMPILED", False)
+            reference = surfaces.fit(model, first, paths, sigmas, jacobian=jacobian, kernel=kernel)
+        np.testing.assert_allclose(compiled.parameters, reference.parameters, atol=1e-7)
+        np.testing.assert_allclose(compiled.chi2, reference.chi2, rtol=1e-5, atol=1e-6)
+        scale = float(np.max(np.abs(reference.covariance)))
+        np.testing.assert_allclose(compiled.covariance, reference.covariance, rtol=1e-4, atol=1e-6 * scale)

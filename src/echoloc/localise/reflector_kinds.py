@@ -159,6 +159,7 @@ def mirror_groups(
         measured[near],
         s[near],
         jacobian=surfaces.mirror_jacobian(rx),
+        kernel=surfaces.CompiledModel(surfaces.IMAGE_MODEL, rx, rx),  # an image needs no transmitter
     )
     ahead = (image.parameters - transmitter_m) @ boresight > 0
     # Spherical spreading from one image: amplitude x path the same on every channel. Echoes of
@@ -183,6 +184,7 @@ def mirror_groups(
         measured[passed],
         s[passed],
         jacobian=lambda p: surfaces.point_jacobian(p, tx, rx),
+        kernel=surfaces.CompiledModel(surfaces.POINT_MODEL, tx, rx),
     )
     margin = point.chi2 - image.chi2[[image_at[int(r)] for r in passed]]
     decisive_rows = margin >= DECISIVE_CHI2 if decisive else np.ones(len(passed), dtype=bool)
@@ -286,6 +288,7 @@ def edge_groups(
         measured,
         s,
         jacobian=lambda q: surfaces.edge_jacobian(q, axis, tx, rx),
+        kernel=surfaces.CompiledModel(surfaces.EDGE_MODEL, tx, rx, axis=axis),
     )
     amplitudes = np.stack(
         [np.abs(echoes.channels[c].amplitude)[rows[:, k]] for k, c in enumerate(channels)], axis=1
@@ -307,6 +310,7 @@ def edge_groups(
         measured[passed],
         s[passed],
         jacobian=lambda p: surfaces.point_jacobian(p, tx, rx),
+        kernel=surfaces.CompiledModel(surfaces.POINT_MODEL, tx, rx),
     )
     mirror_start = surfaces.image_start_m(rx, measured[passed], np.asarray(options.boresight, dtype=float))
     mirror = surfaces.fit(
@@ -315,6 +319,7 @@ def edge_groups(
         measured[passed],
         s[passed],
         jacobian=surfaces.mirror_jacobian(rx),
+        kernel=surfaces.CompiledModel(surfaces.IMAGE_MODEL, tx, rx),
     )
     best_other = np.minimum(point.chi2, mirror.chi2)
     keep = best_other - edge.chi2[passed] >= DECISIVE_CHI2

@@ -46,10 +46,13 @@ import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy import special
+
+from echoloc._jit import HAVE_NUMBA
 
 FloatArray = NDArray[np.float64]
 
@@ -63,6 +66,9 @@ _ITERATIONS = 12
 _HALVINGS = 8
 _STEP_M = 1e-6
 """Central-difference step of the Jacobian, in the parameters' units (m; rad for the edge angle)."""
+
+POINT_MODEL, PLANE_MODEL, IMAGE_MODEL, EDGE_MODEL, CORNER_MODEL = 0, 1, 2, 3, 4
+"""The models of :mod:`echoloc.localise._surface_kernels`, by number (as there)."""
 
 _CONVERGED = 1e-8
 """Gauss-Newton stops when no row moved a parameter by more than this (m, or rad)."""
@@ -205,6 +211,52 @@ def edge_foot_m(lines: FloatArray, axis: FloatArray, point_m: FloatArray) -> Flo
 # Fitting: weighted Gauss-Newton with step halving, many rows at once.
 
 
+_COMPILED = HAVE_NUMBA
+"""Whether :func:`fit` runs the compiled kernels (:mod:`echoloc.localise._surface_kernels`) for
+the models they hold; the tests set it False to hold the kernels to the numpy fit."""
+
+
+class CompiledModel(NamedTuple):
+    """A model :mod:`echoloc.localise._surface_kernels` fits: its number (``POINT``, ``PLANE``,
+    ``IMAGE``, ``EDGE``) and the channels, reference transmitter and edge axis it needs."""
+
+    model: int
+    transmitters_m: FloatArray
+    receivers_m: FloatArray
+    reference_m: FloatArray | None = None
+    axis: FloatArray | None = None
+    helpers: FloatArray | None = None
+
+
+def _kernel_fit(
+    kernel: CompiledModel, start: FloatArray, paths: FloatArray, weights: FloatArray, iterations: int
+) -> Fit:
+    """:func:`fit` by the compiled kernel."""
+    from echoloc.localise import _surface_kernels  # numba: imported (and compiled) on first use
+
+    n = len(start)
+    bases = np.zeros((n, 3, 3))
+    if kernel.axis is not None:
+        bases[:] = np.stack(axis_basis(kernel.axis))
+    if kernel.helpers is not None:
+        bases[:, 0] = kernel.helpers
+    reference = np.zeros(3) if kernel.reference_m is None else np.asarray(kernel.reference_m, dtype=float)
+    parameters, covariance, chi2 = _surface_kernels.fit(
+        kernel.model,
+        np.array(start, dtype=float, order="C"),
+        np.array(paths, dtype=float, order="C"),
+        np.array(weights, dtype=float, order="C"),
+        np.array(kernel.transmitters_m, dtype=float, order="C"),
+        np.array(kernel.receivers_m, dtype=float, order="C"),
+        reference,
+        bases,
+        iterations,
+        _HALVINGS,
+        _CONVERGED,
+    )
+    return Fit(parameters, covariance, chi2)
+
+
 @dataclass(frozen=True, eq=False)
 class Fit:
     """Fitted parameters (n, k), their covariance (n, k, k) and the chi-square (n,)."""
@@ -239,17 +291,22 @@ def fit(
     sigmas_m: FloatArray,
     iterations: int = _ITERATIONS,
     jacobian: Callable[[FloatArray], FloatArray] | None = None,
+    kernel: CompiledModel | None = None,
 ) -> Fit:
     """Weighted least squares of ``paths_m`` (n, m) against ``model(parameters)`` from ``start`` (n, k).
 
     ``jacobian(parameters)`` gives d model / d parameters (n, m, k); without it, forward
-    differences. Gauss-Newton; a step that raises the chi-square is halved up to 8 times, then the
-    row stays where it is. Weights ``1 / sigma^2``; a NaN path or an infinite sigma
+    differences. ``kernel`` names the same model in :mod:`echoloc.localise._surface_kernels`,
+    which then fits it, compiled (when numba is installed). Gauss-Newton; a step that
+    raises the chi-square is halved up to 8 times, then the row stays where it is.
+    Weights ``1 / sigma^2``; a NaN path or an infinite sigma
     leaves the channel out. The covariance is ``(J^T W J)^-1`` at the solution
     (a pseudo-inverse where a parameter is not determined).
     """
     w = np.where(np.isfinite(paths_m) & np.isfinite(sigmas_m), 1.0 / np.asarray(sigmas_m) ** 2, 0.0)
     paths = np.where(w > 0, paths_m, 0.0)
+    if kernel is not None and _COMPILED:
+        return _kernel_fit(kernel, np.atleast_2d(start), paths, w, iterations)
     p = np.array(start, dtype=float)
     with np.errstate(invalid="ignore", divide="ignore"):
         predicted = model(p)
@@ -419,7 +476,12 @@ def hypotheses(
     n_paths = np.sum(np.isfinite(paths) & np.isfinite(sigmas), axis=1)
 
     point = fit(
-        lambda p: point_paths_m(p, tx, rx), start, paths, sigmas, jacobian=lambda p: point_jacobian(p, tx, rx)
+        lambda p: point_paths_m(p, tx, rx),
+        start,
+        paths,
+        sigmas,
+        jacobian=lambda p: point_jacobian(p, tx, rx),
+        kernel=CompiledModel(POINT_MODEL, tx, rx),
     )
     feet = start - ref
     plane = fit(
@@ -428,6 +490,7 @@ def hypotheses(
         paths,
         sigmas,
         jacobian=lambda f: plane_jacobian(f, tx, rx, ref),
+        kernel=CompiledModel(PLANE_MODEL, tx, rx, ref),
     )
     chi2 = np.full((len(paths), 3), np.inf)
     chi2[:, 0] = point.chi2
@@ -477,7 +540,8 @@ def _fit_corner(
         def model(q: FloatArray) -> FloatArray:
             return mirror_paths_images(corner_images_m(q, tx, ref, helpers), rx)
 
-        return fit(model, start, paths[rows], sigmas[rows])
+        kernel = CompiledModel(CORNER_MODEL, tx, rx, ref, helpers=helpers)
+        return fit(model, start, paths[rows], sigmas[rows], kernel=kernel)
 
     guessed = _edge_guess(tx, rx, paths, sigmas)
     result = Fit(np.full((n, 4), np.nan), np.full((n, 4, 4), np.nan), np.full(n, np.inf))
@@ -523,6 +587,7 @@ def _edge_guess(tx: FloatArray, rx: FloatArray, paths: FloatArray, sigmas: Float
             sigmas[:, channels],
             4,
             mirror_jacobian(receivers),
+            CompiledModel(IMAGE_MODEL, receivers, receivers),
         )
         offsets.append(image.parameters - tx[channels[0]])
     across = np.cross(offsets[0], offsets[1])
