@@ -43,16 +43,22 @@ def with_transmitters(scene: Scene, n_tx: int) -> Scene:
     return dataclasses.replace(scene, array=array, transmitter_codes=None)
 
 
-def score(scene: Scene, n_frames: int) -> tuple[ClassEvaluation, float]:
-    """Simulate, locate with classes and score; also the seconds a frame took to locate."""
+def score(scene: Scene, n_frames: int) -> tuple[ClassEvaluation, float, float]:
+    """Simulate, locate with classes and score; also the seconds a frame took to locate with
+    classes and, in the same run, without (the plain association on the same frames)."""
     recording = simulate(scene, n_frames)
-    chain = prepare(recording)
+    plain = prepare(recording)
     chain = dataclasses.replace(
-        chain, locate_options=dataclasses.replace(chain.locate_options, reflector_classes=True)
+        plain, locate_options=dataclasses.replace(plain.locate_options, reflector_classes=True)
     )
+    list(run(chain, range(min(2, n_frames))))  # the kernels loaded (or compiled) before timing
     start = time.perf_counter()
     results = [objects for _, objects in run(chain)]
     seconds = (time.perf_counter() - start) / n_frames
+    start = time.perf_counter()
+    for _ in run(plain):
+        pass
+    plain_seconds = (time.perf_counter() - start) / n_frames
     fired = (
         np.zeros(n_frames, dtype=int) if recording.frame_transmitter is None else recording.frame_transmitter
     )
@@ -61,7 +67,7 @@ def score(scene: Scene, n_frames: int) -> tuple[ClassEvaluation, float]:
     evaluation = evaluate_classes(
         results, recording.truth_positions_m, recording.truth_kinds, recording.transmitters_m[fired]
     )
-    return evaluation, seconds
+    return evaluation, seconds, plain_seconds
 
 
 POINT_SCENES = ("random-1m3-six", "report-three-balls")
@@ -90,14 +96,15 @@ def point_figures(name: str, n_frames: int) -> list[str]:
     return [*lines, ""]
 
 
-def table(name: str, n_tx: int, e: ClassEvaluation, seconds: float) -> list[str]:
+def table(name: str, n_tx: int, e: ClassEvaluation, seconds: float, plain_seconds: float) -> list[str]:
     """Markdown lines for one scene and transmitter count."""
     lines = [
         f"### {name}, {n_tx} transmitter{'s' if n_tx > 1 else ''}",
         "",
         f"right class {e.right_class_rate:.3f} of {e.n_truth} true reflectors; "
         f"false objects {e.false_rate:.4f} ({e.n_false} of {e.n_located}); "
-        f"{seconds * 1e3:.2f} ms a frame",
+        f"{seconds * 1e3:.2f} ms a frame with classes, {plain_seconds * 1e3:.2f} without "
+        f"({seconds / plain_seconds:.1f} times, same run)",
         "",
     ]
     if len(e.normal_errors_deg):
@@ -137,8 +144,8 @@ def main() -> None:
     for name in args.scenes.split(","):
         scene = load_scene(preset_path(name))
         for n_tx in (1, 2):
-            evaluation, seconds = score(with_transmitters(scene, n_tx), args.frames)
-            part = table(name, n_tx, evaluation, seconds)
+            evaluation, seconds, plain_seconds = score(with_transmitters(scene, n_tx), args.frames)
+            part = table(name, n_tx, evaluation, seconds, plain_seconds)
             print("\n".join(part), flush=True)
             lines += part
     args.output.parent.mkdir(parents=True, exist_ok=True)

@@ -104,6 +104,19 @@ def _occupancy_map() -> Any:
     return build_map(recording, run(prepare(recording)), spec)
 
 
+def _reflector_classes() -> Any:
+    """The corridor with two transmitters located with classes: every hypothesis's fit."""
+    import dataclasses
+
+    from echoloc.pipeline import prepare, run
+    from echoloc.sim.scenefile import load_scene
+    from echoloc.sim.simulation import simulate
+
+    chain = prepare(simulate(load_scene("rooms/corridor"), 3))
+    options = dataclasses.replace(chain.locate_options, reflector_classes=True)
+    return list(run(dataclasses.replace(chain, locate_options=options)))
+
+
 def warm_up_steps(workers: int = 2) -> tuple[WarmUpStep, ...]:
     """The stages ``echoloc warmup`` compiles, in order (``workers``: also the threaded
     matched filter, as ``--workers N`` runs it, when above 1)."""
@@ -114,6 +127,7 @@ def warm_up_steps(workers: int = 2) -> tuple[WarmUpStep, ...]:
         WarmUpStep("overlapping echoes (CLEAN, shared echoes)", _crowded_chain),
         WarmUpStep("envelope chips (CH101 preset)", _envelope_chain),
         WarmUpStep("occupancy maps", _occupancy_map),
+        WarmUpStep("reflector classes (planes, corners, edges)", _reflector_classes),
     ]
     if workers > 1:
         threaded = WarmUpStep(

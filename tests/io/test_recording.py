@@ -715,3 +715,11 @@ def test_write_failure_is_recording_error(tmp_path: Path, monkeypatch: pytest.Mo
     with pytest.raises(RecordingError, match="No space left"):
         write_recording(make_recording(), tmp_path / "rec.npz")
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("ext", [".h5", ".npz"])
+def test_truth_kinds_of_no_column_round_trip(tmp_path: Path, ext: str) -> None:
+    """A scene without reflectors has truth_positions of no column and no class (an empty string)."""
+    rec = make_recording(truth_positions_m=np.zeros((N_FRAMES, 0, 3)), truth_kinds=())
+    back = read_recording(write_recording(rec, tmp_path / f"r{ext}"))
+    assert back.truth_kinds == ()

@@ -788,7 +788,8 @@ def _build(source: str, attrs: dict[str, object], data: dict[str, _AnyArray]) ->
     firing = _attr_str(source, "firing", attrs["firing"]) if "firing" in attrs else None
     truth_kinds = None
     if "truth_kinds" in attrs:
-        truth_kinds = tuple(_attr_str(source, "truth_kinds", attrs["truth_kinds"]).split(","))
+        text = _attr_str(source, "truth_kinds", attrs["truth_kinds"])
+        truth_kinds = tuple(text.split(",")) if text else ()
     optional = {
         name: _attr_float(source, name, attrs[name]) if name in attrs else None
         for name in _OPTIONAL_FLOAT_ATTRS

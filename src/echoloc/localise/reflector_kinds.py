@@ -543,9 +543,14 @@ def locate_with_classes(
     # With several transmitters, the other frames' mirror groups may also be the other half of
     # a plane or corner the association found on the newest frame alone.
     used = _used_echoes(objects, frames)
+    # An older frame's echoes only lend points optional support: its mirror groups may take them
+    # (a wall the association built from the newest frame and stray older echoes pairs with them).
+    settled = _used_echoes(
+        [o for o in objects if o.surface is not None and o.surface.kind != "point"], frames
+    )
     groups: dict[int, list[MirrorGroup]] = {}
     for t, echoes in frames:
-        rest, kept_at = _without(echoes, used[t])
+        rest, kept_at = _without(echoes, used[t] if t == newest_t else settled[t])
         found = mirror_groups(
             t, transmitters_m[t], receivers_m, rest, options, usable, decisive=t == newest_t
         )
@@ -636,17 +641,23 @@ def _as_mirror_group(
     transmitters_m: FloatArray,
     options: LocateOptions,
 ) -> MirrorGroup | None:
-    """An object the association found on the newest frame's channels alone that may be a mirror (a
-    plane, or a point a plane fits nearly as well), as a mirror group to pair with the other
-    transmitters' (None for anything else)."""
-    if len(frames) == 1 or o.surface is None or o.surface.probabilities.get("plane", 0.0) < MIRROR_CANDIDATE:
+    """A point the association found that may be a mirror, as a mirror group of its newest-frame
+    channels to pair with the other transmitters' (None for anything else): one found on the
+    newest frame alone that a plane fits nearly as well, or one whose older-frame support may be
+    stray echoes that made a plane look like a point."""
+    if len(frames) == 1 or o.surface is None or o.surface.kind != "point":
         return None
     tx_of = _channel_transmitters(o, frames)
-    if any(t != newest_t for t in tx_of):
+    own = [k for k, t in enumerate(tx_of) if t == newest_t]
+    if len(own) < 4 or (
+        len(own) == len(tx_of) and o.surface.probabilities.get("plane", 0.0) < MIRROR_CANDIDATE
+    ):
         return None
     paths, sigmas = _group_paths(o, tx_of, frames, options)
     image = 2 * o.position_m - transmitters_m[newest_t]  # a point's position is near the foot
-    return MirrorGroup(newest_t, o.receivers, o.echo_indices, paths, sigmas, image, o.chi2, np.inf)
+    receivers = tuple(o.receivers[k] for k in own)
+    echoes = tuple(o.echo_indices[k] for k in own)
+    return MirrorGroup(newest_t, receivers, echoes, paths[own], sigmas[own], image, o.chi2, np.inf)
 
 
 def _channel_transmitters(o: LocatedObject, frames: Sequence[tuple[int, FrameEchoes]]) -> list[int]:
