@@ -252,3 +252,21 @@ def test_evaluate_classes_on_the_command_line(tmp_path: Path, capsys: pytest.Cap
     assert int(np.sum(classes["confusion"])) == record["truth_objects"] == 12
     assert classes["confusion"][2][2] >= 2  # the corner, once both transmitters fired
     assert classes["median_normal_error_deg"] < 0.1
+
+
+def test_a_door_jamb_merged_with_the_wall_on_one_receiver_is_found() -> None:
+    """The doorway's left jamb echoes within 7 mm of the wall's echo on one receiver, where the two
+    merge into one peak that the wall takes: the edge search borrows that peak (one at most) and
+    finds the jamb, vertical, at its foot."""
+    scene = _with_transmitters(load_scene(preset_path("rooms/doorway")), 1)
+    recording = simulate(scene, 4)
+    assert recording.truth_positions_m is not None
+    assert recording.truth_kinds is not None
+    jamb = next(k for k, kind in enumerate(recording.truth_kinds) if kind == "point")
+    for frame in _located(recording):
+        distance, found = _nearest(frame, recording.truth_positions_m[frame.frame, jamb])
+        assert distance < 5e-3
+        assert found.surface is not None
+        assert found.surface.edge_direction is not None
+        assert abs(found.surface.edge_direction[1]) == pytest.approx(1.0)
+        assert found.shared == 1

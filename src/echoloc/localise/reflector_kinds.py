@@ -238,8 +238,12 @@ def edge_groups(
     echoes: FrameEchoes,
     options: LocateOptions,
     usable: NDArray[np.bool_] | None = None,
+    shared: set[tuple[int, int]] | None = None,
 ) -> list[EdgeGroup]:
     """The disjoint edge groups of one transmitter's frame, best fit first.
+
+    ``shared`` names (channel, echo) pairs other objects took: a group may use one of them as
+    a merged peak (its sigma widened as the association widens a shared echo's), not more.
 
     An edge along ``options.edge_axis`` has two free coordinates, so four channels leave two
     degrees of freedom to test it. A group counts when the edge fits within the gate, its
@@ -258,8 +262,20 @@ def edge_groups(
     c_m_s = echoes.speed_of_sound_m_s
     paths = [echoes.channels[c].tof_s * c_m_s for c in channels]
     sigmas = [path_sigmas_m(echoes.channels[c].snr_db, c_m_s, options) for c in channels]
+    taken_by_others = shared or set()
+    merge = 0.0 if options.resolution_m is None else _merge_sigma(options.resolution_m)
+    merged = [
+        np.array([(c, e) in taken_by_others for e in range(len(paths[k]))], dtype=bool)
+        for k, c in enumerate(channels)
+    ]
+    sigmas = [
+        np.where(merged[k], np.sqrt(sigmas[k] ** 2 + merge**2), sigmas[k]) for k in range(len(channels))
+    ]
     rx = receivers_m[channels]
     rows = _combinations(paths, rx, [4 * s for s in sigmas])
+    if len(rows):
+        borrowed = np.sum(np.stack([merged[k][rows[:, k]] for k in range(len(channels))], axis=1), axis=1)
+        rows = rows[borrowed <= 1]
     if len(rows) == 0:
         return []
     measured = np.stack([paths[k][rows[:, k]] for k in range(len(channels))], axis=1)
@@ -328,9 +344,10 @@ def edge_groups(
     for k in sorted(np.flatnonzero(keep), key=lambda k: edge.chi2[passed[k]]):
         r = int(passed[k])
         picks = [(channels[c], int(rows[r, c])) for c in range(len(channels))]
-        if any(p in taken for p in picks):
+        own = [p for p in picks if p not in taken_by_others]
+        if any(p in taken for p in own):
             continue
-        taken.update(picks)
+        taken.update(own)
         chosen.append(
             EdgeGroup(
                 transmitter=transmitter,
@@ -575,12 +592,14 @@ def locate_with_classes(
         objects.append(found_object)
         if partner is not None:
             others.remove(partner)
-    # Then edges, on what is left of the newest frame.
+    # Then edges, on the newest frame's echoes: those no object took, and one merged peak at most.
     newest_echoes = dict(frames)[newest_t]
-    rest, kept_at = _without(newest_echoes, _used_echoes(objects, frames)[newest_t])
-    for edge in edge_groups(newest_t, transmitters_m[newest_t], receivers_m, rest, options, usable):
-        echoes_back = tuple(int(kept_at[c][e]) for c, e in zip(edge.channels, edge.echoes, strict=True))
-        objects.append(_edge_object(replace(edge, echoes=echoes_back), transmitters_m, options))
+    taken = _used_echoes(objects, frames)[newest_t]
+    for edge in edge_groups(
+        newest_t, transmitters_m[newest_t], receivers_m, newest_echoes, options, usable, taken
+    ):
+        shares = sum((c, e) in taken for c, e in zip(edge.channels, edge.echoes, strict=True))
+        objects.append(replace(_edge_object(edge, transmitters_m, options), shared=shares))
     real = _explained_away(objects, frames, transmitters_m, receivers_m, options, alternatives)
     if len(frames) > 1:
         real = [o for o in real if _seen_by_others(o, frames, newest_t, transmitters_m, receivers_m)]
