@@ -19,19 +19,19 @@ receiver R; an echo group holds one path ``l`` per channel.
 
 What one transmitter can tell apart: a point from a mirror, through the curvature of
 the wavefront (the ellipsoids of a point against the spheres about one image). For a
-transmitter at the centre of receivers on a circle the difference is
-``~ a^2 (u_x^2 - u_y^2) / (4 r)`` in path (a the array radius, u the direction, r the
-range; docs/METHOD.md derives it): nothing on the boresight and on the diagonals,
-millimetres 20 degrees off them. A plane and a corner make the *same* image for one
-transmitter (``V = 2 G - T`` either way), so one transmitter cannot tell them apart;
-a mirror-like group is then reported as a plane. Two transmitters can: a plane's images
-are related by a reflection, a corner's by a half turn, which differ unless the
-transmitters' baseline runs along the edge (R. Kleeman and R. Kuc, "Mobile robot sonar
-for target localization and classification", Int. J. Robotics Research 14 (1995)
-295-318). One transmitter with three receivers tells walls from edges, but not walls
-from corners, from one snapshot (H. Peremans, K. Audenaert and J. M. Van Campenhout, "A
-high-resolution sensor based on tri-aural perception", IEEE Trans. Robotics and
-Automation 9 (1993) 36-48).
+transmitter at the centre of a cross of receivers the difference between its two
+receiver pairs goes as ``a^2 (u_x^2 - u_y^2) / r`` (a the cross's radius, u the
+direction, r the range; docs/METHOD.md 10.10): nothing on the boresight and on the
+diagonals, 0.8 mm a path 20 degrees off them at 1 m for a = 0.25 m. A plane and a
+corner make the *same* image for one transmitter (``V = 2 G - T`` either way), so one
+transmitter cannot tell them apart; a mirror-like group is then reported as a plane.
+Two transmitters can: a plane's images are related by a reflection, a corner's by a
+half turn, which differ unless the transmitters' baseline runs along the edge (R.
+Kleeman and R. Kuc, "Mobile robot sonar for target localization and classification",
+Int. J. Robotics Research 14 (1995) 295-318). One transmitter with three receivers
+tells walls from edges, but not walls from corners, from one snapshot (H. Peremans, K.
+Audenaert and J. M. Van Campenhout, "A high-resolution sensor based on tri-aural
+perception", IEEE Trans. Robotics and Automation 9 (1993) 36-48).
 
 The choice between hypotheses is by Schwarz's Bayesian information criterion: each
 fitted hypothesis k with chi-square ``chi2_k`` and ``p_k`` parameters on ``n`` paths has
