@@ -134,7 +134,9 @@ def main() -> None:
     lines = [
         "# Reflector classes on simulated rooms",
         "",
-        f"`python benchmarks/reflector_classes.py --frames {args.frames}`; match radius 20 mm.",
+        f"`python benchmarks/reflector_classes.py --frames {args.frames}`; match radius 20 mm. Times are "
+        "the whole chain a frame (echoes and objects), with and without classes on the same frames in the "
+        "same run, on a shared machine: read the ratio.",
         "",
     ]
     for name in args.points.split(",") if args.points else ():
