@@ -32,7 +32,7 @@ from echoloc.localise.locate import (
     combine_frames,
     model_paths_m,
 )
-from echoloc.localise.reflector_kinds import locate_with_classes
+from echoloc.localise.reflector_kinds import classify_points, locate_with_classes
 from echoloc.physics.air import speed_of_sound_m_s
 from echoloc.tof.channel_health import (
     ASSESS_FRAMES,
@@ -679,6 +679,14 @@ def _excusing_clipped(
                     used[c].add(i)
     if not added:
         return objects
+    if chain.locate_options.reflector_classes:
+        added = classify_points(
+            added,
+            [(transmitter, echoes)],
+            recording.transmitters_m,
+            recording.receivers_m,
+            chain.locate_options,
+        )
     return replace(objects, objects=objects.objects + tuple(added))
 
 

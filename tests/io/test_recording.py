@@ -573,6 +573,12 @@ def test_validate_truth_kinds_message(kinds: tuple[str, ...], message: str) -> N
     assert str(info.value) == message
 
 
+def test_validate_truth_kinds_without_truth_positions() -> None:
+    with pytest.raises(RecordingError) as info:
+        validate_recording(make_recording(source="mem", truth_kinds=("point",)))
+    assert str(info.value) == "mem: truth_kinds is given without truth_positions, whose columns it names"
+
+
 def test_validate_waveform_and_transmitter_0_may_differ_only_by_zero_padding() -> None:
     rec = two_transmitter_recording()
     assert rec.transmitter_waveforms is not None

@@ -209,7 +209,7 @@ def test_evaluate_classes_counts_the_confusion_matrix() -> None:
 
 
 def test_the_json_gains_the_class_fields_only_when_asked() -> None:
-    """docs/FORMATS.md 3.3: the contract's fields as before; kind and the rest added."""
+    """docs/FORMATS.md 4: the contract's fields as before; kind and the rest added."""
     plain = objects_record(FrameObjects(0, 0.0, (_object([0.0, 0.0, 1.0], None),)))["objects"][0]
     assert set(plain) == {"position_m", "std_m", "receivers", "score", "channels", "shared_echoes"}
     classed = objects_record(FrameObjects(0, 0.0, (_object([0.0, 0.0, 1.0], "plane"),)))["objects"][0]
@@ -270,3 +270,36 @@ def test_a_door_jamb_merged_with_the_wall_on_one_receiver_is_found() -> None:
         assert found.surface.edge_direction is not None
         assert abs(found.surface.edge_direction[1]) == pytest.approx(1.0)
         assert found.shared == 1
+
+
+def test_two_walls_at_a_right_angle_make_a_corner_not_a_ghost() -> None:
+    """The double bounce between two planes is the image of the image; between two walls at a right
+    angle it is their corner's own echo, which must not explain the corner away. At 60 degrees it
+    is a ghost's path, the transmitter mirrored in one wall, then in the other."""
+    from echoloc.localise import reflector_kinds
+
+    tx = np.zeros((4, 3))
+    rx = np.array([[0.25, 0, 0], [-0.25, 0, 0], [0, 0.25, 0], [0, -0.25, 0]])
+    feet = np.array([[0.0, 0.0, 1.5], [-0.6, 0.0, 0.0]])
+    for angle, expected in ((90.0, 0), (60.0, 2)):
+        turn = math.radians(angle)
+        normals = np.array([[0.0, 0.0, -1.0], [math.sin(turn), 0.0, -math.cos(turn)]])
+        paths = reflector_kinds._double_reflections(np.zeros((0, 3)), feet, normals, tx, rx)
+        assert len(paths) == expected
+        if expected:
+            image = tx[0] - 2 * ((tx[0] - feet[0]) @ normals[0]) * normals[0]
+            image = image - 2 * ((image - feet[1]) @ normals[1]) * normals[1]
+            np.testing.assert_allclose(paths[0], np.linalg.norm(image - rx, axis=1))
+
+
+def test_classes_refuse_back_projection(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "corridor.h5"
+    write_recording(simulate(load_scene(preset_path("rooms/corridor")), 1), path)
+    for argv in (
+        ["locate", str(path), "--classes", "--method", "backprojection"],
+        ["image", str(path), "--classes", "-o", str(tmp_path / "i.png")],
+    ):
+        with pytest.raises(SystemExit) as exit_info:
+            main(argv)
+        assert exit_info.value.code == 2
+        assert "--classes" in capsys.readouterr().err

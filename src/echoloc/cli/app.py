@@ -105,6 +105,10 @@ class Processing:
         if self.field_of_view_deg is not None and self.field_of_view_deg > 180:
             raise EchoLocError(f"--field-of-view-deg must be at most 180, got {self.field_of_view_deg:g}")
         EchoOptions(workers=self.workers)  # refuses a bad --workers before the file is read
+        if self.classes and self.method != "association":
+            raise EchoLocError(
+                "--classes needs --method association: back-projection finds no echo groups to classify"
+            )
         template = None if self.template_path is None else read_template(self.template_path)
         recording = read_recording(self.recording_path, repair_nonfinite=self.repair_nonfinite)
         frames: Sequence[int] = _frames_option(self.frames_text, recording.n_frames)

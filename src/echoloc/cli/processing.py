@@ -157,6 +157,8 @@ def image_command(processing: Processing, frame_index: int, voxel_m: float, outp
         raise EchoLocError(f"--voxel-m must be between 0.001 and 0.1 m, got {voxel_m:g}")
     if output_path.suffix.lower() != ".png":
         raise EchoLocError(f"{output_path}: the image is written as PNG (.png)")
+    if processing.classes:
+        raise EchoLocError("image back-projects a frame: --classes applies to the association (locate)")
     recording, chain, _ = processing.open()
     if not 0 <= frame_index < recording.n_frames:
         raise EchoLocError(f"--frame {frame_index} is outside the recording's {recording.n_frames} frames")

@@ -71,7 +71,7 @@ def _angle_std_deg(covariance: NDArray[np.float64]) -> float:
 
 
 def surface_fields(surface: Surface) -> dict[str, Any]:
-    """The optional class fields of a located object (docs/FORMATS.md 3.3): ``kind`` and
+    """The optional class fields of a located object (docs/FORMATS.md 4): ``kind`` and
     ``kind_confidence`` always; a plane's ``normal``, ``normal_std_deg``, ``distance_m``,
     ``distance_std_m`` and ``extent_m``; a corner's ``edge_direction`` and ``edge_std_deg``."""
     record: dict[str, Any] = {"kind": surface.kind, "kind_confidence": float(surface.confidence)}

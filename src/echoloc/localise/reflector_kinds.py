@@ -63,6 +63,13 @@ count as seen by both (:func:`_seen_by_others`): 1.5 m/s at 100 frames a second.
 PAIRING_MARGIN_M = 0.05
 """Slack on the distance of two transmitters' mirror midpoints before their pairing is fitted, m."""
 
+CORNER_COSINE = math.sin(math.radians(10.0))
+"""Two planes whose normals' cosine is below this (within 10 degrees of a right angle) make a
+corner: their plane-plane double reflection is that corner's echo, not a ghost."""
+
+_UNTESTED = surfaces.Surface("point", 1.0, {"point": 1.0})
+"""The class of an object no hypothesis beside the association's point could be fitted to."""
+
 MIRROR_CANDIDATE = 0.05
 """A point found on one transmitter's echoes whose plane probability is at least this is tried
 as a mirror with the other transmitters' echoes (where one transmitter cannot tell them apart)."""
@@ -550,7 +557,7 @@ def locate_with_classes(
     """
     newest_t = max(frames, key=lambda f: f[1].frame)[0]
     points = locate_points(list(frames))
-    alternatives: dict[int, LocatedObject] = {}
+    alternatives: list[tuple[LocatedObject, LocatedObject]] = []
     objects = _classified(
         points.objects, frames, newest_t, transmitters_m, receivers_m, options, alternatives
     )
@@ -694,17 +701,20 @@ def _classified(
     transmitters_m: FloatArray,
     receivers_m: FloatArray,
     options: LocateOptions,
-    alternatives: dict[int, LocatedObject],
+    alternatives: list[tuple[LocatedObject, LocatedObject]],
 ) -> list[LocatedObject]:
     """Point objects with their classes: each as located when a point is likeliest, else as the
     plane or corner its echoes fit decisively better. A point kept as such although a plane or
-    corner fits it best has that fit stored in ``alternatives`` under the returned object's
-    ``id``: a double reflection off it may take that shape (:func:`_explained_away`)."""
+    corner fits it best is appended to ``alternatives`` with that fit, (object, fit): a double
+    reflection off it may take that shape (:func:`_explained_away`). The list holds the objects
+    themselves, so an entry can never name another object later."""
     if not objects:
         return []
     groups = []
+    transmitters_of = []
     for o in objects:
         tx_of = _channel_transmitters(o, frames)
+        transmitters_of.append(tuple(tx_of))
         paths, sigmas = _group_paths(o, tx_of, frames, options)
         groups.append(
             _Channels(
@@ -720,11 +730,10 @@ def _classified(
     starts = np.array([o.position_m for o in objects])
     fitted = _objects_of(groups, newest_t, transmitters_m, starts, options, [o.shared for o in objects])
     classified = []
-    for o, f in zip(objects, fitted, strict=True):
-        if f is not None and f.surface is not None and f.surface.kind != "point":
-            alternatives[id(o)] = f
+    for o, f, channel_transmitters in zip(objects, fitted, transmitters_of, strict=True):
         if f is None or f.surface is None:
-            classified.append(o)
+            # No hypothesis could be fitted beside the association's point.
+            classified.append(replace(o, transmitters=channel_transmitters, surface=_UNTESTED))
         elif f.surface.kind == "point" or not _decisive(f.surface) or not _fits(f, options):
             # A point, or a mirror that does not explain the echoes decisively better: the
             # association's own fit stays the answer (shared echoes weighted as it weighs them).
@@ -734,12 +743,11 @@ def _classified(
                 surface = replace(surface, normal=None, normal_covariance=None, distance_m=None)
                 surface = replace(surface, distance_std_m=None, specular_points_m=None, extent_m=None)
                 surface = replace(surface, edge_direction=None, edge_covariance=None)
-            kept = replace(o, surface=surface)
-            if id(o) in alternatives:
-                alternatives[id(kept)] = alternatives.pop(id(o))
+            kept = replace(o, transmitters=channel_transmitters, surface=surface)
+            if f.surface.kind != "point":
+                alternatives.append((kept, f))
             classified.append(kept)
         else:
-            alternatives.pop(id(o), None)
             classified.append(replace(f, score=o.score))
     return classified
 
@@ -749,6 +757,19 @@ def _fits(o: LocatedObject, options: LocateOptions) -> bool:
     assert o.surface is not None
     dof = len(o.receivers) - surfaces.PARAMETERS[o.surface.kind]
     return dof <= 0 or o.chi2 <= _chi2_gate(options.gate_probability, dof)
+
+
+def classify_points(
+    objects: Sequence[LocatedObject],
+    frames: Sequence[tuple[int, FrameEchoes]],
+    transmitters_m: FloatArray,
+    receivers_m: FloatArray,
+    options: LocateOptions,
+) -> list[LocatedObject]:
+    """Objects the point association found outside :func:`locate_with_classes` (a clipped
+    channel's re-read), classified as it classifies its own."""
+    newest_t = max(frames, key=lambda f: f[1].frame)[0]
+    return _classified(objects, frames, newest_t, transmitters_m, receivers_m, options, [])
 
 
 def _decisive(surface: surfaces.Surface) -> bool:
@@ -786,8 +807,10 @@ def _double_reflections(
     Between two different points A, B: ``|A - T| + |B - A| + |B - R|``; a plane then a point
     B: ``|B - T'| + |B - R|`` (T' the transmitter's image); a point A then a plane:
     ``|A - T| + |A - R'|`` (the receiver's image); a plane then another: ``|T'' - R|``
-    (the image of the image). Points (K, 3); planes by their feet and normals (L, 3).
-    Corners make none of their own: their double bounce is their echo.
+    (the image of the image), except for two planes within 10 degrees of a right angle,
+    whose double bounce is the corner they make (reported as such, not a ghost). Points
+    (K, 3); planes by their feet and normals (L, 3). Corners make none of their own: their
+    double bounce is their echo.
     """
     m = len(tx)
     parts = [np.zeros((0, m))]
@@ -808,19 +831,22 @@ def _double_reflections(
     if len(feet_m) >= 2:
         tx_images = _mirror_points(tx, feet_m, normals)  # (L, m, 3)
         for i, j in zip(*np.nonzero(~np.eye(len(feet_m), dtype=bool)), strict=True):
+            if abs(float(normals[i] @ normals[j])) < CORNER_COSINE:
+                continue  # two walls at a right angle: their double bounce is the corner's own echo
             twice = _mirror_points(tx_images[i], feet_m[j : j + 1], normals[j : j + 1])[0]
             parts.append(np.linalg.norm(twice - rx, axis=-1)[None])
     return np.asarray(np.concatenate(parts))
 
 
-def _versions(o: LocatedObject, alternatives: dict[int, LocatedObject]) -> list[LocatedObject]:
+def _versions(
+    o: LocatedObject, alternatives: Sequence[tuple[LocatedObject, LocatedObject]]
+) -> list[LocatedObject]:
     """The object, and the plane or corner it could also be."""
-    other = alternatives.get(id(o))
-    return [o] if other is None else [o, other]
+    return [o, *(other for kept, other in alternatives if kept is o)]
 
 
 def _primitives(
-    kept: Sequence[LocatedObject], alternatives: dict[int, LocatedObject]
+    kept: Sequence[LocatedObject], alternatives: Sequence[tuple[LocatedObject, LocatedObject]]
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """The points (K, 3) and the planes' feet and normals (L, 3) of settled objects, with the
     plane each point might also be."""
@@ -846,7 +872,7 @@ def _explained_away(
     transmitters_m: FloatArray,
     receivers_m: FloatArray,
     options: LocateOptions,
-    alternatives: dict[int, LocatedObject],
+    alternatives: Sequence[tuple[LocatedObject, LocatedObject]],
 ) -> list[LocatedObject]:
     """``objects`` less those whose echoes others with shorter paths explain as double
     reflections: ghosts, not reflectors. The objects come back shortest mean path first. An
@@ -888,7 +914,7 @@ def _double_reflection(
     sigma: FloatArray,
     merge: float,
     kept: Sequence[LocatedObject],
-    alternatives: dict[int, LocatedObject],
+    alternatives: Sequence[tuple[LocatedObject, LocatedObject]],
     tx: FloatArray,
     rx: FloatArray,
     options: LocateOptions,
@@ -914,8 +940,8 @@ def _double_reflection(
         for second in kept[i + 1 :]:
             for a in _versions(first, alternatives):
                 for b in _versions(second, alternatives):
-                    p_a, f_a, n_a = _primitives([a], {})
-                    p_b, f_b, n_b = _primitives([b], {})
+                    p_a, f_a, n_a = _primitives([a], ())
+                    p_b, f_b, n_b = _primitives([b], ())
                     pair = _double_reflections(
                         np.vstack([p_a, p_b]), np.vstack([f_a, f_b]), np.vstack([n_a, n_b]), tx, rx
                     )

@@ -20,7 +20,7 @@ receiver R; an echo group holds one path ``l`` per channel.
 What one transmitter can tell apart: a point from a mirror, through the curvature of
 the wavefront (the ellipsoids of a point against the spheres about one image). For a
 transmitter at the centre of a cross of receivers the difference between its two
-receiver pairs goes as ``a^2 (u_x^2 - u_y^2) / r`` (a the cross's radius, u the
+receiver pairs is about ``a^2 (u_x^2 - u_y^2) / (4 r)`` (a the cross's radius, u the
 direction, r the range; docs/METHOD.md 10.10): nothing on the boresight and on the
 diagonals, 0.8 mm a path 20 degrees off them at 1 m for a = 0.25 m. A plane and a
 corner make the *same* image for one transmitter (``V = 2 G - T`` either way), so one
@@ -65,7 +65,7 @@ PARAMETERS = {"point": 3, "plane": 3, "corner": 4}
 _ITERATIONS = 12
 _HALVINGS = 8
 _STEP_M = 1e-6
-"""Central-difference step of the Jacobian, in the parameters' units (m; rad for the edge angle)."""
+"""Forward-difference step of the Jacobian, in the parameters' units (m; rad for the edge angle)."""
 
 POINT_MODEL, PLANE_MODEL, IMAGE_MODEL, EDGE_MODEL, CORNER_MODEL = 0, 1, 2, 3, 4
 """The models of :mod:`echoloc.localise._surface_kernels`, by number (as there)."""
@@ -217,8 +217,10 @@ the models they hold; the tests set it False to hold the kernels to the numpy fi
 
 
 class CompiledModel(NamedTuple):
-    """A model :mod:`echoloc.localise._surface_kernels` fits: its number (``POINT``, ``PLANE``,
-    ``IMAGE``, ``EDGE``) and the channels, reference transmitter and edge axis it needs."""
+    """A model :mod:`echoloc.localise._surface_kernels` fits: its number (:data:`POINT_MODEL`,
+    :data:`PLANE_MODEL`, :data:`IMAGE_MODEL`, :data:`EDGE_MODEL`, :data:`CORNER_MODEL`) and
+    what it needs: the channels, the reference transmitter (plane, corner), the edge's axis
+    (edge) and each row's helper vector of :func:`_edge_directions` (corner)."""
 
     model: int
     transmitters_m: FloatArray
@@ -543,7 +545,9 @@ def _fit_corner(
         kernel = CompiledModel(CORNER_MODEL, tx, rx, ref, helpers=helpers)
         return fit(model, start, paths[rows], sigmas[rows], kernel=kernel)
 
-    guessed = _edge_guess(tx, rx, paths, sigmas)
+    front = np.mean(feet_at - ref, axis=0)
+    size = float(np.linalg.norm(front))
+    guessed = _edge_guess(tx, rx, paths, sigmas, front / size) if size > 0 else None
     result = Fit(np.full((n, 4), np.nan), np.full((n, 4, 4), np.nan), np.full(n, np.inf))
     if guessed is not None:
         angle = _edge_angle(feet_at, ref, helper, guessed)
@@ -566,9 +570,12 @@ def _fit_corner(
     return result, helper
 
 
-def _edge_guess(tx: FloatArray, rx: FloatArray, paths: FloatArray, sigmas: FloatArray) -> FloatArray | None:
+def _edge_guess(
+    tx: FloatArray, rx: FloatArray, paths: FloatArray, sigmas: FloatArray, front: FloatArray
+) -> FloatArray | None:
     """The edge direction (n, 3) across the images of the first two transmitters with four or more
-    channels each (``(V_0 - T_0) x (V_1 - T_1)``), or None when there are no two such."""
+    channels each (``(V_0 - T_0) x (V_1 - T_1)``), or None when there are no two such. ``front``
+    is the side of a flat array the images lie on (where the plane fit put the surface)."""
     groups: list[NDArray[np.int64]] = []
     for t in np.unique(tx, axis=0):
         channels = np.flatnonzero(np.all(np.abs(tx - t) <= 1e-9, axis=1))
@@ -579,7 +586,7 @@ def _edge_guess(tx: FloatArray, rx: FloatArray, paths: FloatArray, sigmas: Float
     offsets = []
     for channels in groups[:2]:
         receivers = rx[channels]
-        start = image_start_m(receivers, paths[:, channels], np.array([0.0, 0.0, 1.0]))
+        start = image_start_m(receivers, paths[:, channels], front)
         image = fit(
             _mirror_model(receivers),
             start,
