@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -119,6 +120,93 @@ def _combinations(
     return rows
 
 
+class _Combinations(NamedTuple):
+    """One transmitter's usable channels (receiver indices), their receivers (m, 3), and every
+    combination of one echo per channel that one reflection can make: echo indices (k, m), paths
+    and sigmas (k, m), m."""
+
+    channels: list[int]
+    receivers_m: FloatArray
+    rows: NDArray[np.int64]
+    paths_m: FloatArray
+    sigmas_m: FloatArray
+
+
+def _echo_combinations(
+    echoes: FrameEchoes,
+    receivers_m: FloatArray,
+    options: LocateOptions,
+    usable: NDArray[np.bool_] | None,
+    widened: set[tuple[int, int]] | None = None,
+) -> _Combinations | None:
+    """:class:`_Combinations` of a frame, None with fewer than four usable channels or none at all.
+    The echoes in ``widened`` (channel, echo) get the association's merged-peak sigma added."""
+    n_rx = len(receivers_m)
+    use = np.ones(n_rx, dtype=bool) if usable is None else np.asarray(usable, dtype=bool)
+    channels = [c for c in range(n_rx) if use[c]]
+    if len(channels) < 4:
+        return None
+    c_m_s = echoes.speed_of_sound_m_s
+    paths = [echoes.channels[c].tof_s * c_m_s for c in channels]
+    sigmas = [path_sigmas_m(echoes.channels[c].snr_db, c_m_s, options) for c in channels]
+    if widened:
+        merge = 0.0 if options.resolution_m is None else _merge_sigma(options.resolution_m)
+        for k, c in enumerate(channels):
+            merged = np.array([(c, e) in widened for e in range(len(paths[k]))], dtype=bool)
+            sigmas[k] = np.where(merged, np.sqrt(sigmas[k] ** 2 + merge**2), sigmas[k])
+    rx = receivers_m[channels]
+    rows = _combinations(paths, rx, [4 * s for s in sigmas])
+    if widened and len(rows):
+        borrowed = sum(
+            np.array([(c, int(e)) in widened for e in rows[:, k]], dtype=np.int64)
+            for k, c in enumerate(channels)
+        )
+        rows = rows[np.asarray(borrowed) <= 1]
+    if len(rows) == 0:
+        return None
+    measured = np.stack([paths[k][rows[:, k]] for k in range(len(channels))], axis=1)
+    s = np.stack([sigmas[k][rows[:, k]] for k in range(len(channels))], axis=1)
+    return _Combinations(channels, rx, rows, measured, s)
+
+
+def _amplitudes_agree(
+    echoes: FrameEchoes, found: _Combinations, rows: NDArray[np.int64], power: int, options: LocateOptions
+) -> NDArray[np.bool_]:
+    """Whether each combination's amplitudes times its paths to ``power`` are the same on every
+    channel within :data:`MIRROR_AMPLITUDE_LOG_SIGMA` (the chi-square gate): spherical spreading
+    from one image (power 1) or from a point-like reflector (power 2). Echoes of different
+    reflectors that happen to fit one geometry rarely agree in it."""
+    amplitudes = np.stack(
+        [np.abs(echoes.channels[c].amplitude)[found.rows[rows, k]] for k, c in enumerate(found.channels)],
+        axis=1,
+    )
+    with np.errstate(divide="ignore", invalid="ignore"):
+        strength = np.log(amplitudes * found.paths_m[rows] ** power)
+    spread = (
+        np.sum((strength - strength.mean(axis=1, keepdims=True)) ** 2, axis=1) / MIRROR_AMPLITUDE_LOG_SIGMA**2
+    )
+    return np.asarray(
+        np.nan_to_num(spread, nan=np.inf) <= _chi2_gate(options.gate_probability, len(found.channels) - 1)
+    )
+
+
+def _disjoint(
+    found: _Combinations, order: Sequence[int], exempt: set[tuple[int, int]] | None = None
+) -> list[int]:
+    """The combinations (rows of ``found``), in ``order``, that share no echo with one taken before;
+    echoes in ``exempt`` (merged peaks borrowed from other objects) may repeat."""
+    taken: set[tuple[int, int]] = set()
+    chosen = []
+    for r in order:
+        picks = [(c, int(found.rows[r, k])) for k, c in enumerate(found.channels)]
+        own = [p for p in picks if exempt is None or p not in exempt]
+        if any(p in taken for p in own):
+            continue
+        taken.update(own)
+        chosen.append(int(r))
+    return chosen
+
+
 def mirror_groups(
     transmitter: int,
     transmitter_m: FloatArray,
@@ -136,20 +224,10 @@ def mirror_groups(
     ``decisive``: only groups a point fits :data:`DECISIVE_CHI2` worse (False: also those
     a point fits as well, to be told apart with another transmitter's echoes).
     """
-    n_rx = len(receivers_m)
-    use = np.ones(n_rx, dtype=bool) if usable is None else np.asarray(usable, dtype=bool)
-    channels = [c for c in range(n_rx) if use[c]]
-    if len(channels) < 4:
+    found = _echo_combinations(echoes, receivers_m, options, usable)
+    if found is None:
         return []
-    c_m_s = echoes.speed_of_sound_m_s
-    paths = [echoes.channels[c].tof_s * c_m_s for c in channels]
-    sigmas = [path_sigmas_m(echoes.channels[c].snr_db, c_m_s, options) for c in channels]
-    rx = receivers_m[channels]
-    rows = _combinations(paths, rx, [4 * s for s in sigmas])
-    if len(rows) == 0:
-        return []
-    measured = np.stack([paths[k][rows[:, k]] for k in range(len(channels))], axis=1)
-    s = np.stack([sigmas[k][rows[:, k]] for k in range(len(channels))], axis=1)
+    channels, rx, measured, s = found.channels, found.receivers_m, found.paths_m, found.sigmas_m
     boresight = np.asarray(options.boresight, dtype=float)
     boresight = boresight / np.linalg.norm(boresight)
     start = surfaces.image_start_m(rx, measured, boresight)
@@ -169,54 +247,39 @@ def mirror_groups(
         kernel=surfaces.CompiledModel(surfaces.IMAGE_MODEL, rx, rx),  # an image needs no transmitter
     )
     ahead = (image.parameters - transmitter_m) @ boresight > 0
-    # Spherical spreading from one image: amplitude x path the same on every channel. Echoes of
-    # different reflectors that happen to fit one image rarely agree in it.
-    amplitudes = np.stack(
-        [np.abs(echoes.channels[c].amplitude)[rows[near, k]] for k, c in enumerate(channels)], axis=1
-    )
-    with np.errstate(divide="ignore", invalid="ignore"):
-        strength = np.log(amplitudes * measured[near])
-    spread = (
-        np.sum((strength - strength.mean(axis=1, keepdims=True)) ** 2, axis=1) / MIRROR_AMPLITUDE_LOG_SIGMA**2
-    )
-    agree = np.nan_to_num(spread, nan=np.inf) <= _chi2_gate(options.gate_probability, len(channels) - 1)
-    passed = near[(image.chi2 <= gate) & ahead & agree]
-    if len(passed) == 0:
+    agree = _amplitudes_agree(echoes, found, near, 1, options)
+    passed = (image.chi2 <= gate) & ahead & agree
+    if not np.any(passed):
         return []
-    image_at = {int(r): k for k, r in enumerate(near)}
     tx = np.broadcast_to(transmitter_m, rx.shape)
     point = surfaces.fit(
         lambda p: surfaces.point_paths_m(p, tx, rx),
-        0.5 * (image.parameters[[image_at[int(r)] for r in passed]] + transmitter_m),
-        measured[passed],
-        s[passed],
+        0.5 * (image.parameters[passed] + transmitter_m),
+        measured[near[passed]],
+        s[near[passed]],
         jacobian=lambda p: surfaces.point_jacobian(p, tx, rx),
         kernel=surfaces.CompiledModel(surfaces.POINT_MODEL, tx, rx),
     )
-    margin = point.chi2 - image.chi2[[image_at[int(r)] for r in passed]]
-    decisive_rows = margin >= DECISIVE_CHI2 if decisive else np.ones(len(passed), dtype=bool)
-    chosen: list[MirrorGroup] = []
-    taken: set[tuple[int, int]] = set()
-    order = sorted(np.flatnonzero(decisive_rows), key=lambda k: image.chi2[image_at[int(passed[k])]])
-    for k in order:
-        r = int(passed[k])
-        picks = [(channels[c], int(rows[r, c])) for c in range(len(channels))]
-        if any(p in taken for p in picks):
-            continue
-        taken.update(picks)
-        chosen.append(
-            MirrorGroup(
-                transmitter=transmitter,
-                channels=tuple(channels),
-                echoes=tuple(int(rows[r, c]) for c in range(len(channels))),
-                paths_m=measured[r],
-                sigmas_m=s[r],
-                image_m=image.parameters[image_at[r]],
-                chi2=float(image.chi2[image_at[r]]),
-                point_chi2=float(point.chi2[k]),
-            )
+    margin = point.chi2 - image.chi2[passed]
+    keep = margin >= DECISIVE_CHI2 if decisive else np.ones(len(margin), dtype=bool)
+    candidates = np.flatnonzero(passed)[keep]  # indices into near
+    point_chi2 = dict(zip(np.flatnonzero(passed).tolist(), point.chi2.tolist(), strict=True))
+    order = sorted(candidates.tolist(), key=lambda k: image.chi2[k])
+    chosen = _disjoint(found, [int(near[k]) for k in order])
+    at = {int(near[k]): k for k in order}
+    return [
+        MirrorGroup(
+            transmitter=transmitter,
+            channels=tuple(channels),
+            echoes=tuple(int(found.rows[r, c]) for c in range(len(channels))),
+            paths_m=measured[r],
+            sigmas_m=s[r],
+            image_m=image.parameters[at[r]],
+            chi2=float(image.chi2[at[r]]),
+            point_chi2=float(point_chi2[at[r]]),
         )
-    return chosen
+        for r in chosen
+    ]
 
 
 @dataclass(frozen=True, eq=False)
@@ -261,32 +324,10 @@ def edge_groups(
     """
     if options.edge_axis is None:
         return []
-    n_rx = len(receivers_m)
-    use = np.ones(n_rx, dtype=bool) if usable is None else np.asarray(usable, dtype=bool)
-    channels = [c for c in range(n_rx) if use[c]]
-    if len(channels) < 4:
+    found = _echo_combinations(echoes, receivers_m, options, usable, shared or set())
+    if found is None:
         return []
-    c_m_s = echoes.speed_of_sound_m_s
-    paths = [echoes.channels[c].tof_s * c_m_s for c in channels]
-    sigmas = [path_sigmas_m(echoes.channels[c].snr_db, c_m_s, options) for c in channels]
-    taken_by_others = shared or set()
-    merge = 0.0 if options.resolution_m is None else _merge_sigma(options.resolution_m)
-    merged = [
-        np.array([(c, e) in taken_by_others for e in range(len(paths[k]))], dtype=bool)
-        for k, c in enumerate(channels)
-    ]
-    sigmas = [
-        np.where(merged[k], np.sqrt(sigmas[k] ** 2 + merge**2), sigmas[k]) for k in range(len(channels))
-    ]
-    rx = receivers_m[channels]
-    rows = _combinations(paths, rx, [4 * s for s in sigmas])
-    if len(rows):
-        borrowed = np.sum(np.stack([merged[k][rows[:, k]] for k in range(len(channels))], axis=1), axis=1)
-        rows = rows[borrowed <= 1]
-    if len(rows) == 0:
-        return []
-    measured = np.stack([paths[k][rows[:, k]] for k in range(len(channels))], axis=1)
-    s = np.stack([sigmas[k][rows[:, k]] for k in range(len(channels))], axis=1)
+    channels, rx, measured, s = found.channels, found.receivers_m, found.paths_m, found.sigmas_m
     axis = np.asarray(options.edge_axis, dtype=float)
     e, a, b = surfaces.axis_basis(axis)
     plane = np.stack([a, b])
@@ -304,70 +345,55 @@ def edge_groups(
     near = np.flatnonzero(np.isfinite(first) & (first <= 100 * gate + 100))
     if len(near) == 0:
         return []
-    rows, measured, s, start = rows[near], measured[near], s[near], start[near]
     edge = surfaces.fit(
         lambda q: surfaces.edge_paths_m(q, axis, tx, rx),
-        start,
-        measured,
-        s,
+        start[near],
+        measured[near],
+        s[near],
         jacobian=lambda q: surfaces.edge_jacobian(q, axis, tx, rx),
         kernel=surfaces.CompiledModel(surfaces.EDGE_MODEL, tx, rx, axis=axis),
     )
-    amplitudes = np.stack(
-        [np.abs(echoes.channels[c].amplitude)[rows[:, k]] for k, c in enumerate(channels)], axis=1
-    )
-    with np.errstate(divide="ignore", invalid="ignore"):
-        strength = np.log(amplitudes * measured**2)
-    spread = (
-        np.sum((strength - strength.mean(axis=1, keepdims=True)) ** 2, axis=1) / MIRROR_AMPLITUDE_LOG_SIGMA**2
-    )
-    agree = np.nan_to_num(spread, nan=np.inf) <= _chi2_gate(options.gate_probability, len(channels) - 1)
+    agree = _amplitudes_agree(echoes, found, near, 2, options)
     feet = surfaces.edge_foot_m(edge.parameters, axis, transmitter_m)
     ahead = (feet - transmitter_m) @ np.asarray(options.boresight, dtype=float) > 0
-    passed = np.flatnonzero((edge.chi2 <= gate) & agree & ahead)
+    passed = np.flatnonzero((edge.chi2 <= gate) & agree & ahead)  # indices into near
     if len(passed) == 0:
         return []
+    rows = near[passed]
     point = surfaces.fit(
         lambda p: surfaces.point_paths_m(p, tx, rx),
         feet[passed],
-        measured[passed],
-        s[passed],
+        measured[rows],
+        s[rows],
         jacobian=lambda p: surfaces.point_jacobian(p, tx, rx),
         kernel=surfaces.CompiledModel(surfaces.POINT_MODEL, tx, rx),
     )
-    mirror_start = surfaces.image_start_m(rx, measured[passed], np.asarray(options.boresight, dtype=float))
+    mirror_start = surfaces.image_start_m(rx, measured[rows], np.asarray(options.boresight, dtype=float))
     mirror = surfaces.fit(
         lambda v: surfaces.mirror_paths_m(v, rx),
         mirror_start,
-        measured[passed],
-        s[passed],
+        measured[rows],
+        s[rows],
         jacobian=surfaces.mirror_jacobian(rx),
         kernel=surfaces.CompiledModel(surfaces.IMAGE_MODEL, tx, rx),
     )
-    best_other = np.minimum(point.chi2, mirror.chi2)
-    keep = best_other - edge.chi2[passed] >= DECISIVE_CHI2
-    chosen: list[EdgeGroup] = []
-    taken: set[tuple[int, int]] = set()
-    for k in sorted(np.flatnonzero(keep), key=lambda k: edge.chi2[passed[k]]):
-        r = int(passed[k])
-        picks = [(channels[c], int(rows[r, c])) for c in range(len(channels))]
-        own = [p for p in picks if p not in taken_by_others]
-        if any(p in taken for p in own):
-            continue
-        taken.update(own)
-        chosen.append(
-            EdgeGroup(
-                transmitter=transmitter,
-                channels=tuple(channels),
-                echoes=tuple(int(rows[r, c]) for c in range(len(channels))),
-                line=edge.parameters[r],
-                covariance=edge.covariance[r],
-                chi2=float(edge.chi2[r]),
-                point_chi2=float(point.chi2[k]),
-                mirror_chi2=float(mirror.chi2[k]),
-            )
+    keep = np.minimum(point.chi2, mirror.chi2) - edge.chi2[passed] >= DECISIVE_CHI2
+    order = sorted(np.flatnonzero(keep).tolist(), key=lambda k: edge.chi2[passed[k]])
+    at = {int(rows[k]): k for k in order}
+    chosen = _disjoint(found, [int(rows[k]) for k in order], shared)
+    return [
+        EdgeGroup(
+            transmitter=transmitter,
+            channels=tuple(channels),
+            echoes=tuple(int(found.rows[r, c]) for c in range(len(channels))),
+            line=edge.parameters[passed[at[r]]],
+            covariance=edge.covariance[passed[at[r]]],
+            chi2=float(edge.chi2[passed[at[r]]]),
+            point_chi2=float(point.chi2[at[r]]),
+            mirror_chi2=float(mirror.chi2[at[r]]),
         )
-    return chosen
+        for r in chosen
+    ]
 
 
 def _edge_object(group: EdgeGroup, transmitters_m: FloatArray, options: LocateOptions) -> LocatedObject:
