@@ -537,8 +537,6 @@ def _validate(rec: Recording, *, allow_nonfinite: bool, header_only: bool = Fals
             raise _error(src, f"frames has shape {frames.shape}: no frames")
         _check_samples(src, frames, rec.signal_kind, allow_nonfinite)
         _check_per_frame(src, n_frames, n_tx, *per_frame.values())
-        if rec.truth_kinds is not None and rec.truth_positions_m is None:
-            raise _error(src, "truth_kinds is given without truth_positions, whose columns it names")
     _check_truth_kinds(src, rec.truth_kinds, rec.truth_positions_m)
 
     # Templates.
