@@ -106,6 +106,10 @@ def test_the_corridor_with_two_transmitters_finds_the_corner(corridor: Scene) ->
         assert found.surface.edge_direction is not None
         assert abs(found.surface.edge_direction[1]) > math.cos(math.radians(2.0))
         assert len(set(found.transmitters)) == 2
+        # Nothing else: the post's and the wall's double reflections, some of them built on an echo
+        # the wall took too, are explained away.
+        rows = truth[np.all(np.isfinite(truth), axis=1)]
+        assert all(np.min(np.linalg.norm(rows - o.position_m, axis=1)) < 0.01 for o in frame.objects)
 
 
 def test_double_scattering_between_two_balls_is_explained_away() -> None:
@@ -303,3 +307,45 @@ def test_classes_refuse_back_projection(tmp_path: Path, capsys: pytest.CaptureFi
             main(argv)
         assert exit_info.value.code == 2
         assert "--classes" in capsys.readouterr().err
+
+
+def test_a_ghost_built_on_an_echo_a_real_object_took_is_explained_away() -> None:
+    """Balls A and C, and an object B the association built from A's echo on one receiver (a
+    shared, merged peak) and the double reflection A -> C on the others: B is a ghost and goes.
+    The same B with an echo of its own on that receiver, which nothing explains, stays."""
+    from echoloc.localise import reflector_kinds
+    from echoloc.localise.locate import LocateOptions
+    from echoloc.localise.surfaces import point_paths_m
+    from echoloc.tof.echoes import ChannelEchoes, FrameEchoes
+
+    c = 343.0
+    rx = np.array([[0.25, 0, 0], [-0.25, 0, 0], [0, 0.25, 0], [0, -0.25, 0]], dtype=float)
+    tx = np.zeros((4, 3))
+    a, b = np.array([0.3, 0.0, 1.0]), np.array([-0.2, 0.1, 0.8])
+    direct_a, direct_b = point_paths_m(a[None], tx, rx)[0], point_paths_m(b[None], tx, rx)[0]
+    double = np.linalg.norm(a) + np.linalg.norm(b - a) + np.linalg.norm(b - rx, axis=1)
+    stray = direct_a[0] + 0.05
+    channels = tuple(
+        ChannelEchoes(
+            np.array([direct_a[r], direct_b[r], double[r], stray]) / c, np.ones(4), np.full(4, 30.0)
+        )
+        for r in range(4)
+    )
+    frames = [(0, FrameEchoes(0, 0.0, c, channels))]
+    point = Surface("point", 1.0, {"point": 1.0})
+
+    def located(position: np.ndarray, echoes: tuple[int, ...]) -> LocatedObject:
+        return LocatedObject(
+            position, np.eye(3) * 1e-8, (0, 1, 2, 3), echoes, 0.0, 1.0, (0,) * 4, surface=point
+        )
+
+    options = LocateOptions(resolution_m=0.027)
+    ball_a, ball_b = located(a, (0, 0, 0, 0)), located(b, (1, 1, 1, 1))
+    for first_echo, stays in ((0, False), (3, True)):
+        ghost = located(np.array([0.1, 0.2, 1.2]), (first_echo, 2, 2, 2))
+        kept = reflector_kinds._explained_away(
+            [ball_a, ball_b, ghost], frames, np.zeros((1, 3)), rx, options, []
+        )
+        assert (ghost in kept) is stays
+        assert ball_a in kept
+        assert ball_b in kept

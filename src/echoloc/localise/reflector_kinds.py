@@ -928,8 +928,21 @@ def _explained_away(
             if sum(t == newest_t for t in tx_of) >= 3
             else np.ones(len(tx_of), bool)
         )
-        observed, sigma = observed[own], sigma[own]
-        tx, rx = transmitters_m[np.array(tx_of)[own]], receivers_m[np.array(o.receivers)[own]]
+        # An echo a settled object took too (a merged peak the association shared) is that
+        # object's; the rest must be double reflections for this one to be a ghost.
+        settled = {
+            (t, r, e)
+            for k in kept
+            for t, r, e in zip(_channel_transmitters(k, frames), k.receivers, k.echo_indices, strict=True)
+        }
+        borrowed = np.array(
+            [(t, r, e) in settled for t, r, e in zip(tx_of, o.receivers, o.echo_indices, strict=True)]
+        )
+        rest = own & ~borrowed
+        if rest.sum() < 2:
+            rest = own  # too little of its own to judge on: as before, on all its channels
+        observed, sigma = observed[rest], sigma[rest]
+        tx, rx = transmitters_m[np.array(tx_of)[rest]], receivers_m[np.array(o.receivers)[rest]]
         if not _double_reflection(observed, sigma, merge, kept, alternatives, tx, rx, options):
             kept.append(o)
     return kept
