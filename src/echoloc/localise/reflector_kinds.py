@@ -85,7 +85,7 @@ class MirrorGroup:
     """One echo per channel of one transmitter that a virtual source explains.
 
     ``channels`` are receiver indices, ``echoes`` the echo index on each; ``image_m`` the
-    fitted virtual source, ``chi2`` its fit and ``point_chi2`` the point's on the same paths.
+    fitted virtual source.
     """
 
     transmitter: int
@@ -94,8 +94,6 @@ class MirrorGroup:
     paths_m: FloatArray
     sigmas_m: FloatArray
     image_m: FloatArray
-    chi2: float
-    point_chi2: float
 
 
 def _combinations(
@@ -263,7 +261,6 @@ def mirror_groups(
     margin = point.chi2 - image.chi2[passed]
     keep = margin >= DECISIVE_CHI2 if decisive else np.ones(len(margin), dtype=bool)
     candidates = np.flatnonzero(passed)[keep]  # indices into near
-    point_chi2 = dict(zip(np.flatnonzero(passed).tolist(), point.chi2.tolist(), strict=True))
     order = sorted(candidates.tolist(), key=lambda k: image.chi2[k])
     chosen = _disjoint(found, [int(near[k]) for k in order])
     at = {int(near[k]): k for k in order}
@@ -275,8 +272,6 @@ def mirror_groups(
             paths_m=measured[r],
             sigmas_m=s[r],
             image_m=image.parameters[at[r]],
-            chi2=float(image.chi2[at[r]]),
-            point_chi2=float(point_chi2[at[r]]),
         )
         for r in chosen
     ]
@@ -287,8 +282,8 @@ class EdgeGroup:
     """One echo per channel of one transmitter that a straight edge along the edge axis explains.
 
     ``line`` holds the edge's two coordinates across the axis (:func:`echoloc.localise.surfaces.edge_paths_m`)
-    with their covariance; ``chi2`` the edge's fit, ``point_chi2`` and ``mirror_chi2`` the other
-    hypotheses' on the same paths.
+    with their covariance; ``chi2`` the edge's fit, ``mirror_chi2`` an image's on the same paths
+    (for the class probabilities).
     """
 
     transmitter: int
@@ -297,7 +292,6 @@ class EdgeGroup:
     line: FloatArray
     covariance: FloatArray
     chi2: float
-    point_chi2: float
     mirror_chi2: float
 
 
@@ -389,7 +383,6 @@ def edge_groups(
             line=edge.parameters[passed[at[r]]],
             covariance=edge.covariance[passed[at[r]]],
             chi2=float(edge.chi2[passed[at[r]]]),
-            point_chi2=float(point.chi2[at[r]]),
             mirror_chi2=float(mirror.chi2[at[r]]),
         )
         for r in chosen
@@ -517,17 +510,6 @@ def _objects_of(
                 surface=surface,
             )
     return found
-
-
-def _object(
-    channels: _Channels,
-    reference: int,
-    transmitters_m: FloatArray,
-    start_m: FloatArray,
-    options: LocateOptions,
-) -> LocatedObject | None:
-    """:func:`_objects_of` for one echo group."""
-    return _objects_of([channels], reference, transmitters_m, start_m[None], options)[0]
 
 
 def _paired(
@@ -709,7 +691,7 @@ def _as_mirror_group(
     image = 2 * o.position_m - transmitters_m[newest_t]  # a point's position is near the foot
     receivers = tuple(o.receivers[k] for k in own)
     echoes = tuple(o.echo_indices[k] for k in own)
-    return MirrorGroup(newest_t, receivers, echoes, paths[own], sigmas[own], image, o.chi2, np.inf)
+    return MirrorGroup(newest_t, receivers, echoes, paths[own], sigmas[own], image)
 
 
 def _channel_transmitters(o: LocatedObject, frames: Sequence[tuple[int, FrameEchoes]]) -> list[int]:
