@@ -28,6 +28,7 @@ from echoloc.io.export import (
 )
 from echoloc.io.recording import Recording
 from echoloc.localise.locate import FrameObjects, LocatedObject
+from echoloc.physics.transducer import PRESETS, piston_beam_angles
 from echoloc.sim.scene import default_scene
 from echoloc.sim.simulation import simulate
 
@@ -92,10 +93,11 @@ def _cloud_points(msg: Any) -> np.ndarray:
 
 
 def _expected(frame: FrameObjects) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Positions, scores and covariances (n, 3, 3) of a frame's objects."""
     n = len(frame.objects)
     pos = np.array([o.position_m for o in frame.objects]).reshape(n, 3)
     score = np.array([o.score for o in frame.objects])
-    cov = np.array([np.diag(o.covariance_m2) for o in frame.objects]).reshape(n, 3)
+    cov = np.array([o.covariance_m2 for o in frame.objects]).reshape(n, 3, 3)
     return pos, score, cov
 
 
@@ -106,8 +108,17 @@ def _assert_cloud_matches(msg: Any, frame: FrameObjects) -> None:
     got_pos = np.column_stack([points["x"], points["y"], points["z"]]) if len(points) else np.zeros((0, 3))
     np.testing.assert_allclose(got_pos, pos, rtol=1e-6, atol=1e-7)
     np.testing.assert_allclose(points["intensity"], score, rtol=1e-6)
-    got_cov = np.column_stack([points["cov_xx"], points["cov_yy"], points["cov_zz"]]) if len(points) else cov
-    np.testing.assert_allclose(got_cov, cov, rtol=1e-6)
+    got_cov = np.array(
+        [
+            [
+                [p["cov_xx"], p["cov_xy"], p["cov_xz"]],
+                [p["cov_xy"], p["cov_yy"], p["cov_yz"]],
+                [p["cov_xz"], p["cov_yz"], p["cov_zz"]],
+            ]
+            for p in points
+        ]
+    ).reshape(-1, 3, 3)
+    np.testing.assert_allclose(got_cov, cov, rtol=1e-6, atol=1e-6 * np.abs(cov).max(initial=0.0))
     assert msg.is_dense is True
 
 
@@ -157,7 +168,12 @@ def test_mcap_of_real_pipeline_output_decodes_to_the_objects(
         # Co-located transmitter at the origin, receivers 0.25 m off: (L + 0.25) / 2.
         assert msg.max_range == pytest.approx((window_m + 0.25) / 2, rel=1e-6)
         assert msg.min_range <= msg.range <= msg.max_range
-        assert msg.field_of_view == pytest.approx(math.pi)  # the recording gives no field of view
+        # The recording gives no field of view: the first-null beam of the 50 kHz transducer model.
+        assert rec.field_of_view_deg is None
+        model = PRESETS["electrostatic50"]
+        beam = piston_beam_angles(model.radius_m, rec.carrier_hz, c)
+        assert msg.field_of_view == pytest.approx(beam.full_angle_null_rad, rel=1e-6)
+        assert math.radians(30) < msg.field_of_view < math.radians(40)
 
 
 def test_mcap_tf_static_puts_each_receiver_frame_at_its_position(
@@ -169,9 +185,10 @@ def test_mcap_tf_static_puts_each_receiver_frame_at_its_position(
     (tf,) = [m for m in _read_mcap(out) if m[0] == TF_STATIC_TOPIC]
     assert tf[1] == "tf2_msgs/msg/TFMessage"
     assert [t.child_frame_id for t in tf[3].transforms] == [
-        receiver_frame_id(n) for n in range(rec.n_receivers)
+        SENSOR_FRAME_ID,
+        *(receiver_frame_id(n) for n in range(rec.n_receivers)),
     ]
-    for t, position in zip(tf[3].transforms, rec.receivers_m, strict=True):
+    for t, position in zip(tf[3].transforms[1:], rec.receivers_m, strict=True):
         assert t.header.frame_id == SENSOR_FRAME_ID
         tr = t.transform.translation
         np.testing.assert_allclose([tr.x, tr.y, tr.z], position)
@@ -198,7 +215,8 @@ def test_mcap_field_of_view_and_tilted_receiver(
     for _, _, _, msg in (m for m in messages if m[1] == "sensor_msgs/msg/Range"):
         assert msg.field_of_view == pytest.approx(math.radians(40.0), rel=1e-6)
     (tf,) = [m for m in messages if m[0] == TF_STATIC_TOPIC]
-    q = tf[3].transforms[1].transform.rotation
+    (receiver_1,) = [t for t in tf[3].transforms if t.child_frame_id == receiver_frame_id(1)]
+    q = receiver_1.transform.rotation
     x, y, z, w = q.x, q.y, q.z, q.w
     x_axis = [1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)]
     np.testing.assert_allclose(x_axis, axes[1], atol=1e-12)
@@ -209,7 +227,11 @@ def test_mcap_without_recording_uses_frame_rate_and_empty_frames_are_valid(tmp_p
     out = tmp_path / "synthetic.mcap"
     count = write_mcap(out, None, frames, frame_rate_hz=20.0, start_time_s=10.0)
     messages = _read_mcap(out)
-    assert count == len(messages) == len(frames)
+    assert count == len(messages) == len(frames) + 1
+    # Without a recording, /tf_static holds only the body-to-optical rotation.
+    assert messages[0][0] == TF_STATIC_TOPIC
+    assert [t.child_frame_id for t in messages[0][3].transforms] == [SENSOR_FRAME_ID]
+    messages = messages[1:]
     assert {m[0] for m in messages} == {OBJECTS_TOPIC}
     for (_, schema, log_time, msg), frame in zip(messages, frames, strict=True):
         assert schema == "sensor_msgs/msg/PointCloud2"
@@ -217,7 +239,7 @@ def test_mcap_without_recording_uses_frame_rate_and_empty_frames_are_valid(tmp_p
         assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (10, frame.frame * 50_000_000)
         assert log_time == 10_000_000_000 + frame.frame * 50_000_000
     empty = messages[1][3]
-    assert (empty.width, empty.row_step, len(empty.data), empty.point_step) == (0, 0, 0, 28)
+    assert (empty.width, empty.row_step, len(empty.data), empty.point_step) == (0, 0, 0, 40)
 
 
 def test_mcap_intensities_replace_scores_and_default_stamps_are_frame_times(tmp_path: Path) -> None:
@@ -225,7 +247,7 @@ def test_mcap_intensities_replace_scores_and_default_stamps_are_frame_times(tmp_
     amplitudes = [np.array([0.25]), np.array([]), np.array([0.5, 0.75])]
     out = tmp_path / "amp.mcap"
     write_mcap(out, None, frames, intensities=amplitudes)
-    messages = _read_mcap(out)
+    messages = [m for m in _read_mcap(out) if m[0] == OBJECTS_TOPIC]
     for (_, _, log_time, msg), frame, amp in zip(messages, frames, amplitudes, strict=True):
         np.testing.assert_allclose(_cloud_points(msg)["intensity"], amp)
         assert log_time == round(frame.time_s * 1e9)

@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from echoloc.cli import commands as cli
 from echoloc.errors import EchoLocError
-from echoloc.io.export import SENSOR_FRAME_ID
+from echoloc.io.export import BODY_FRAME_ID, ODOM_FRAME_ID, ROS_MAP_FRAME_ID
 from echoloc.io.recording import write_recording
 from echoloc.maps.map_export import (
     MAP_CLOUD_TOPIC,
@@ -27,7 +27,7 @@ from echoloc.maps.map_export import (
     write_map_mcap,
     write_octomap,
 )
-from echoloc.maps.mapping import MAP_FRAME_ID, GridSpec, OccupancyGrid, SensorModel
+from echoloc.maps.mapping import GridSpec, OccupancyGrid, SensorModel
 from echoloc.sim.reflectors import Plane
 from echoloc.sim.scene import Array, Scene, SensorMotion
 from echoloc.sim.simulation import simulate
@@ -96,35 +96,43 @@ def test_octomap_leaves_are_the_grids_cells(tmp_path: Path, suffix: str) -> None
 
 def test_mcap_floor_plan_decodes_to_the_grid(tmp_path: Path) -> None:
     grid = _grid(FLOOR)
-    q = Rotation.from_euler("y", 20, degrees=True).as_quat()
+    q = Rotation.from_euler("y", 20, degrees=True).as_quat()  # a turn about echoloc's world y (down)
     poses = np.array([[0.0, 0.0, 0.0, 0, 0, 0, 1], [0.1, 0.0, 0.05, *q]])
     count = write_map_mcap(tmp_path / "m.mcap", grid, poses=poses, frame_times_s=np.array([0.0, 0.01]))
     messages = _read_mcap(tmp_path / "m.mcap")
-    assert count == len(messages) == 3
+    assert count == len(messages) == 4  # /tf_static, two /tf, the map
     tfs = [m for topic, _, m in messages if topic == TF_TOPIC]
-    assert [t.transforms[0].header.frame_id for t in tfs] == [MAP_FRAME_ID] * 2
-    assert tfs[1].transforms[0].child_frame_id == SENSOR_FRAME_ID
-    rotation = tfs[1].transforms[0].transform.rotation
-    np.testing.assert_allclose([rotation.x, rotation.y, rotation.z, rotation.w], q)
+    assert [t.transforms[0].header.frame_id for t in tfs] == [ODOM_FRAME_ID] * 2
+    assert tfs[1].transforms[0].child_frame_id == BODY_FRAME_ID
+    moved = tfs[1].transforms[0].transform
+    # The body moved 0.1 m to the sensor's right (map -y) and 0.05 m ahead (map +x) ...
+    tr = moved.translation
+    np.testing.assert_allclose([tr.x, tr.y, tr.z], [0.05, -0.1, 0.0], atol=1e-12)
+    # ... and turned 20 degrees about the downward y: clockwise seen from above, a yaw of -20 degrees.
+    r = moved.rotation
+    np.testing.assert_allclose(
+        Rotation.from_quat([r.x, r.y, r.z, r.w]).as_euler("zyx", degrees=True), [-20, 0, 0], atol=1e-9
+    )
     ((_topic, schema, msg),) = [m for m in messages if m[0] == MAP_TOPIC]
     assert schema == "nav_msgs/msg/OccupancyGrid"
-    assert msg.header.frame_id == MAP_FRAME_ID
-    assert (msg.info.width, msg.info.height) == (FLOOR.shape[0], FLOOR.shape[2])
-    cells = np.array(msg.data, dtype=np.int8).reshape(msg.info.height, msg.info.width).T
-    expected = np.where(grid.known()[:, 0, :], np.rint(100 * grid.probability()[:, 0, :]), -1)
-    np.testing.assert_array_equal(cells, expected)
-    # The origin pose turns the grid's x-y plane onto the map's x-z plane, its normal up (-y).
+    assert msg.header.frame_id == ROS_MAP_FRAME_ID
+    nx, _, nz = FLOOR.shape
+    assert (msg.info.width, msg.info.height) == (nz, nx)  # columns along map x (ahead), rows along map y
     o = msg.info.origin
-    turn = Rotation.from_quat([o.orientation.x, o.orientation.y, o.orientation.z, o.orientation.w])
-    np.testing.assert_allclose(
-        turn.apply([[1, 0, 0], [0, 1, 0], [0, 0, 1]]), [[1, 0, 0], [0, 0, 1], [0, -1, 0]], atol=1e-12
-    )
-    # Cell (i, j) of the message has its centre where the grid's cell (i, 0, j) has it.
-    i, j = 3, 5
-    centre = np.array([o.position.x, o.position.y, o.position.z]) + turn.apply(
-        [(i + 0.5) * 0.05, (j + 0.5) * 0.05, 0]
-    )
-    np.testing.assert_allclose(centre, FLOOR.origin_m + (np.array([i, 0, j]) + 0.5) * 0.05, atol=1e-9)
+    assert (o.orientation.x, o.orientation.y, o.orientation.z, o.orientation.w) == (0, 0, 0, 1)
+    cells = np.array(msg.data, dtype=np.int8).reshape(msg.info.height, msg.info.width)
+    expected = np.where(grid.known()[:, 0, :], np.rint(100 * grid.probability()[:, 0, :]), -1)
+    # Row r, column c is the grid's cell (nx - 1 - r, 0, c): its centre lies where that cell's does.
+    np.testing.assert_array_equal(cells, expected[::-1, :])
+    for r, c in [(0, 0), (3, 5), (nx - 1, nz - 1)]:
+        offset = np.array([(c + 0.5) * 0.05, (r + 0.5) * 0.05, 0.0])
+        centre_map = np.array([o.position.x, o.position.y, o.position.z]) + offset
+        centre_world = FLOOR.origin_m + (np.array([nx - 1 - r, 0, c]) + 0.5) * 0.05
+        # map x = world z (ahead), map y = -world x (left), map z = -world y (up)
+        np.testing.assert_allclose(
+            centre_map, [centre_world[2], -centre_world[0], -centre_world[1]], atol=1e-9
+        )
+    assert o.position.z == pytest.approx(-0.1)  # the floor plan's height, 0.1 m below (y down)
 
 
 def test_mcap_of_a_3d_grid_is_a_cloud_of_its_occupied_cells(tmp_path: Path) -> None:
@@ -132,9 +140,12 @@ def test_mcap_of_a_3d_grid_is_a_cloud_of_its_occupied_cells(tmp_path: Path) -> N
     write_map_mcap(tmp_path / "m.mcap", grid)
     ((_, schema, msg),) = [m for m in _read_mcap(tmp_path / "m.mcap") if m[0] == MAP_CLOUD_TOPIC]
     assert schema == "sensor_msgs/msg/PointCloud2"
-    assert msg.header.frame_id == MAP_FRAME_ID
-    table = np.frombuffer(bytes(msg.data), dtype="<f4").reshape(msg.width, 7)
-    np.testing.assert_allclose(table[:, :3], grid.occupied_centres_m(), atol=1e-6)
+    assert msg.header.frame_id == ROS_MAP_FRAME_ID
+    table = np.frombuffer(bytes(msg.data), dtype="<f4").reshape(msg.width, len(msg.fields))
+    world = grid.occupied_centres_m()
+    np.testing.assert_allclose(
+        table[:, :3], np.column_stack([world[:, 2], -world[:, 0], -world[:, 1]]), atol=1e-6
+    )
 
 
 # --- the command ------------------------------------------------------------------------
@@ -176,7 +187,7 @@ def panned_wall(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
-@pytest.mark.parametrize("suffix", [".png", ".npz", ".ply", ".bt", ".ot", ".mcap"])
+@pytest.mark.parametrize("suffix", [".png", ".npz", ".ply", ".bt", ".ot", ".mcap", ".yaml"])
 def test_map_command_writes_each_format(
     capsys: pytest.CaptureFixture[str], panned_wall: Path, tmp_path: Path, suffix: str
 ) -> None:
@@ -214,6 +225,26 @@ def test_map_command_writes_each_format(
         assert sum(topic == TF_TOPIC for topic, _, _ in messages) == 120
         ((_, _, grid_msg),) = [m for m in messages if m[0] == MAP_TOPIC]
         assert max(grid_msg.data) > 50
+    if suffix == ".yaml":
+        # nav2's map files: the wall 1 m ahead of the sensor is at map x = 1 m (x forward).
+        from PIL import Image
+
+        assert "map.pgm" in " ".join(stdout.split())
+        meta = dict(line.split(": ", 1) for line in out.read_text().splitlines())
+        assert meta["image"] == "map.pgm"
+        resolution = float(meta["resolution"])
+        origin_x, origin_y, _ = (float(v) for v in meta["origin"].strip("[]").split(","))
+        with Image.open(tmp_path / "map.pgm") as image:
+            pixels = np.asarray(image)
+        rows, columns = np.nonzero(pixels == 0)
+        assert len(rows) > 10
+        x = origin_x + (columns + 0.5) * resolution
+        y = origin_y + (pixels.shape[0] - 1 - rows + 0.5) * resolution
+        assert np.median(np.abs(x - 1.0)) <= resolution
+        assert np.all(np.abs(y) < 1.0)  # within the 2 m wide wall, across the map's y
+        # Free space (254) was heard between the sensor and the wall.
+        _, free_columns = np.nonzero(pixels == 254)
+        assert np.sum(origin_x + (free_columns + 0.5) * resolution < 0.9) > 100
 
 
 def test_map_command_3d_and_trajectory(
@@ -302,6 +333,7 @@ def test_an_unaligned_floor_plan_still_gives_one_octomap_voxel_per_cell(tmp_path
     [
         (["-o", "map.txt"], "choose the format by extension"),
         (["-o", "map.png", "--3d", "--height-m", "0.1"], "--height-m"),
+        (["-o", "map.yaml", "--3d"], "drop --3d"),
         (["-o", "map.png", "--method", "backprojection"], "--method backprojection"),
         (["-o", "nowhere/map.png"], "does not exist"),
         (["-o", "map.png", "--cell-m", "0"], "--cell-m"),

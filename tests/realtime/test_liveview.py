@@ -19,7 +19,7 @@ from echoloc.realtime.stream import StreamProcessor, recording_frames
 from echoloc.sim.scene import default_scene
 from echoloc.sim.simulation import simulate
 
-SUBPROTOCOL = "foxglove.sdk.v1"  # what foxglove-sdk >= 0.30 serves (foxglove.websocket.v1 before)
+SUBPROTOCOL = "foxglove.sdk.v1"  # the SDK server's name; test_liveview_subprotocols.py tries both
 
 
 @pytest.fixture(scope="module")

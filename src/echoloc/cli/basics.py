@@ -189,6 +189,16 @@ def _object_cells(obj: Any) -> list[str]:
     ]
 
 
+def _class_cells(obj: Any) -> list[str]:
+    """The class with its confidence, and a plane's normal or a corner's or edge's direction."""
+    surface = obj.surface
+    if surface is None:
+        return ["-", "-"]
+    direction = surface.normal if surface.normal is not None else surface.edge_direction
+    shown = "-" if direction is None else "(" + ", ".join(f"{v:+.3f}" for v in direction) + ")"
+    return [f"{surface.kind} {surface.confidence:.2f}", shown]
+
+
 # --- simulate ----------------------------------------------------------------------
 
 

@@ -30,7 +30,7 @@ from echoloc.cli.app import (
     cli,
     stdout,
 )
-from echoloc.cli.basics import _object_cells
+from echoloc.cli.basics import _class_cells, _object_cells
 from echoloc.errors import EchoLocError
 from echoloc.io.output import echoes_record, json_line, objects_record
 from echoloc.localise.calibrate import (
@@ -41,7 +41,7 @@ from echoloc.localise.calibrate import (
     write_calibration,
 )
 from echoloc.localise.evaluation import ClassEvaluation, Evaluation, evaluate, evaluate_classes
-from echoloc.localise.locate import FrameObjects, LocatedObject
+from echoloc.localise.locate import FrameObjects
 from echoloc.pipeline import (
     check_locatable,
     frame_echoes,
@@ -123,16 +123,6 @@ def _object_rows(table: Table, result: FrameObjects, classes: bool = False) -> N
         table.add_row(str(result.frame), *_object_cells(obj), *(_class_cells(obj) if classes else []))
 
 
-def _class_cells(obj: LocatedObject) -> list[str]:
-    """The class with its confidence, and a plane's normal or a corner's or edge's direction."""
-    surface = obj.surface
-    if surface is None:
-        return ["-", "-"]
-    direction = surface.normal if surface.normal is not None else surface.edge_direction
-    shown = "-" if direction is None else "(" + ", ".join(f"{v:+.3f}" for v in direction) + ")"
-    return [f"{surface.kind} {surface.confidence:.2f}", shown]
-
-
 @cli.command(name="image")
 @_processing_options(locating=True)
 @click.option("--frame", "frame_index", type=int, default=0, show_default=True, help="Frame to image.")
@@ -197,9 +187,11 @@ def export_command(
 ) -> None:
     """Locate every frame of RECORDING and write the objects for robots: MCAP or PLY.
 
-    MCAP: sensor_msgs/msg/PointCloud2 on /echoloc/objects (x, y, z, intensity, the
-    covariance's diagonal) and sensor_msgs/msg/Range on /echoloc/range/rx{N}, in the
-    frame echoloc_sensor_optical_frame (REP 103), with /tf_static for the receivers.
+    MCAP: sensor_msgs/msg/PointCloud2 on /echoloc/objects (x, y, z, intensity and the
+    full covariance) and sensor_msgs/msg/Range on /echoloc/range/rx{N}, in the frame
+    echoloc_sensor_optical_frame (REP 103), with /tf_static from echoloc_sensor_link
+    (x forward, z up) to it and to the receivers, and /tf when the sensor moves
+    (docs/ROS.md).
     """
     from echoloc.io.export import write_mcap, write_ply
 
@@ -231,7 +223,7 @@ def export_command(
         stdout.print(f"wrote {points} points ({len(results)} frames) to {where}")
 
 
-_MAP_FORMATS = (".png", ".npz", ".ply", ".bt", ".ot", ".mcap")
+_MAP_FORMATS = (".png", ".npz", ".ply", ".bt", ".ot", ".mcap", ".yaml")
 
 
 _MAX_SAMPLE_RATE_HZ = 100e6
@@ -260,8 +252,9 @@ def _extent_option(text: str | None, dims: int) -> list[tuple[float, float]] | N
 @cli.command(name="map")
 @_processing_options(locating=True)
 @_output_option(
-    "OUT.png (picture), .npz (arrays), .ply (occupied cells), .bt/.ot (OctoMap) "
-    "or .mcap (ROS 2: nav_msgs/OccupancyGrid or a cloud, /tf, objects).",
+    "OUT.png (picture), .npz (arrays), .ply (occupied cells), .bt/.ot (OctoMap), "
+    ".mcap (ROS 2: nav_msgs/OccupancyGrid or a cloud, /tf, objects) "
+    "or .yaml (nav2 map_server: OUT.yaml + OUT.pgm, floor plan).",
 )
 @click.option("--cell-m", type=float, default=0.02, show_default=True, help="Cell edge, m.")
 @click.option(
@@ -308,9 +301,16 @@ def map_command(
     Each receiver's echoes clear the beam before the first echo and mark the echo's
     arc (ellipse with the transmitter and receiver as foci) occupied; located objects
     add their covariance. The map frame is the frame of the sensor poses (the
-    recording's sensor_poses or --trajectory); without poses, the sensor frame.
+    recording's sensor_poses or --trajectory); without poses, the sensor frame. MCAP
+    and nav2 files give it as ROS's z-up map frame (REP 103/105, docs/ROS.md).
     """
-    from echoloc.maps.map_export import write_grid_npz, write_grid_ply, write_map_mcap, write_octomap
+    from echoloc.maps.map_export import (
+        write_grid_npz,
+        write_grid_ply,
+        write_map_mcap,
+        write_nav2_map,
+        write_octomap,
+    )
     from echoloc.maps.mapping import chain_accumulator, choose_grid, frame_poses, integrate, read_trajectory
     from echoloc.plots.maps import plot_grid
 
@@ -320,6 +320,8 @@ def map_command(
     _finite("--cell-m", cell_m, positive=True)
     if not 0.001 <= cell_m <= 1.0:
         raise EchoLocError(f"--cell-m must be between 0.001 and 1 m, got {cell_m:g}")
+    if suffix == ".yaml" and three_d:
+        raise EchoLocError(f"{output_path}: a nav2 map (.yaml + .pgm) is a floor plan; drop --3d")
     if height_m is not None:
         _finite("--height-m", height_m)
         if three_d:
@@ -327,6 +329,8 @@ def map_command(
                 "--height-m sets the floor plan's height; a --3d grid takes --extent-m instead"
             )
     _check_writable(output_path)
+    if suffix == ".yaml":
+        _check_writable(output_path.with_suffix(".pgm"))
     if processing.method != "association":
         raise EchoLocError(
             "map reads every receiver's echoes and the association's objects; "
@@ -357,6 +361,7 @@ def map_command(
     with _progress(len(frames), "mapping", True) as advance:
         grid = integrate(accumulator, results(), poses, progress=advance)
     elapsed = time.perf_counter() - started
+    written: Path | str
     if suffix == ".png":
         written = plot_grid(grid, output_path, sensor_path_m=poses[list(frames), :3])
     elif suffix == ".npz":
@@ -365,6 +370,9 @@ def map_command(
         written = write_grid_ply(grid, output_path)
     elif suffix in (".bt", ".ot"):
         written = write_octomap(grid, output_path)
+    elif suffix == ".yaml":
+        yaml_path, pgm_path = write_nav2_map(grid, output_path)
+        written = f"{yaml_path} and {pgm_path}"
     else:
         times = np.array([frame_time_s(recording, i) for i in range(recording.n_frames)])
         write_map_mcap(

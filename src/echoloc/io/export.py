@@ -2,22 +2,32 @@
 
 Positions are in the echoloc sensor frame, the ROS optical-frame convention of REP 103
 (``x`` right, ``y`` down, ``z`` boresight, metres; ``docs/FORMATS.md``). Its ROS
-frame id is :data:`SENSOR_FRAME_ID`; a robot attaches it with one static transform,
-for example ``ros2 run tf2_ros static_transform_publisher --x 0.1 --z 0.3 --roll -1.5708
---yaw -1.5708 --frame-id base_link --child-frame-id echoloc_sensor_optical_frame`` for a
-sensor looking forward along the robot's ``x`` (REP 103's body-to-optical rotation).
+frame id is :data:`SENSOR_FRAME_ID`, the child of the sensor's body frame
+:data:`BODY_FRAME_ID` (REP 103 body axes: ``x`` forward along the boresight, ``y``
+left, ``z`` up) by the fixed optical rotation :data:`OPTICAL_ROTATION_XYZW`. A robot
+attaches the body frame with one static transform, for example ``ros2 run tf2_ros
+static_transform_publisher --x 0.1 --z 0.3 --frame-id base_link --child-frame-id
+echoloc_sensor_link`` for a sensor looking forward along the robot's ``x``
+(``docs/ROS.md``).
 
 MCAP files hold ROS 2 messages in CDR, written with the ``mcap`` and
 ``mcap-ros2-support`` libraries (no ROS installation), with the message definitions of
-ROS 2 **Jazzy** embedded as schemas:
+ROS 2 **Jazzy** embedded as schemas, and on every channel the QoS profile its
+publisher offers in rosbag2's channel metadata (``offered_qos_profiles``), so that
+``ros2 bag play`` latches ``/tf_static`` and maps (:func:`offered_qos_profiles`):
 
-- ``/echoloc/objects``: one ``sensor_msgs/msg/PointCloud2`` per frame, fields ``x, y,
-  z, intensity, cov_xx, cov_yy, cov_zz`` (FLOAT32).
+- ``/echoloc/objects``: one ``sensor_msgs/msg/PointCloud2`` per frame, fields
+  :data:`POINT_FIELDS` (FLOAT32): ``x, y, z, intensity`` and the six values of the
+  position covariance ``cov_xx, cov_yy, cov_zz, cov_xy, cov_xz, cov_yz``.
 - ``/echoloc/range/rx{N}``: one ``sensor_msgs/msg/Range`` per receiver and frame, in
   the receiver's own frame ``echoloc_rx{N}`` (origin at the receiver, ``x`` along its
   boresight, as ``Range`` measures along ``x``).
-- ``/tf_static``: one ``tf2_msgs/msg/TFMessage`` placing every ``echoloc_rx{N}`` in
-  :data:`SENSOR_FRAME_ID`.
+- ``/tf_static``: one ``tf2_msgs/msg/TFMessage`` with the body-to-optical rotation,
+  every ``echoloc_rx{N}`` placed in :data:`SENSOR_FRAME_ID` and, for a moving sensor,
+  ``map`` -> ``odom`` (identity).
+- ``/tf``, when the recording has ``sensor_poses``: per frame ``odom`` ->
+  :data:`BODY_FRAME_ID`, the sensor's pose in the z-up ``map`` frame of REP 105
+  (:func:`body_pose_in_map`).
 - ``/echoloc/surfaces``, when objects carry reflector classes (``--classes``): one
   ``visualization_msgs/msg/MarkerArray`` per frame (:func:`surface_markers`): a
   DELETEALL, then each plane as a thin CUBE over the patch its echoes met and each
@@ -32,6 +42,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from mcap.records import Schema
 from mcap.writer import CompressionType
 from mcap_ros2.writer import Writer as Ros2Writer
 from numpy.typing import ArrayLike, NDArray
@@ -39,16 +50,35 @@ from numpy.typing import ArrayLike, NDArray
 from echoloc.errors import EchoLocError, missing_directory
 from echoloc.io.recording import Recording
 from echoloc.localise.locate import FrameObjects, LocatedObject
+from echoloc.physics.transducer import PRESETS, piston_beam_angles
 from echoloc.pipeline import recording_speed_of_sound_m_s
 from echoloc.tof.echoes import frame_time_s
 
 SENSOR_FRAME_ID = "echoloc_sensor_optical_frame"
 """ROS frame id of the sensor frame (REP 103 optical convention: x right, y down, z boresight)."""
+BODY_FRAME_ID = "echoloc_sensor_link"
+"""ROS frame id of the sensor's body frame (REP 103: x forward along the boresight, y left, z up),
+the parent of :data:`SENSOR_FRAME_ID`; same origin."""
+ROS_MAP_FRAME_ID = "map"
+"""ROS frame id of the fixed world frame (REP 105 ``map``: z up) of moving sensors and maps."""
+ODOM_FRAME_ID = "odom"
+"""ROS frame id between ``map`` and the body (REP 105); echoloc publishes ``map`` -> ``odom`` as the
+identity, so the body's pose in ``odom`` is its pose in ``map``."""
+
+OPTICAL_TO_BODY = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+"""``p_body = OPTICAL_TO_BODY @ p_optical``: body x = optical z, body y = -optical x, body z =
+-optical y. Its columns are the optical axes in the body frame. The same matrix takes echoloc's
+world frame (the sensor frame of the identity pose: y down) to the z-up ``map``."""
+OPTICAL_ROTATION_XYZW = (-0.5, 0.5, -0.5, 0.5)
+"""The quaternion (x, y, z, w) of :data:`OPTICAL_TO_BODY`: the rotation of the ``/tf_static``
+transform from the body frame (parent) to the optical frame (child), REP 103's
+``roll = -pi/2, yaw = -pi/2``."""
 
 OBJECTS_TOPIC = "/echoloc/objects"
 SURFACES_TOPIC = "/echoloc/surfaces"
 RANGE_TOPIC_PREFIX = "/echoloc/range/rx"
 TF_STATIC_TOPIC = "/tf_static"
+TF_TOPIC = "/tf"
 ROS_DISTRIBUTION = "jazzy"
 """The ROS 2 distribution whose message definitions the MCAP schemas carry (``Range`` has ``variance``)."""
 
@@ -238,8 +268,12 @@ MARKER_ARRAY_SCHEMA = _schema_text(
     ("visualization_msgs/MeshFile", _MESH_FILE_MSG),
 )
 
-POINT_FIELDS = ("x", "y", "z", "intensity", "cov_xx", "cov_yy", "cov_zz")
-"""The PointCloud2 fields, in order, each one FLOAT32 (``PointField.FLOAT32 = 7``)."""
+COVARIANCE_FIELDS = ("cov_xx", "cov_yy", "cov_zz", "cov_xy", "cov_xz", "cov_yz")
+"""The six values of a position's symmetric 3x3 covariance, m^2, in the frame of the points: the
+diagonal first (the fields before the off-diagonal ones were added keep their offsets)."""
+_COVARIANCE_INDEX = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+POINT_FIELDS = ("x", "y", "z", "intensity", *COVARIANCE_FIELDS)
+"""The PointCloud2 fields (and PLY properties), in order, each one FLOAT32 (``PointField.FLOAT32 = 7``)."""
 _FLOAT32 = 7
 RADIATION_ULTRASOUND = 0
 
@@ -278,13 +312,24 @@ def _as_frames(objects: ObjectsInput, source: str) -> list[FrameObjects]:
     raise EchoLocError(f"{source}: expected FrameObjects, LocatedObject items or an (n, 3) array")
 
 
+def covariance_values(covariance_m2: ArrayLike) -> NDArray[np.float64]:
+    """The six :data:`COVARIANCE_FIELDS` of a 3x3 covariance (symmetrised: the mean of the two
+    off-diagonal halves)."""
+    c = np.asarray(covariance_m2, dtype=float).reshape(3, 3)
+    c = 0.5 * (c + c.T)
+    return np.array([c[i, j] for i, j in _COVARIANCE_INDEX])
+
+
 def _point_table(
     frame: FrameObjects, intensity: ArrayLike | None, source: str
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
-    """Positions (n, 3), intensities (n,), covariance diagonals (n, 3) and receiver counts (n,)."""
+    """Positions (n, 3), intensities (n,), covariances (n, 6: :data:`COVARIANCE_FIELDS`) and
+    receiver counts (n,)."""
     n = len(frame.objects)
     positions = np.array([o.position_m for o in frame.objects], dtype=float).reshape(n, 3)
-    cov_diag = np.array([np.diag(o.covariance_m2) for o in frame.objects], dtype=float).reshape(n, 3)
+    covariances = np.array([covariance_values(o.covariance_m2) for o in frame.objects], dtype=float).reshape(
+        n, len(COVARIANCE_FIELDS)
+    )
     support = np.array([len(o.receivers) for o in frame.objects], dtype=np.int64)
     if intensity is None:
         values = np.array([o.score for o in frame.objects], dtype=float)
@@ -292,7 +337,7 @@ def _point_table(
         values = np.asarray(intensity, dtype=float).reshape(-1)
         if values.shape != (n,):
             raise EchoLocError(f"{source}: frame {frame.frame} has {n} objects but {values.size} intensities")
-    return positions, values, cov_diag, support
+    return positions, values, covariances, support
 
 
 def _intensity_for(intensities: Sequence[ArrayLike] | None, index: int, n_frames: int, source: str) -> Any:
@@ -333,8 +378,9 @@ def write_ply(
 
     Vertex properties: ``x, y, z`` (m, sensor frame, float32 or with ``double`` float64),
     ``intensity`` (the object's localisation score, or the given per-frame
-    ``intensities``, e.g. echo amplitudes), ``cov_xx, cov_yy, cov_zz`` (diagonal of the
-    position covariance, m^2), ``receivers`` (how many receivers support the object)
+    ``intensities``, e.g. echo amplitudes), ``cov_xx, cov_yy, cov_zz, cov_xy, cov_xz,
+    cov_yz`` (the position covariance, m^2: :data:`COVARIANCE_FIELDS`), ``receivers``
+    (how many receivers support the object)
     and, when all frames share one file, ``frame`` (the frame index). ``binary``
     writes ``binary_little_endian``, else ``ascii``. With ``per_frame`` one file per
     frame is written next to ``path``, named ``{stem}_{frame:06d}.ply``. ``comments``
@@ -380,13 +426,13 @@ def _write_ply_file(
     n = sum(len(t[0]) for t in tables)
     vertices = np.zeros(n, dtype=[(name, dtype) for name, dtype, _ in columns])
     row = 0
-    for index, (positions, values, cov_diag, support) in enumerate(tables):
+    for index, (positions, values, covariances, support) in enumerate(tables):
         rows = slice(row, row + len(positions))
         for axis, name in enumerate(("x", "y", "z")):
             vertices[name][rows] = positions[:, axis]
         vertices["intensity"][rows] = values
-        for axis, name in enumerate(("cov_xx", "cov_yy", "cov_zz")):
-            vertices[name][rows] = cov_diag[:, axis]
+        for axis, name in enumerate(COVARIANCE_FIELDS):
+            vertices[name][rows] = covariances[:, axis]
         vertices["receivers"][rows] = np.clip(support, 0, 255)
         if frame_ids is not None:
             vertices["frame"][rows] = frame_ids[index]
@@ -395,7 +441,7 @@ def _write_ply_file(
         "echoloc located objects",
         f"frame_id {SENSOR_FRAME_ID}: REP 103 optical frame, x right, y down, z boresight, metres",
         "intensity: localisation score of the object (or the echo amplitude if given)",
-        "cov_xx cov_yy cov_zz: diagonal of the position covariance, m^2 (NaN: unknown)",
+        "cov_xx cov_yy cov_zz cov_xy cov_xz cov_yz: the position covariance, m^2 (NaN: unknown)",
         "receivers: number of receivers whose echoes support the object",
     )
     header = [
@@ -449,13 +495,14 @@ def point_cloud2(
 ) -> dict[str, Any]:
     """A ``sensor_msgs/msg/PointCloud2`` (as a dict) of one frame's objects.
 
-    An unordered cloud (height 1), little-endian, 7 FLOAT32 fields per point
-    (:data:`POINT_FIELDS`): point_step 28 bytes, row_step 28 * width; ``is_dense`` is
+    An unordered cloud (height 1), little-endian, 10 FLOAT32 fields per point
+    (:data:`POINT_FIELDS`: position, intensity and the full covariance of each point in
+    ``frame_id``, m and m^2): point_step 40 bytes, row_step 40 * width; ``is_dense`` is
     true when no value is NaN or infinite.
     """
-    positions, values, cov_diag, _ = _point_table(frame, intensity, f"frame {frame.frame}")
+    positions, values, covariances, _ = _point_table(frame, intensity, f"frame {frame.frame}")
     n = len(positions)
-    table = np.column_stack([positions, values, cov_diag]).astype("<f4").reshape(n, len(POINT_FIELDS))
+    table = np.column_stack([positions, values, covariances]).astype("<f4").reshape(n, len(POINT_FIELDS))
     point_step = 4 * len(POINT_FIELDS)
     fields = [
         {"name": name, "offset": 4 * i, "datatype": _FLOAT32, "count": 1}
@@ -633,6 +680,176 @@ def _matrix_quaternion(m: NDArray[np.float64]) -> NDArray[np.float64]:
     return q / np.linalg.norm(q)
 
 
+# --- frames (REP 103 / REP 105) ------------------------------------------------------------
+
+
+def _quaternion_matrix(q: ArrayLike) -> NDArray[np.float64]:
+    """Rotation matrix of the quaternion (x, y, z, w), normalised first."""
+    x, y, z, w = np.asarray(q, dtype=float) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def body_pose_in_map(pose: ArrayLike) -> NDArray[np.float64]:
+    """The body frame's pose ``[x, y, z, qx, qy, qz, qw]`` in the z-up ``map`` frame (REP 105).
+
+    ``pose`` is echoloc's sensor pose (a recording's ``sensor_poses`` row or a trajectory's):
+    the optical sensor frame in echoloc's world frame, whose axes are those of the sensor at
+    the identity pose (x right, y down, z ahead), ``p_world = R(q) p_sensor + t``. With
+    ``C`` = :data:`OPTICAL_TO_BODY`, which takes that world frame to ``map`` (map x = world
+    z, map y = -world x, map z = -world y) and the optical frame to the body frame, the
+    body's pose is ``t_map = C t`` and ``R_map = C R(q) C^T``: a sensor at the identity
+    pose has its body frame on ``map``'s axes, looking along ``map``'s x.
+    """
+    row = np.asarray(pose, dtype=float).reshape(7)
+    translation = OPTICAL_TO_BODY @ row[:3]
+    rotation = OPTICAL_TO_BODY @ _quaternion_matrix(row[3:]) @ OPTICAL_TO_BODY.T
+    return np.concatenate([translation, _matrix_quaternion(rotation)])
+
+
+def transform_stamped(
+    parent: str, child: str, stamp_s: float, translation: ArrayLike, rotation_xyzw: ArrayLike
+) -> dict[str, Any]:
+    """A ``geometry_msgs/msg/TransformStamped`` (as a dict): ``child``'s pose in ``parent``, so that
+    ``p_parent = R p_child + translation``."""
+    tx, ty, tz = (float(v) for v in np.asarray(translation, dtype=float).reshape(3))
+    qx, qy, qz, qw = (float(v) for v in np.asarray(rotation_xyzw, dtype=float).reshape(4))
+    return {
+        "header": {"stamp": ros_time(stamp_s), "frame_id": parent},
+        "child_frame_id": child,
+        "transform": {
+            "translation": {"x": tx, "y": ty, "z": tz},
+            "rotation": {"x": qx, "y": qy, "z": qz, "w": qw},
+        },
+    }
+
+
+_IDENTITY_XYZW = (0.0, 0.0, 0.0, 1.0)
+
+
+def optical_transform(stamp_s: float, body_frame_id: str, optical_frame_id: str) -> dict[str, Any]:
+    """The static transform from the body frame to the optical sensor frame: same origin,
+    rotation :data:`OPTICAL_ROTATION_XYZW`."""
+    return transform_stamped(body_frame_id, optical_frame_id, stamp_s, (0.0, 0.0, 0.0), OPTICAL_ROTATION_XYZW)
+
+
+def map_odom_transform(stamp_s: float, map_frame_id: str, odom_frame_id: str) -> dict[str, Any]:
+    """``map`` -> ``odom`` as the identity: echoloc's poses are already in the fixed frame."""
+    return transform_stamped(map_frame_id, odom_frame_id, stamp_s, (0.0, 0.0, 0.0), _IDENTITY_XYZW)
+
+
+def pose_transform(
+    pose: ArrayLike, stamp_s: float, parent_frame_id: str, body_frame_id: str
+) -> dict[str, Any]:
+    """The body's pose in ``parent_frame_id`` (``odom`` or ``map``) from an echoloc sensor pose
+    (:func:`body_pose_in_map`)."""
+    body = body_pose_in_map(pose)
+    return transform_stamped(parent_frame_id, body_frame_id, stamp_s, body[:3], body[3:])
+
+
+# --- QoS in MCAP (rosbag2's channel metadata) -------------------------------------------------
+
+_QOS_INFINITE = ("    sec: 9223372036", "    nsec: 854775807")  # RMW_DURATION_INFINITE
+_QOS_KEEP_LAST = 1  # rmw_qos_history_policy_e
+_QOS_RELIABLE = 1  # rmw_qos_reliability_policy_e
+_QOS_TRANSIENT_LOCAL, _QOS_VOLATILE = 1, 2  # rmw_qos_durability_policy_e
+_QOS_LIVELINESS_AUTOMATIC = 1  # rmw_qos_liveliness_policy_e
+
+
+def offered_qos_profiles(*, transient_local: bool, depth: int) -> str:
+    """One publisher's QoS as rosbag2 stores it in an MCAP channel's ``offered_qos_profiles``.
+
+    A YAML sequence of one profile in the layout ``ros2 bag record`` writes (yaml-cpp's
+    block style, no trailing newline), with the numeric values of rmw's enums that rosbag2
+    uses for metadata up to version 8: history 1 (keep last) with ``depth``, reliability 1
+    (reliable), durability 1 (transient local) or 2 (volatile), liveliness 1 (automatic),
+    deadline, lifespan and lease duration infinite (9223372036 s 854775807 ns). rosbag2
+    reads the numbers when the file's ``rosbag2`` metadata has no ``serialized_metadata``
+    (as the MCAP files of Humble and Iron), which :class:`QosWriter` writes; on replay it
+    offers the recorded durability, so transient-local topics are latched again.
+    """
+    if int(depth) < 1:
+        raise EchoLocError(f"a QoS depth is at least 1, got {depth}")
+    lines = (
+        f"- history: {_QOS_KEEP_LAST}",
+        f"  depth: {int(depth)}",
+        f"  reliability: {_QOS_RELIABLE}",
+        f"  durability: {_QOS_TRANSIENT_LOCAL if transient_local else _QOS_VOLATILE}",
+        "  deadline:",
+        *_QOS_INFINITE,
+        "  lifespan:",
+        *_QOS_INFINITE,
+        f"  liveliness: {_QOS_LIVELINESS_AUTOMATIC}",
+        "  liveliness_lease_duration:",
+        *_QOS_INFINITE,
+        "  avoid_ros_namespace_conventions: false",
+    )
+    return "\n".join(lines)
+
+
+LATCHED_QOS = offered_qos_profiles(transient_local=True, depth=1)
+"""``/tf_static`` and maps: reliable, transient local, keep last 1 (tf2's static broadcaster)."""
+TF_QOS = offered_qos_profiles(transient_local=False, depth=100)
+"""``/tf``: reliable, volatile, keep last 100 (tf2's broadcaster)."""
+STREAM_QOS = offered_qos_profiles(transient_local=False, depth=10)
+"""Per-frame data (objects, ranges, markers): reliable, volatile, keep last 10 (rclcpp's default)."""
+
+
+class QosWriter(Ros2Writer):
+    """``mcap_ros2``'s writer whose channels carry their publisher's QoS (:func:`offered_qos_profiles`).
+
+    It writes the ``rosbag2`` metadata record (``ROS_DISTRO``) that tells rosbag2 how the
+    QoS values are written; :meth:`add_topic` registers a channel before its first message.
+    """
+
+    def __init__(self, stream: Any, *, compression: CompressionType = CompressionType.ZSTD) -> None:
+        super().__init__(stream, compression=compression)
+        self.add_metadata("rosbag2", {"ROS_DISTRO": ROS_DISTRIBUTION})
+
+    def add_topic(self, topic: str, schema: Schema, qos: str) -> None:
+        """Register ``topic`` (message encoding CDR, ``schema``) with ``offered_qos_profiles = qos``."""
+        if topic in self._channel_ids:
+            raise EchoLocError(f"topic {topic} is registered twice")
+        self._channel_ids[topic] = self._writer.register_channel(
+            topic=topic, message_encoding="cdr", schema_id=schema.id, metadata={"offered_qos_profiles": qos}
+        )
+
+
+# --- Range --------------------------------------------------------------------------------
+
+DEFAULT_RANGE_TRANSDUCER = "electrostatic50"
+"""The transducer model assumed for a recording without ``carrier_hz`` (the report's 50 kHz one)."""
+
+
+def range_field_of_view_rad(recording: Recording, speed_of_sound_m_s: float) -> float:
+    """``sensor_msgs/Range.field_of_view`` of the recording's receivers, rad (a full angle).
+
+    Twice the recording's ``field_of_view_deg`` (the half-angle of the beam's first null)
+    when it has one. Otherwise the full first-null angle of the piston of the transducer
+    model in :data:`echoloc.physics.transducer.PRESETS` whose centre frequency is nearest
+    the recording's ``carrier_hz`` (in ratio), at that carrier and ``speed_of_sound_m_s``
+    (:func:`echoloc.physics.transducer.piston_beam_angles`): for a 50 kHz carrier the
+    report's electrostatic transducer, 36.0° at 20 °C (15° at -3 dB); a recording without a carrier takes
+    :data:`DEFAULT_RANGE_TRANSDUCER`. A piston too small to have a null in front (``ka <
+    3.83``, the CH101 model) hears the whole half-space: pi. An echo can come from anywhere
+    inside the main lobe, so the first null, not the -3 dB width, bounds where the object
+    may be, as ``Range`` asks; set ``field_of_view_deg`` in the recording when the beam is known.
+    """
+    if recording.field_of_view_deg is not None:
+        return 2.0 * math.radians(recording.field_of_view_deg)
+    carrier = recording.carrier_hz
+    if carrier is None or not (math.isfinite(carrier) and carrier > 0):
+        carrier = PRESETS[DEFAULT_RANGE_TRANSDUCER].centre_frequency_hz
+    model = min(PRESETS.values(), key=lambda t: abs(math.log(t.centre_frequency_hz / carrier)))
+    full = piston_beam_angles(model.radius_m, carrier, speed_of_sound_m_s).full_angle_null_rad
+    return full if math.isfinite(full) else math.pi
+
+
 def _max_range_m(recording: Recording, speed_m_s: float, receiver: int) -> float:
     """Farthest reflector distance from receiver whose echo still falls inside the window.
 
@@ -658,24 +875,36 @@ def write_mcap(
     tf_static: bool = True,
     min_range_m: float = 0.0,
     compression: str = "zstd",
+    body_frame_id: str | None = BODY_FRAME_ID,
+    map_frame_id: str = ROS_MAP_FRAME_ID,
+    odom_frame_id: str | None = ODOM_FRAME_ID,
 ) -> int:
     """Write the objects of every frame as ROS 2 (Jazzy) messages in an MCAP file.
 
     Per frame one ``sensor_msgs/msg/PointCloud2`` on ``/echoloc/objects`` in
-    ``frame_id`` and, when ``recording`` is given and ``ranges``, one
-    ``sensor_msgs/msg/Range`` per receiver on ``/echoloc/range/rx{N}`` (frame
-    ``echoloc_rx{N}``; :func:`receiver_ranges_m`; ULTRASOUND; field of view twice the
-    recording's ``field_of_view_deg`` in radians, or pi, the half-space in front, when
-    unknown; ``min_range`` = ``min_range_m``, ``max_range`` from the recording window,
-    :func:`_max_range_m`). With ``tf_static`` one ``/tf_static`` message places the
-    receiver frames in ``frame_id``. When any object carries a reflector class, each
-    frame also gets a ``visualization_msgs/msg/MarkerArray`` of its planes and corners on
+    ``frame_id`` (:func:`point_cloud2`: position, intensity, full covariance) and, when
+    ``recording`` is given and ``ranges``, one ``sensor_msgs/msg/Range`` per receiver on
+    ``/echoloc/range/rx{N}`` (frame ``echoloc_rx{N}``; :func:`receiver_ranges_m`;
+    ULTRASOUND; field of view :func:`range_field_of_view_rad`; ``min_range`` =
+    ``min_range_m``, ``max_range`` from the recording window, :func:`_max_range_m`). When
+    any object carries a reflector class, each frame also gets a
+    ``visualization_msgs/msg/MarkerArray`` of its planes and corners on
     ``/echoloc/surfaces`` (:func:`surface_markers`).
 
+    Frames (``docs/ROS.md``): with ``tf_static``, one ``/tf_static`` message holds the
+    body-to-optical rotation (``body_frame_id`` -> ``frame_id``, unless ``body_frame_id``
+    is None), the receiver frames in ``frame_id`` (with a recording) and, for a moving
+    sensor, ``map_frame_id`` -> ``odom_frame_id`` (identity). A recording with
+    ``sensor_poses`` adds one ``/tf`` per frame: ``odom_frame_id`` (or ``map_frame_id``
+    when it is None) -> ``body_frame_id``, the pose of :func:`body_pose_in_map`.
+
     Stamps (header and MCAP log time) are ``start_time_s`` (e.g. the Unix time of the
-    first emission) plus the frame's time: the recording's ``frame_times`` (or
-    back-to-back frames) when ``recording`` is given, else ``frame / frame_rate_hz``
-    when given, else each frame's ``time_s``. Returns the number of messages written.
+    first emission) plus the frame's time on the capture clock: the recording's
+    ``frame_times`` (or back-to-back frames) when ``recording`` is given, else ``frame /
+    frame_rate_hz`` when given, else each frame's ``time_s``; ``/tf_static`` takes the
+    first. Never the wall clock. Every channel carries its QoS (:class:`QosWriter`):
+    ``/tf_static`` transient local, depth 1 (latched on replay); the rest volatile.
+    Returns the number of messages written.
     """
     target = _check_path(path, ".mcap")
     source = str(target)
@@ -712,64 +941,89 @@ def write_mcap(
     stamps = [stamp_of(frame) for frame in frames]
     for stamp in stamps:
         ros_time(stamp)  # raises for stamps ROS cannot hold, before the file is created
+    first = min(stamps) if stamps else start_time_s
+    ros_time(first)
+    poses = None if recording is None or body_frame_id is None else recording.sensor_poses
+    pose_parent = map_frame_id if odom_frame_id is None else odom_frame_id
     try:
         stream = target.open("wb")
     except OSError as error:
         raise EchoLocError(f"{target}: cannot write: {error.strerror or error}") from error
     count = 0
-    with stream, Ros2Writer(stream, compression=compression_type) as writer:
+    with stream, QosWriter(stream, compression=compression_type) as writer:
         writer.add_metadata(
             "echoloc",
             {
                 "ros_distribution": ROS_DISTRIBUTION,
                 "frame_id": frame_id,
                 "frame_convention": "REP 103 optical: x right, y down, z boresight",
+                "body_frame_id": body_frame_id or "",
+                "body_frame_convention": "REP 103 body: x forward (boresight), y left, z up",
             },
         )
         cloud_schema = writer.register_msgdef("sensor_msgs/msg/PointCloud2", POINT_CLOUD2_SCHEMA)
+        writer.add_topic(OBJECTS_TOPIC, cloud_schema, STREAM_QOS)
         with_ranges = recording is not None and ranges
-        if recording is not None and (with_ranges or tf_static):
+        statics: list[dict[str, Any]] = []
+        if tf_static and body_frame_id is not None:
+            statics.append(optical_transform(first, body_frame_id, frame_id))
+        if tf_static and recording is not None:
             receiver_axes = (
                 recording.receiver_axes
                 if recording.receiver_axes is not None
                 else np.tile([0.0, 0.0, 1.0], (recording.n_receivers, 1))
             )
-            if tf_static:
-                tf_schema = writer.register_msgdef("tf2_msgs/msg/TFMessage", TF_MESSAGE_SCHEMA)
-                first = min(stamps) if stamps else start_time_s
-                transforms = []
-                for rx in range(recording.n_receivers):
-                    tx, ty, tz = (float(v) for v in recording.receivers_m[rx])
-                    qx, qy, qz, qw = (float(v) for v in _axis_quaternion(receiver_axes[rx]))
-                    transforms.append(
-                        {
-                            "header": {"stamp": ros_time(first), "frame_id": frame_id},
-                            "child_frame_id": receiver_frame_id(rx),
-                            "transform": {
-                                "translation": {"x": tx, "y": ty, "z": tz},
-                                "rotation": {"x": qx, "y": qy, "z": qz, "w": qw},
-                            },
-                        }
+            for rx in range(recording.n_receivers):
+                statics.append(
+                    transform_stamped(
+                        frame_id,
+                        receiver_frame_id(rx),
+                        first,
+                        recording.receivers_m[rx],
+                        _axis_quaternion(receiver_axes[rx]),
                     )
-                t_ns = round(first * 1e9)
-                writer.write_message(
-                    TF_STATIC_TOPIC, tf_schema, {"transforms": transforms}, log_time=t_ns, publish_time=t_ns
                 )
-                count += 1
+        if tf_static and poses is not None and odom_frame_id is not None:
+            statics.append(map_odom_transform(first, map_frame_id, odom_frame_id))
+        tf_schema = None
+        if statics or poses is not None:
+            tf_schema = writer.register_msgdef("tf2_msgs/msg/TFMessage", TF_MESSAGE_SCHEMA)
+        if statics:
+            assert tf_schema is not None
+            writer.add_topic(TF_STATIC_TOPIC, tf_schema, LATCHED_QOS)
+            t_ns = round(first * 1e9)
+            writer.write_message(
+                TF_STATIC_TOPIC, tf_schema, {"transforms": statics}, log_time=t_ns, publish_time=t_ns
+            )
+            count += 1
+        if poses is not None:
+            assert tf_schema is not None
+            writer.add_topic(TF_TOPIC, tf_schema, TF_QOS)
         if recording is not None and with_ranges:
             range_schema = writer.register_msgdef("sensor_msgs/msg/Range", RANGE_SCHEMA)
+            for rx in range(recording.n_receivers):
+                writer.add_topic(f"{RANGE_TOPIC_PREFIX}{rx}", range_schema, STREAM_QOS)
             speed = recording_speed_of_sound_m_s(recording)
-            fov_rad = (
-                math.pi
-                if recording.field_of_view_deg is None
-                else 2.0 * math.radians(recording.field_of_view_deg)
-            )
+            fov_rad = range_field_of_view_rad(recording, speed)
             max_ranges = [_max_range_m(recording, speed, rx) for rx in range(recording.n_receivers)]
         classified = any(obj.surface is not None for frame in frames for obj in frame.objects)
         if classified:
             marker_schema = writer.register_msgdef("visualization_msgs/msg/MarkerArray", MARKER_ARRAY_SCHEMA)
+            writer.add_topic(SURFACES_TOPIC, marker_schema, STREAM_QOS)
         for index, (frame, stamp) in enumerate(zip(frames, stamps, strict=True)):
             t_ns = round(stamp * 1e9)
+            if poses is not None and body_frame_id is not None:
+                assert tf_schema is not None
+                moved = pose_transform(poses[frame.frame], stamp, pose_parent, body_frame_id)
+                writer.write_message(
+                    TF_TOPIC,
+                    tf_schema,
+                    {"transforms": [moved]},
+                    log_time=t_ns,
+                    publish_time=t_ns,
+                    sequence=index,
+                )
+                count += 1
             intensity = _intensity_for(intensities, index, len(frames), source)
             cloud = point_cloud2(frame, stamp, intensity=intensity, frame_id=frame_id)
             writer.write_message(

@@ -1,6 +1,13 @@
 """Types of echoloc.maps's public names; lazy_loader reads its imports to load each on first use."""
 
-from .map_export import read_grid_npz, write_grid_npz, write_grid_ply, write_map_mcap, write_octomap
+from .map_export import (
+    read_grid_npz,
+    write_grid_npz,
+    write_grid_ply,
+    write_map_mcap,
+    write_nav2_map,
+    write_octomap,
+)
 from .mapping import (
     GridSpec,
     MapAccumulator,
@@ -25,5 +32,6 @@ __all__ = [
     "write_grid_npz",
     "write_grid_ply",
     "write_map_mcap",
+    "write_nav2_map",
     "write_octomap",
 ]

@@ -1,24 +1,32 @@
-"""Occupancy grids for other programs: NPZ, PLY, OctoMap (.bt, .ot) and MCAP with ROS 2 messages.
+"""Occupancy grids for other programs: NPZ, PLY, OctoMap (.bt, .ot), MCAP with ROS 2 messages and
+nav2's map files (YAML + PGM).
 
 - **NPZ**: the grid's arrays (:func:`echoloc.maps.mapping.grid_arrays`), read back by
   :func:`read_grid_npz`.
 - **PLY**: the occupied cells' centres with ``intensity`` = occupancy probability and
-  the covariance diagonal of a uniform cell, ``h²/12`` (:func:`echoloc.io.export.write_ply`).
+  the covariance of a uniform cell, ``h²/12`` on the diagonal (:func:`echoloc.io.export.write_ply`).
 - **OctoMap** through pyoctomap (the OctoMap library's Python binding, wheels with
   the library bundled): every observed cell is set to its log-odds with the grid's
   clamping; ``.bt`` keeps the compact maximum-likelihood tree (free or occupied per
   leaf, OctoMap's ``writeBinary``), ``.ot`` the full probabilities (``write``).
   OctoMap's resolution is the cell size; its frame is the map frame.
-- **MCAP** (ROS 2 Jazzy definitions, mcap + mcap-ros2-support): ``/tf`` per frame
-  (``echoloc_map`` -> ``echoloc_sensor_optical_frame``, the sensor pose), the frame's
-  located objects on ``/echoloc/objects`` (``sensor_msgs/msg/PointCloud2`` in the
-  sensor frame), and the final map: a floor plan as ``nav_msgs/msg/OccupancyGrid`` on
-  ``/echoloc/map`` (cells -1 unknown, 0-100 percent), a 3-D grid as a PointCloud2 of
-  its occupied cells on ``/echoloc/map_cloud``, both in ``echoloc_map``.
+- **MCAP** (ROS 2 Jazzy definitions, mcap + mcap-ros2-support), frames by REP 103/105
+  (``docs/ROS.md``): ``/tf_static`` (``map`` -> ``odom`` identity, ``echoloc_sensor_link``
+  -> ``echoloc_sensor_optical_frame``), ``/tf`` per frame (``odom`` ->
+  ``echoloc_sensor_link``, the sensor's pose), the frame's located objects on
+  ``/echoloc/objects`` (``sensor_msgs/msg/PointCloud2`` in the optical frame), and the
+  final map in ``map`` (z up): a floor plan as ``nav_msgs/msg/OccupancyGrid`` on
+  ``/echoloc/map`` (cells -1 unknown, 0-100 percent; rows along map y, columns along map
+  x, origin orientation the identity), a 3-D grid as a PointCloud2 of its occupied cells
+  on ``/echoloc/map_cloud``; both latched (transient local) on replay.
+- **nav2 map files** (:func:`write_nav2_map`): ``NAME.yaml`` and ``NAME.pgm`` as nav2's
+  ``map_saver`` writes them for that OccupancyGrid (trinary).
 
-The floor plan is the map frame's x-z plane (y points down, REP 103 optical). The
-OccupancyGrid's own x-y plane is turned onto it by its origin pose: grid x = map x,
-grid y = map z, grid z (its normal) = map -y, up.
+echoloc builds maps in its own world frame, the frame of the sensor poses, whose axes
+are the sensor's at the identity pose (x right, y down, z ahead; REP 103 optical); a
+floor plan is its x-z plane. The ROS exports turn it into the z-up ``map`` frame with
+:data:`echoloc.io.export.OPTICAL_TO_BODY` (map x = world z, map y = -world x, map z =
+-world y), which is exact: cells are only renumbered, never resampled.
 """
 
 from __future__ import annotations
@@ -26,14 +34,13 @@ from __future__ import annotations
 import math
 import zipfile
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 from typing import Any, BinaryIO
 
 import numpy as np
 from mcap.records import Schema
-from mcap.writer import CompressionType
-from mcap_ros2.writer import Writer as Ros2Writer
 from numpy.typing import NDArray
 
 from echoloc.errors import EchoLocError, open_input
@@ -42,14 +49,25 @@ from echoloc.io.export import (
     _HEADER_MSG,
     _QUATERNION_MSG,
     _TIME_MSG,
+    BODY_FRAME_ID,
+    LATCHED_QOS,
+    ODOM_FRAME_ID,
+    OPTICAL_TO_BODY,
     POINT_CLOUD2_SCHEMA,
     ROS_DISTRIBUTION,
+    ROS_MAP_FRAME_ID,
     SENSOR_FRAME_ID,
+    STREAM_QOS,
     TF_MESSAGE_SCHEMA,
+    TF_QOS,
+    QosWriter,
     _check_path,
     _matrix_quaternion,
     _schema_text,
+    map_odom_transform,
+    optical_transform,
     point_cloud2,
+    pose_transform,
     ros_time,
     write_ply,
 )
@@ -60,6 +78,7 @@ MAP_TOPIC = "/echoloc/map"
 MAP_CLOUD_TOPIC = "/echoloc/map_cloud"
 OBJECTS_TOPIC = "/echoloc/objects"
 TF_TOPIC = "/tf"
+TF_STATIC_TOPIC = "/tf_static"
 
 _POINT_MSG = """float64 x
 float64 y
@@ -165,7 +184,8 @@ def write_grid_ply(grid: OccupancyGrid, path: str | Path, *, binary: bool = True
         "echoloc occupancy grid: the centres of its occupied cells",
         f"frame_id {MAP_FRAME_ID}: the frame of the sensor poses (REP 103 optical axes), metres",
         "intensity: occupancy probability of the cell",
-        f"cov_xx cov_yy cov_zz: h^2/12 of a uniform cell of h = {grid.spec.cell_m:g} m, m^2",
+        f"cov_xx cov_yy cov_zz: h^2/12 of a uniform cell of h = {grid.spec.cell_m:g} m, m^2; "
+        "cov_xy cov_xz cov_yz: 0",
         "receivers: 0 (a cell, not a located object)",
     )
     return write_ply(path, [occupied_points(grid)], binary=binary, double=True, comments=comments)[0]
@@ -233,10 +253,11 @@ def write_octomap(grid: OccupancyGrid, path: str | Path) -> Path:
 
 
 def floor_plan_pose(spec: GridSpec) -> tuple[tuple[float, float, float], tuple[float, float, float, float]]:
-    """Where a floor plan's plane lies in the map frame: cell (0, 0)'s corner and the rotation (x, y, z, w).
+    """Where a floor plan's plane lies in echoloc's world frame (y down): cell (0, 0)'s corner and
+    the rotation (x, y, z, w), for viewers of that frame (the live view).
 
-    Grid x = map x, grid y = map z, grid normal = map -y (up): the plane through the
-    layer's centre height.
+    Grid x = world x, grid y = world z, grid normal = world -y (up): the plane through the
+    layer's centre height. The ROS exports use the z-up ``map`` instead (:func:`map_floor_plan`).
     """
     if not spec.is_floor_plan:
         raise EchoLocError("a floor plan's pose is asked of a 3-D grid")
@@ -246,57 +267,81 @@ def floor_plan_pose(spec: GridSpec) -> tuple[tuple[float, float, float], tuple[f
 
 
 def floor_plan_cells(grid: OccupancyGrid) -> NDArray[np.float64]:
-    """A floor plan's occupancy as rows along map z and columns along map x; -1 where unknown."""
+    """A floor plan's occupancy as rows along world z and columns along world x; -1 where unknown
+    (the layout of :func:`floor_plan_pose`)."""
     probability = grid.probability()[:, 0, :]
     return np.asarray(np.where(grid.known()[:, 0, :], probability, -1.0).T)
 
 
-def occupancy_grid_message(grid: OccupancyGrid, stamp_s: float) -> dict[str, Any]:
-    """A ``nav_msgs/msg/OccupancyGrid`` (as a dict) of a floor plan, in ``echoloc_map``.
+def map_floor_plan(grid: OccupancyGrid) -> tuple[NDArray[np.float64], tuple[float, float, float]]:
+    """A floor plan in the z-up ``map`` frame: occupancy (rows along map y, columns along map x,
+    row 0 the smallest y; -1 where unknown) and the corner of cell (0, 0) in ``map``, m.
 
-    ``data`` is row-major from the origin cell, grid x fastest (map x), rows along map
-    z; -1 where no reading touched a cell, else round(100 p).
+    World x runs along map -y and world z along map x (:data:`OPTICAL_TO_BODY`), so the
+    rows are the grid's x cells in reverse and the columns its z cells: cell ``(r, c)``
+    is the grid's cell ``(nx - 1 - r, 0, c)``. The corner is ``(z0, -(x0 + nx h),
+    -height)`` with ``height`` the layer's centre (world y, down).
     """
     spec = grid.spec
     if not spec.is_floor_plan:
-        raise EchoLocError("nav_msgs/OccupancyGrid holds a floor plan; this grid is 3-D")
-    probability = grid.probability()[:, 0, :]
-    cells = np.where(grid.known()[:, 0, :], np.rint(100 * probability), -1).astype(np.int8)
-    (x0, y0, z0), (qx, qy, qz, qw) = floor_plan_pose(spec)
+        raise EchoLocError("a floor plan is asked of a 3-D grid")
+    probability = np.where(grid.known()[:, 0, :], grid.probability()[:, 0, :], -1.0)
+    cells = np.ascontiguousarray(probability[::-1, :], dtype=float)
+    x0, y0, z0 = (float(v) for v in spec.origin_m)
+    h = float(spec.cell_m)
+    return cells, (z0, -(x0 + spec.shape[0] * h), -(y0 + h / 2))
+
+
+def occupancy_percent(cells: NDArray[np.float64]) -> NDArray[np.int8]:
+    """OccupancyGrid values of probabilities: round(100 p), -1 where unknown (negative)."""
+    values = np.where(cells < 0, -1.0, np.rint(100.0 * np.clip(cells, 0.0, 1.0)))
+    return np.asarray(values, dtype=np.int8)
+
+
+def occupancy_grid_message(
+    grid: OccupancyGrid, stamp_s: float, *, frame_id: str = ROS_MAP_FRAME_ID
+) -> dict[str, Any]:
+    """A ``nav_msgs/msg/OccupancyGrid`` (as a dict) of a floor plan in the z-up ``map`` frame.
+
+    The layout of :func:`map_floor_plan`: ``data`` row-major from the origin cell, map x
+    fastest, rows along map y; -1 where no reading touched a cell, else round(100 p). The
+    origin pose is cell (0, 0)'s corner with the identity orientation, as nav2 expects;
+    its z is the floor plan's height. ``map_load_time`` and the header stamp are ``stamp_s``.
+    """
+    cells, (x0, y0, z0) = map_floor_plan(grid)
     return {
-        "header": {"stamp": ros_time(stamp_s), "frame_id": MAP_FRAME_ID},
+        "header": {"stamp": ros_time(stamp_s), "frame_id": frame_id},
         "info": {
             "map_load_time": ros_time(stamp_s),
-            "resolution": float(spec.cell_m),
-            "width": int(spec.shape[0]),
-            "height": int(spec.shape[2]),
+            "resolution": float(grid.spec.cell_m),
+            "width": int(cells.shape[1]),
+            "height": int(cells.shape[0]),
             "origin": {
                 "position": {"x": x0, "y": y0, "z": z0},
-                "orientation": {"x": qx, "y": qy, "z": qz, "w": qw},
+                "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
             },
         },
-        "data": cells.T.reshape(-1).tolist(),
+        "data": occupancy_percent(cells).reshape(-1).tolist(),
     }
 
 
-def _tf_message(pose: NDArray[np.float64], stamp_s: float) -> dict[str, Any]:
-    x, y, z, qx, qy, qz, qw = (float(v) for v in pose)
-    return {
-        "transforms": [
-            {
-                "header": {"stamp": ros_time(stamp_s), "frame_id": MAP_FRAME_ID},
-                "child_frame_id": SENSOR_FRAME_ID,
-                "transform": {
-                    "translation": {"x": x, "y": y, "z": z},
-                    "rotation": {"x": qx, "y": qy, "z": qz, "w": qw},
-                },
-            }
-        ]
-    }
+def points_in_map(frame: FrameObjects) -> FrameObjects:
+    """Points of echoloc's world frame (y down) in the z-up ``map``: positions ``C p`` and
+    covariances ``C Σ C^T`` with ``C`` = :data:`OPTICAL_TO_BODY` (exact: a permutation with signs)."""
+    c = OPTICAL_TO_BODY
+    moved = tuple(
+        replace(
+            obj,
+            position_m=c @ np.asarray(obj.position_m, dtype=float),
+            covariance_m2=c @ np.asarray(obj.covariance_m2, dtype=float) @ c.T,
+        )
+        for obj in frame.objects
+    )
+    return replace(frame, objects=moved)
 
 
 def _write_stamped(
-    writer: Ros2Writer,
+    writer: QosWriter,
     topic: str,
     schema: Schema,
     message_at: Callable[[float], dict[str, Any]],
@@ -313,6 +358,10 @@ def _write_stamped(
     )
 
 
+def _pose_message(pose: NDArray[np.float64], parent: str, body: str, stamp_s: float) -> dict[str, Any]:
+    return {"transforms": [pose_transform(pose, stamp_s, parent, body)]}
+
+
 def write_map_mcap(
     path: str | Path,
     grid: OccupancyGrid,
@@ -322,14 +371,22 @@ def write_map_mcap(
     frames: Sequence[int] | None = None,
     objects_per_frame: Sequence[FrameObjects] = (),
     start_time_s: float = 0.0,
+    map_frame_id: str = ROS_MAP_FRAME_ID,
+    odom_frame_id: str | None = ODOM_FRAME_ID,
 ) -> int:
     """Write the map (and the sensor's poses and objects per frame) as ROS 2 messages in MCAP.
 
-    ``frame_times_s`` holds every frame's time, indexed by frame number, and
-    ``poses`` (same length, rows ``[x, y, z, qx, qy, qz, qw]``) the sensor's pose:
-    one ``/tf`` is written for each frame of ``frames`` (default: all). Each
-    :class:`FrameObjects` goes on ``/echoloc/objects`` stamped with its frame's time;
-    the map is stamped with the last frame written. Returns the number of messages.
+    ``frame_times_s`` holds every frame's time on the capture clock, indexed by frame
+    number, and ``poses`` (same length, rows ``[x, y, z, qx, qy, qz, qw]``) the sensor's
+    pose in echoloc's world frame. ``/tf_static`` (one message, transient local) holds
+    ``map_frame_id`` -> ``odom_frame_id`` (identity; left out when ``odom_frame_id`` is
+    None) and the body-to-optical rotation; one ``/tf`` is written for each frame of
+    ``frames`` (default: all): ``odom_frame_id`` (or ``map_frame_id``) ->
+    ``echoloc_sensor_link`` (:func:`echoloc.io.export.body_pose_in_map`). Each
+    :class:`FrameObjects` goes on ``/echoloc/objects`` in the optical frame, stamped with
+    its frame's time; the map (:func:`occupancy_grid_message`, or the occupied cells
+    of a 3-D grid in ``map_frame_id``) is stamped with the last frame written and
+    latched. Returns the number of messages.
     """
     target = _check_path(path, ".mcap")
     if not math.isfinite(start_time_s) or start_time_s < 0:
@@ -343,29 +400,48 @@ def write_map_mcap(
     for frame in objects_per_frame:
         if not 0 <= frame.frame < len(times):
             raise EchoLocError(f"{target}: objects of frame {frame.frame}, which has no time")
+    first = start_time_s + (float(times[written].min()) if written else 0.0)
     last = start_time_s + (float(times[written].max()) if written else 0.0)
+    ros_time(first)
+    ros_time(last)
+    parent = map_frame_id if odom_frame_id is None else odom_frame_id
     try:
         stream = target.open("wb")
     except OSError as error:
         raise EchoLocError(f"{target}: cannot write: {error.strerror or error}") from error
     count = 0
-    with stream, Ros2Writer(stream, compression=CompressionType.ZSTD) as writer:
+    with stream, QosWriter(stream) as writer:
         writer.add_metadata(
             "echoloc",
             {
                 "ros_distribution": ROS_DISTRIBUTION,
-                "map_frame_id": MAP_FRAME_ID,
+                "map_frame_id": map_frame_id,
+                "body_frame_id": BODY_FRAME_ID,
                 "sensor_frame_id": SENSOR_FRAME_ID,
-                "frame_convention": "REP 103 optical: x right, y down, z boresight",
+                "frame_convention": "REP 103/105: map and body z up, x forward; "
+                "sensor frame optical: x right, y down, z boresight",
             },
         )
+        tf_schema = writer.register_msgdef("tf2_msgs/msg/TFMessage", TF_MESSAGE_SCHEMA)
+        writer.add_topic(TF_STATIC_TOPIC, tf_schema, LATCHED_QOS)
+        statics = [optical_transform(first, BODY_FRAME_ID, SENSOR_FRAME_ID)]
+        if odom_frame_id is not None:
+            statics.insert(0, map_odom_transform(first, map_frame_id, odom_frame_id))
+        t_ns = round(first * 1e9)
+        writer.write_message(
+            TF_STATIC_TOPIC, tf_schema, {"transforms": statics}, log_time=t_ns, publish_time=t_ns
+        )
+        count += 1
         cloud_schema = writer.register_msgdef("sensor_msgs/msg/PointCloud2", POINT_CLOUD2_SCHEMA)
         if poses is not None:
-            tf_schema = writer.register_msgdef("tf2_msgs/msg/TFMessage", TF_MESSAGE_SCHEMA)
+            writer.add_topic(TF_TOPIC, tf_schema, TF_QOS)
             for index, k in enumerate(written):
                 stamp = start_time_s + float(times[k])
-                _write_stamped(writer, TF_TOPIC, tf_schema, partial(_tf_message, poses[k]), stamp, index)
+                moved = partial(_pose_message, np.asarray(poses[k], dtype=float), parent, BODY_FRAME_ID)
+                _write_stamped(writer, TF_TOPIC, tf_schema, moved, stamp, index)
                 count += 1
+        if objects_per_frame:
+            writer.add_topic(OBJECTS_TOPIC, cloud_schema, STREAM_QOS)
         for index, frame in enumerate(objects_per_frame):
             stamp = start_time_s + float(times[frame.frame])
             _write_stamped(writer, OBJECTS_TOPIC, cloud_schema, partial(point_cloud2, frame), stamp, index)
@@ -373,11 +449,110 @@ def write_map_mcap(
         t_ns = round(last * 1e9)
         if grid.spec.is_floor_plan:
             map_schema = writer.register_msgdef("nav_msgs/msg/OccupancyGrid", OCCUPANCY_GRID_SCHEMA)
-            writer.write_message(
-                MAP_TOPIC, map_schema, occupancy_grid_message(grid, last), log_time=t_ns, publish_time=t_ns
-            )
+            writer.add_topic(MAP_TOPIC, map_schema, LATCHED_QOS)
+            occupancy = occupancy_grid_message(grid, last, frame_id=map_frame_id)
+            writer.write_message(MAP_TOPIC, map_schema, occupancy, log_time=t_ns, publish_time=t_ns)
         else:
-            cloud = point_cloud2(occupied_points(grid), last, frame_id=MAP_FRAME_ID)
+            writer.add_topic(MAP_CLOUD_TOPIC, cloud_schema, LATCHED_QOS)
+            cloud = point_cloud2(points_in_map(occupied_points(grid)), last, frame_id=map_frame_id)
             writer.write_message(MAP_CLOUD_TOPIC, cloud_schema, cloud, log_time=t_ns, publish_time=t_ns)
         count += 1
     return count
+
+
+# --- nav2 map files ------------------------------------------------------------------------
+
+NAV2_FREE_THRESH = 0.25
+"""nav2 ``map_saver``'s default: cells of at most 25 % are written free (254)."""
+NAV2_OCCUPIED_THRESH = 0.65
+"""nav2 ``map_saver``'s default: cells of at least 65 % are written occupied (0)."""
+NAV2_YAML_FREE_THRESH = 0.196
+"""The ``free_thresh`` written into the YAML. nav2's ``map_server`` reads a pixel's occupancy as
+``1 - shade/255``: 254 gives 0.004, 0 gives 1, and the unknown grey 205 gives 50/255 = 0.19608, which
+map_saver's own 0.25 would read as *free*. 0.196 (ROS 1 map_saver's value) keeps 205 unknown, so the
+map reads back as the three classes it was written with."""
+_PGM_FREE, _PGM_OCCUPIED, _PGM_UNKNOWN = 254, 0, 205
+
+
+def nav2_pixels(
+    grid: OccupancyGrid,
+    *,
+    free_thresh: float = NAV2_FREE_THRESH,
+    occupied_thresh: float = NAV2_OCCUPIED_THRESH,
+) -> NDArray[np.uint8]:
+    """The trinary PGM image of a floor plan as nav2's ``map_saver`` writes it, (height, width).
+
+    From the OccupancyGrid values ``v`` (:func:`occupancy_grid_message`): unknown (-1) ->
+    205; ``v <= round(100 free_thresh)`` -> 254 (free); ``v >= round(100
+    occupied_thresh)`` -> 0 (occupied); in between -> 205. Image row 0 is the top of the
+    map, its largest y: the grid's rows in reverse.
+    """
+    if not 0.0 <= free_thresh < occupied_thresh <= 1.0:
+        raise EchoLocError(
+            f"nav2 thresholds need 0 <= free < occupied <= 1, got {free_thresh} and {occupied_thresh}"
+        )
+    cells, _ = map_floor_plan(grid)
+    values = occupancy_percent(cells).astype(np.int16)
+    free_percent = int(np.rint(free_thresh * 100.0))
+    occupied_percent = int(np.rint(occupied_thresh * 100.0))
+    pixels = np.full(values.shape, _PGM_UNKNOWN, dtype=np.uint8)
+    known = values >= 0
+    pixels[known & (values <= free_percent)] = _PGM_FREE
+    pixels[known & (values >= occupied_percent)] = _PGM_OCCUPIED
+    return np.ascontiguousarray(pixels[::-1, :])
+
+
+def _yaml_number(value: float) -> str:
+    """A number for the YAML, to the nanometre: fixed point, no exponent (every YAML reader takes
+    it as a float), no trailing zeros, "0" for zero of either sign."""
+    text = f"{float(value):.9f}".rstrip("0").rstrip(".")
+    return "0" if text in ("", "-0") else text
+
+
+def write_nav2_map(
+    grid: OccupancyGrid,
+    path: str | Path,
+    *,
+    free_thresh: float = NAV2_FREE_THRESH,
+    occupied_thresh: float = NAV2_OCCUPIED_THRESH,
+) -> tuple[Path, Path]:
+    """Write a floor plan as nav2 map files: ``NAME.yaml`` and the image ``NAME.pgm`` beside it.
+
+    The image is binary PGM (P5, 8 bits) from :func:`nav2_pixels`: 254 free, 0 occupied,
+    205 unknown, row 0 the map's top (largest y). The YAML has nav2's keys, written in
+    this order: ``image`` (the PGM's file name, relative to the YAML), ``mode: trinary``,
+    ``resolution`` (the cell, m), ``origin: [x, y, yaw]`` (the lower-left corner of the
+    bottom-left cell in ``map``, yaw 0: :func:`map_floor_plan`), ``negate: 0``,
+    ``occupied_thresh`` and ``free_thresh`` (:data:`NAV2_YAML_FREE_THRESH`, so that
+    ``map_server`` reads the three shades back as written). ``nav2_map_server`` (and
+    ROS 1's ``map_server``) loads it as the OccupancyGrid of :func:`occupancy_grid_message`
+    reduced to free (0), occupied (100) and unknown (-1), at z = 0.
+
+    Returns the YAML's and the PGM's paths. Raises :class:`EchoLocError` for a 3-D grid,
+    a name not ending in ``.yaml`` or a file that cannot be written.
+    """
+    target = Path(path)
+    if target.suffix.lower() not in (".yaml", ".yml"):
+        raise EchoLocError(f"{target}: a nav2 map is NAME.yaml (with NAME.pgm beside it)")
+    target = _check_path(target, target.suffix.lower())
+    if not grid.spec.is_floor_plan:
+        raise EchoLocError(f"{target}: a nav2 map is a floor plan; this grid is 3-D (drop --3d)")
+    image = target.with_suffix(".pgm")
+    pixels = nav2_pixels(grid, free_thresh=free_thresh, occupied_thresh=occupied_thresh)
+    _, (x0, y0, _) = map_floor_plan(grid)
+    height, width = pixels.shape
+    lines = (
+        f"image: {image.name}",
+        "mode: trinary",
+        f"resolution: {_yaml_number(grid.spec.cell_m)}",
+        f"origin: [{_yaml_number(x0)}, {_yaml_number(y0)}, 0]",
+        "negate: 0",
+        f"occupied_thresh: {_yaml_number(occupied_thresh)}",
+        f"free_thresh: {_yaml_number(min(NAV2_YAML_FREE_THRESH, free_thresh))}",
+    )
+    try:
+        image.write_bytes(f"P5\n{width} {height}\n255\n".encode("ascii") + pixels.tobytes())
+        target.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    except OSError as error:
+        raise EchoLocError(f"{target}: cannot write: {error.strerror or error}") from error
+    return target, image

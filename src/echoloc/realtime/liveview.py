@@ -3,8 +3,21 @@
 Why Foxglove rather than a page of our own: it is the viewer robot integrators
 already run beside ROS 2, it shows 3-D scenes, plots and grids with no code of
 ours in a browser, and the ``foxglove-sdk`` server speaks its documented WebSocket
-protocol (subprotocol ``foxglove.sdk.v1``), so any client can subscribe too. Connect
-Foxglove to ``ws://127.0.0.1:8765`` (Open connection -> Foxglove WebSocket).
+protocol, so any client can subscribe too. Connect Foxglove to ``ws://127.0.0.1:8765``
+(Open connection -> Foxglove WebSocket).
+
+**Subprotocols.** The protocol's WebSocket subprotocol is ``foxglove.websocket.v1`` for
+the clients of Foxglove's older ``ws-protocol`` libraries and bridges (Lichtblick, the
+``foxglove_bridge`` 0.x clients, roslibjs-foxglove) and ``foxglove.sdk.v1`` since the
+foxglove-sdk; Foxglove states the two are the same protocol under two names. The SDK's
+server accepts only ``foxglove.sdk.v1`` (its handshake source, and releases 0.5.0,
+0.29.2 and 0.30.3 checked) and answers any other offer with HTTP 400, with no option to
+change that. So the port a client connects to is a small relay
+(:class:`SubprotocolRelay`) in front of the SDK server, which listens on a free port of
+127.0.0.1: a handshake that offers only ``foxglove.websocket.v1`` reaches the SDK
+offering ``foxglove.sdk.v1``, and the SDK's answer goes back naming
+``foxglove.websocket.v1``, the name the client offered; every other byte, both ways,
+passes unchanged. Clients offering ``foxglove.sdk.v1`` are passed through untouched.
 
 Topics, all in the sensor frame ``echoloc_sensor_optical_frame`` (docs/FORMATS.md):
 
@@ -28,6 +41,9 @@ while no client is subscribed.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
+import threading
 import time
 from typing import Any
 
@@ -65,6 +81,11 @@ except ImportError:
     raise missing_extra("live", "the live view (--view)") from None
 
 DEFAULT_VIEW_PORT = 8765
+SDK_SUBPROTOCOL = "foxglove.sdk.v1"
+"""The WebSocket subprotocol the foxglove-sdk server accepts."""
+LEGACY_SUBPROTOCOL = "foxglove.websocket.v1"
+"""The same protocol's older name, which clients of Foxglove's ``ws-protocol`` libraries offer."""
+_HANDSHAKE_TIMEOUT_S = 10.0
 TOPICS = (
     "/echoloc/objects",
     "/echoloc/points",
@@ -79,6 +100,140 @@ _IDENTITY = Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)
 
 def _timestamp(ns: int) -> Timestamp:
     return Timestamp(ns // 1_000_000_000, ns % 1_000_000_000)
+
+
+def _header_lines(head: bytes) -> list[bytes]:
+    return head.split(b"\r\n")
+
+
+def _offered_subprotocols(head: bytes) -> list[str]:
+    """The subprotocols a WebSocket upgrade request offers (every ``Sec-WebSocket-Protocol`` line)."""
+    offered = []
+    for line in _header_lines(head)[1:]:
+        name, _, value = line.partition(b":")
+        if name.strip().lower() == b"sec-websocket-protocol":
+            offered += [token.strip() for token in value.decode("latin-1").split(",") if token.strip()]
+    return offered
+
+
+def _replace_subprotocol_header(head: bytes, subprotocol: str) -> bytes:
+    """``head`` (an HTTP head ending in a blank line) with its ``Sec-WebSocket-Protocol`` lines
+    replaced by one naming ``subprotocol``."""
+    lines = _header_lines(head)
+    kept = [
+        line
+        for line in lines[1:]
+        if line and line.partition(b":")[0].strip().lower() != b"sec-websocket-protocol"
+    ]
+    header = b"Sec-WebSocket-Protocol: " + subprotocol.encode("ascii")
+    return b"\r\n".join([lines[0], *kept, header, b"", b""])
+
+
+class SubprotocolRelay:
+    """A TCP relay on ``host:port`` to the SDK server on ``127.0.0.1:upstream_port`` that lets
+    clients offering only :data:`LEGACY_SUBPROTOCOL` in (module doc).
+
+    Per connection it reads the client's HTTP upgrade request; if it offers the legacy name
+    and not :data:`SDK_SUBPROTOCOL`, the request goes on offering the SDK's name and the
+    SDK's response comes back naming the legacy one (the ``Sec-WebSocket-Accept`` key does
+    not depend on the subprotocol); otherwise both pass unchanged. After the handshake it
+    copies bytes both ways until either side closes. It runs an asyncio loop on a daemon
+    thread; :meth:`close` stops it and drops the connections.
+    """
+
+    def __init__(self, host: str, port: int, upstream_port: int) -> None:
+        self.upstream_port = upstream_port
+        self._loop = asyncio.new_event_loop()
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        self._server: asyncio.base_events.Server | None = None
+        self._tasks: set[asyncio.Task[None]] = set()
+        self.port = 0
+        self._thread = threading.Thread(
+            target=self._run, args=(host, port), name="echoloc-liveview-relay", daemon=True
+        )
+        self._thread.start()
+        self._ready.wait()
+        if self._error is not None:
+            self._thread.join()
+            raise self._error
+
+    def _run(self, host: str, port: int) -> None:
+        asyncio.set_event_loop(self._loop)
+        try:
+            self._server = self._loop.run_until_complete(asyncio.start_server(self._connection, host, port))
+            self.port = int(self._server.sockets[0].getsockname()[1])
+        except BaseException as error:  # a busy port, a bad host: said by the constructor
+            self._error = error
+            self._ready.set()
+            self._loop.close()
+            return
+        self._ready.set()
+        try:
+            self._loop.run_forever()
+        finally:
+            self._server.close()
+            for task in list(self._tasks):
+                task.cancel()
+            if self._tasks:
+                self._loop.run_until_complete(asyncio.gather(*self._tasks, return_exceptions=True))
+            self._loop.run_until_complete(self._server.wait_closed())
+            self._loop.close()
+
+    def close(self) -> None:
+        """Stop listening, drop every connection and end the thread."""
+        if self._thread.is_alive():
+            self._loop.call_soon_threadsafe(self._loop.stop)
+            self._thread.join(timeout=10)
+
+    def _connection(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        task = asyncio.ensure_future(self._relay(reader, writer))
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _relay(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        upstream: asyncio.StreamWriter | None = None
+        try:
+            try:
+                request = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), _HANDSHAKE_TIMEOUT_S)
+            except (asyncio.IncompleteReadError, asyncio.LimitOverrunError, asyncio.TimeoutError):
+                return
+            offered = _offered_subprotocols(request)
+            legacy = LEGACY_SUBPROTOCOL in offered and SDK_SUBPROTOCOL not in offered
+            if legacy:
+                request = _replace_subprotocol_header(request, SDK_SUBPROTOCOL)
+            up_reader, upstream = await asyncio.open_connection("127.0.0.1", self.upstream_port)
+            upstream.write(request)
+            await upstream.drain()
+            try:
+                response = await asyncio.wait_for(up_reader.readuntil(b"\r\n\r\n"), _HANDSHAKE_TIMEOUT_S)
+            except (asyncio.IncompleteReadError, asyncio.LimitOverrunError, asyncio.TimeoutError):
+                return
+            if legacy and SDK_SUBPROTOCOL in _offered_subprotocols(response):
+                response = _replace_subprotocol_header(response, LEGACY_SUBPROTOCOL)
+            writer.write(response)
+            await writer.drain()
+            await asyncio.gather(_pipe(reader, upstream), _pipe(up_reader, writer))
+        except OSError:
+            return
+        finally:
+            for stream in (writer, upstream):
+                if stream is not None:
+                    stream.close()
+                    with contextlib.suppress(OSError, asyncio.CancelledError):
+                        await stream.wait_closed()
+
+
+async def _pipe(source: asyncio.StreamReader, target: asyncio.StreamWriter) -> None:
+    """Copy ``source`` to ``target`` until end of stream, then half-close ``target``."""
+    try:
+        while chunk := await source.read(65536):
+            target.write(chunk)
+            await target.drain()
+        if target.can_write_eof():
+            target.write_eof()
+    except OSError:
+        target.close()
 
 
 def envelope_trace(
@@ -129,8 +284,16 @@ class LiveView:
     ) -> None:
         self.context = foxglove.Context()
         try:
-            self.server = foxglove.start_server(name="echoloc", host=host, port=port, context=self.context)
-        except Exception as error:  # the SDK raises its own error types for a busy port
+            # The SDK's own server, on a free port of this machine; clients reach it through the relay.
+            self.server = foxglove.start_server(
+                name="echoloc", host="127.0.0.1", port=0, context=self.context
+            )
+        except Exception as error:  # the SDK raises its own error types
+            raise EchoLocError(f"cannot start the live view's server: {error}") from None
+        try:
+            self.relay = SubprotocolRelay(host, port, int(self.server.port))
+        except (OSError, ValueError) as error:
+            self.server.stop()
             raise EchoLocError(f"cannot start the live view on ws://{host}:{port}: {error}") from None
         self.host = host
         self.max_rate_hz = max_rate_hz
@@ -148,13 +311,15 @@ class LiveView:
 
     @property
     def port(self) -> int:
-        return int(self.server.port)
+        """The port clients connect to (the relay's)."""
+        return self.relay.port
 
     @property
     def url(self) -> str:
         return f"ws://{self.host}:{self.port}"
 
     def close(self) -> None:
+        self.relay.close()
         self.server.stop()
 
     def __enter__(self) -> LiveView:
