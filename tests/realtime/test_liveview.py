@@ -186,10 +186,11 @@ def test_envelope_trace_pools_the_analytic_magnitude():
     np.testing.assert_allclose(pooled[1], 2 * pooled[0])
 
 
-def test_a_live_floor_plan_arrives_placed_on_the_sensors_horizontal_plane(results):
-    from scipy.spatial.transform import Rotation
-
-    from echoloc.maps.map_export import floor_plan_cells, floor_plan_pose
+def test_a_live_floor_plan_lies_flat_in_the_body_frame_under_the_located_objects(results):
+    """The live floor plan is published in the body frame (x forward, y left, z up), flat, with
+    its cells where the objects are: an object at optical (x, y, z) lies over body (z, -x)."""
+    from echoloc.io.export import BODY_FRAME_ID, OPTICAL_TO_BODY
+    from echoloc.maps.map_export import map_floor_plan
     from echoloc.maps.mapping import GridSpec, MapAccumulator
 
     recording, processed = results
@@ -197,24 +198,57 @@ def test_a_live_floor_plan_arrives_placed_on_the_sensors_horizontal_plane(result
     mapper = MapAccumulator(spec, recording)
     for result, _ in processed:
         mapper.add_frame(result.echoes, [0, 0, 0, 0, 0, 0, 1.0], objects=result.objects)
-    grid = mapper.grid()
-    cells = floor_plan_cells(grid)
-    origin, orientation = floor_plan_pose(spec)
+    cells, corner = map_floor_plan(mapper.grid())
 
     with LiveView(port=0) as view:
 
         def publish():
             for _ in range(40):
-                view.publish_map(cells, spec.cell_m, origin, orientation)
+                view.publish_map(cells, spec.cell_m, corner, stamp_s=12.5)
                 time.sleep(0.05)
 
         got = asyncio.run(_client(view.port, publish, {"/echoloc/map"}))
     channel, _, payload = got["/echoloc/map"]
     message = _protobuf_class(channel).FromString(payload)
+    assert message.frame_id == BODY_FRAME_ID
+    assert (message.timestamp.seconds, message.timestamp.nanos) == (12, 500_000_000)
+    q = message.pose.orientation
+    assert (q.x, q.y, q.z, q.w) == (0.0, 0.0, 0.0, 1.0)  # flat: x-y is the floor
     decoded = np.frombuffer(message.data, "<f4").reshape(-1, message.column_count)
     np.testing.assert_allclose(decoded, cells, atol=1e-6)
-    assert np.any(decoded > 0.5)  # the balls of the default scene are on the map
-    q = message.pose.orientation
-    turn = Rotation.from_quat([q.x, q.y, q.z, q.w])
-    # Grid columns run along the sensor's x, rows along its z (ahead), the grid's normal up (-y).
-    np.testing.assert_allclose(turn.apply([[1, 0, 0], [0, 1, 0]]), [[1, 0, 0], [0, 0, 1]], atol=1e-9)
+    h = spec.cell_m
+    origin = np.array([message.pose.position.x, message.pose.position.y])
+    for obj in processed[0][0].objects.objects:
+        body = OPTICAL_TO_BODY @ obj.position_m
+        column, row = np.floor((body[:2] - origin) / h).astype(int)
+        neighbourhood = decoded[max(row - 1, 0) : row + 2, max(column - 1, 0) : column + 2]
+        assert neighbourhood.max() > 0.5, (obj.position_m, body)
+
+
+def test_the_optical_frame_hangs_under_the_body_frame_with_capture_clock_stamps(results):
+    """/tf carries REP-103's optical rotation; messages carry the frame's capture time."""
+    from scipy.spatial.transform import Rotation
+
+    from echoloc.io.export import BODY_FRAME_ID, SENSOR_FRAME_ID
+
+    recording, frames = results
+    with LiveView(port=0, max_rate_hz=50.0) as view:
+        view.set_session(recording)
+
+        def publish():
+            for _ in range(20):
+                for result, samples in frames:
+                    view.publish(result, samples)
+                    time.sleep(0.025)
+
+        got = asyncio.run(_client(view.port, publish, {"/tf", "/echoloc/points"}))
+    channel, _, payload = got["/tf"]
+    transform = _protobuf_class(channel).FromString(payload).transforms[0]
+    assert (transform.parent_frame_id, transform.child_frame_id) == (BODY_FRAME_ID, SENSOR_FRAME_ID)
+    r = transform.rotation
+    body = Rotation.from_quat([r.x, r.y, r.z, r.w]).apply([0.1, 0.2, 1.0])
+    np.testing.assert_allclose(body, [1.0, -0.1, -0.2], atol=1e-12)
+    channel, _, payload = got["/echoloc/points"]
+    stamp = _protobuf_class(channel).FromString(payload).timestamp
+    times = {round(result.objects.time_s * 1e9) for result, _ in frames}
+    assert stamp.seconds * 1_000_000_000 + stamp.nanos in times

@@ -19,7 +19,11 @@ offering ``foxglove.sdk.v1``, and the SDK's answer goes back naming
 ``foxglove.websocket.v1``, the name the client offered; every other byte, both ways,
 passes unchanged. Clients offering ``foxglove.sdk.v1`` are passed through untouched.
 
-Topics, all in the sensor frame ``echoloc_sensor_optical_frame`` (docs/FORMATS.md):
+Topics, stamped with the frame's time on the capture clock, in the sensor frame
+``echoloc_sensor_optical_frame`` (x right, y down, z ahead; docs/FORMATS.md) unless said:
+
+- ``/tf`` (``foxglove.FrameTransforms``): that frame under the body frame
+  ``echoloc_sensor_link`` (x forward, y left, z up; REP-103), with every frame shown;
 
 - ``/echoloc/objects`` (``foxglove.SceneUpdate``): one sphere per object, 2 sigma
   wide, and its range as text;
@@ -32,7 +36,7 @@ Topics, all in the sensor frame ``echoloc_sensor_optical_frame`` (docs/FORMATS.m
   index);
 - ``/echoloc/stats`` (JSON): the stream's counters (:class:`echoloc.realtime.stream.StreamStats`);
 - ``/echoloc/map`` (``foxglove.Grid``): an occupancy grid, when a mapper publishes one
-  (:meth:`LiveView.publish_map`).
+  (:meth:`LiveView.publish_map`); `stream --view`'s floor plan lies flat in the body frame.
 
 Publishing is throttled to ``max_rate_hz`` (objects and traces of the latest
 frame), so viewing never slows the chain down; nothing is computed for the view
@@ -53,7 +57,7 @@ from scipy import signal
 
 from echoloc.errors import EchoLocError
 from echoloc.extras import missing_extra
-from echoloc.io.export import SENSOR_FRAME_ID
+from echoloc.io.export import BODY_FRAME_ID, OPTICAL_ROTATION_XYZW, SENSOR_FRAME_ID
 from echoloc.io.output import objects_record
 from echoloc.io.recording import Recording
 from echoloc.realtime.stream import StreamResult, StreamStats
@@ -61,9 +65,11 @@ from echoloc.tof.echoes import MatchedFilter
 
 try:
     import foxglove
-    from foxglove.channels import GridChannel, PointCloudChannel, SceneUpdateChannel
+    from foxglove.channels import FrameTransformsChannel, GridChannel, PointCloudChannel, SceneUpdateChannel
     from foxglove.messages import (
         Color,
+        FrameTransform,
+        FrameTransforms,
         Grid,
         PackedElementField,
         PackedElementFieldNumericType,
@@ -100,6 +106,29 @@ _IDENTITY = Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)
 
 def _timestamp(ns: int) -> Timestamp:
     return Timestamp(ns // 1_000_000_000, ns % 1_000_000_000)
+
+
+def _capture_stamp(time_s: float) -> Timestamp:
+    """A frame time on the capture clock, s, as a message stamp (a negative or non-finite one: 0)."""
+    seconds = time_s if np.isfinite(time_s) and time_s > 0 else 0.0
+    return _timestamp(round(seconds * 1e9))
+
+
+def _body_to_optical(stamp: Timestamp) -> FrameTransforms:
+    """The sensor's optical frame (x right, y down, z ahead) in its body frame (x forward, y left,
+    z up), REP-103's fixed rotation: what lets a viewer show the optical frame's points upright."""
+    qx, qy, qz, qw = OPTICAL_ROTATION_XYZW
+    return FrameTransforms(
+        transforms=[
+            FrameTransform(
+                timestamp=stamp,
+                parent_frame_id=BODY_FRAME_ID,
+                child_frame_id=SENSOR_FRAME_ID,
+                translation=Vector3(x=0.0, y=0.0, z=0.0),
+                rotation=Quaternion(x=qx, y=qy, z=qz, w=qw),
+            )
+        ]
+    )
 
 
 def _header_lines(head: bytes) -> list[bytes]:
@@ -304,6 +333,7 @@ class LiveView:
         self._traces = foxglove.Channel("/echoloc/echo_traces", message_encoding="json", context=self.context)
         self._stats = foxglove.Channel("/echoloc/stats", message_encoding="json", context=self.context)
         self._map = GridChannel("/echoloc/map", context=self.context)
+        self._tf = FrameTransformsChannel("/tf", context=self.context)
         self._last_ns = 0
         self._sample_rate_hz = 1.0
         self._matched: MatchedFilter | None = None
@@ -348,7 +378,9 @@ class LiveView:
             return False
         self._last_ns = now
         objects = result.objects
-        stamp = _timestamp(now)
+        stamp = _capture_stamp(objects.time_s)  # the frame's emission on the capture clock
+        if self._tf.has_sinks():  # sent with every frame shown: a client that joins late gets it too
+            self._tf.log(_body_to_optical(stamp), log_time=now)
         if self._objects.has_sinks():
             self._objects.log(self._scene(result, stamp), log_time=now)
         if self._points.has_sinks():
@@ -368,13 +400,17 @@ class LiveView:
         cell_size_m: float,
         origin_m: tuple[float, float, float] = (0.0, 0.0, 0.0),
         orientation_xyzw: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0),
+        *,
+        frame_id: str = BODY_FRAME_ID,
+        stamp_s: float | None = None,
     ) -> None:
         """Publish an occupancy grid (rows along y, columns along x, values 0..1) as ``foxglove.Grid``.
 
         The hook for a mapper (an occupancy grid of the sensor's surroundings): the
-        grid lies in its own x-y plane, placed in the sensor frame by ``origin_m`` (its
-        cell (0, 0)) and ``orientation_xyzw``; values are sent as float32
-        ``occupancy`` (-1 where unknown).
+        grid lies in its own x-y plane, placed in ``frame_id`` (default the body frame,
+        x forward, y left, z up: a floor plan lies flat) by ``origin_m`` (its cell (0, 0))
+        and ``orientation_xyzw``; values are sent as float32 ``occupancy`` (-1 where
+        unknown). ``stamp_s``: the newest frame's time on the capture clock (None: now).
         """
         grid = np.ascontiguousarray(occupancy, dtype=np.float32)
         if grid.ndim != 2 or grid.size == 0:
@@ -383,8 +419,8 @@ class LiveView:
         columns = grid.shape[1]
         self._map.log(
             Grid(
-                timestamp=_timestamp(now),
-                frame_id=SENSOR_FRAME_ID,
+                timestamp=_timestamp(now) if stamp_s is None else _capture_stamp(stamp_s),
+                frame_id=frame_id,
                 pose=Pose(
                     position=Vector3(x=origin_m[0], y=origin_m[1], z=origin_m[2]),
                     orientation=Quaternion(

@@ -157,8 +157,9 @@ class LiveSession:
                 self._map(result, frame.arrival_s)
 
     def _map(self, result: StreamResult, now: float) -> None:
-        """Add a shown frame to the live floor plan (x-z); publish it every MAP_PUBLISH_EVERY_S."""
-        from echoloc.maps.map_export import floor_plan_cells, floor_plan_pose
+        """Add a shown frame to the live floor plan; publish it every MAP_PUBLISH_EVERY_S, flat in the
+        x-y plane of the sensor's body frame (x forward, y left, z up: REP-103)."""
+        from echoloc.maps.map_export import map_floor_plan
 
         if self.mapper is None:
             return
@@ -168,8 +169,8 @@ class LiveSession:
         if now - self._last_map >= MAP_PUBLISH_EVERY_S:
             self._last_map = now
             grid = self.mapper.grid()
-            origin, orientation = floor_plan_pose(grid.spec)
-            self.view.publish_map(floor_plan_cells(grid), grid.spec.cell_m, origin, orientation)
+            cells, corner = map_floor_plan(grid)  # a still sensor: its body frame is the map
+            self.view.publish_map(cells, grid.spec.cell_m, corner, stamp_s=result.objects.time_s)
 
     def _stop_recording(self, why: str) -> None:
         try:
