@@ -62,7 +62,6 @@ from echoloc.io.export import (
     TF_QOS,
     QosWriter,
     _check_path,
-    _matrix_quaternion,
     _schema_text,
     map_odom_transform,
     optical_transform,
@@ -108,9 +107,6 @@ OCCUPANCY_GRID_SCHEMA = _schema_text(
     ("geometry_msgs/Point", _POINT_MSG),
     ("geometry_msgs/Quaternion", _QUATERNION_MSG),
 )
-
-# Columns: where the OccupancyGrid's x, y and z axes point in the map frame.
-_FLOOR_PLAN_AXES = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 
 
 # --- NPZ ---------------------------------------------------------------------------------
@@ -250,27 +246,6 @@ def write_octomap(grid: OccupancyGrid, path: str | Path) -> Path:
 
 
 # --- MCAP ----------------------------------------------------------------------------------
-
-
-def floor_plan_pose(spec: GridSpec) -> tuple[tuple[float, float, float], tuple[float, float, float, float]]:
-    """Where a floor plan's plane lies in echoloc's world frame (y down): cell (0, 0)'s corner and
-    the rotation (x, y, z, w), for viewers of that frame (the live view).
-
-    Grid x = world x, grid y = world z, grid normal = world -y (up): the plane through the
-    layer's centre height. The ROS exports use the z-up ``map`` instead (:func:`map_floor_plan`).
-    """
-    if not spec.is_floor_plan:
-        raise EchoLocError("a floor plan's pose is asked of a 3-D grid")
-    qx, qy, qz, qw = (float(v) for v in _matrix_quaternion(_FLOOR_PLAN_AXES))
-    x0, y0, z0 = (float(v) for v in spec.origin_m)
-    return (x0, y0 + spec.cell_m / 2, z0), (qx, qy, qz, qw)
-
-
-def floor_plan_cells(grid: OccupancyGrid) -> NDArray[np.float64]:
-    """A floor plan's occupancy as rows along world z and columns along world x; -1 where unknown
-    (the layout of :func:`floor_plan_pose`)."""
-    probability = grid.probability()[:, 0, :]
-    return np.asarray(np.where(grid.known()[:, 0, :], probability, -1.0).T)
 
 
 def map_floor_plan(grid: OccupancyGrid) -> tuple[NDArray[np.float64], tuple[float, float, float]]:
