@@ -165,3 +165,40 @@ def test_a_known_transducer_gives_the_piston_beam():
 
     ka = 2 * math.pi * 40e3 / head.header.speed_of_sound_m_s * PRESETS["piezo40"].radius_m
     assert beam == pytest.approx(math.degrees(math.asin(1.61634 / ka)), rel=1e-4)
+
+
+def test_an_import_head_given_as_a_live_head_says_what_it_lacks(tmp_path: Path):
+    path = tmp_path / "flat.toml"
+    path.write_text('sample_rate_hz = 200000\nsignal_kind = "rf"\nreceivers = [[0.1, 0, 0]]\n')
+    with pytest.raises(SceneError) as info:
+        load_head(path)
+    assert "import's head TOML" in str(info.value)
+    assert "docs/HEAD.md" in str(info.value)
+
+
+def test_import_samples_takes_a_live_head_file(tmp_path: Path):
+    """One head file serves capture and import: samples imported with it locate as the head's
+    simulation says (the geometry, pulse and air all come from the file)."""
+    from click.testing import CliRunner
+
+    from echoloc.cli.commands import cli
+    from echoloc.io.recording import read_recording
+    from echoloc.localise.evaluation import evaluate
+    from echoloc.pipeline import prepare, run
+    from echoloc.sim.simulation import simulate
+
+    head_path = HEADS / "mcu-4ch.toml"
+    head = load_head(head_path)
+    simulated = simulate(head.scene({"reflectors": [{"position_m": [0.1, -0.05, 0.8]}], "seed": 2}), 3)
+    samples = tmp_path / "samples.npy"
+    np.save(samples, simulated.frames)
+    out = tmp_path / "imported.h5"
+    result = CliRunner().invoke(
+        cli, ["import", "samples", str(samples), "--head", str(head_path), "-o", str(out)]
+    )
+    assert result.exit_code == 0, result.output
+    imported = read_recording(out)
+    assert np.array_equal(imported.frames, simulated.frames)
+    assert np.array_equal(imported.waveform, head.header.waveform)
+    objects = [o for _, o in run(prepare(imported))]
+    assert evaluate(objects, np.tile([[[0.1, -0.05, 0.8]]], (3, 1, 1))).recall == 1.0

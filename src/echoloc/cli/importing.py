@@ -17,7 +17,8 @@ import numpy as np
 
 from echoloc.cli.app import _path_option
 from echoloc.errors import EchoLocError, unwritable
-from echoloc.io.importers import read_head, read_samples, read_spiel
+from echoloc.io.head import is_sectioned_head, load_head
+from echoloc.io.importers import read_head, read_samples, read_samples_with_head, read_spiel
 from echoloc.io.recording import Recording, write_recording
 
 _OUTPUT_SUFFIXES = (".h5", ".hdf5", ".npz")
@@ -96,7 +97,8 @@ def spiel_command(
     "--head",
     "head_path",
     required=True,
-    help="Sensor-head TOML: sample rate, signal kind, positions, ...",
+    help="Sensor-head TOML: an import head (docs/IMPORT.md: sample rate, signal kind, positions, "
+    "files, truth) or a live head's file (docs/HEAD.md).",
 )
 @_output_option
 @_force_option
@@ -108,5 +110,8 @@ def samples_command(samples_path: Path, head_path: Path, output: Path, force: bo
     r // n_rx, receiver r % n_rx.
     """
     _check_output(output, force)
-    recording = read_samples(samples_path, read_head(head_path))
+    if is_sectioned_head(head_path):  # a live head's file (docs/HEAD.md) serves too
+        recording = read_samples_with_head(samples_path, load_head(head_path))
+    else:
+        recording = read_samples(samples_path, read_head(head_path))
     _write(recording, output, str(samples_path))

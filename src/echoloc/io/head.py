@@ -264,17 +264,39 @@ def _head_from_dict(data: Mapping[str, Any], source: str) -> SensorHead:
     )
 
 
-def load_head(path: str | Path) -> SensorHead:
-    """Read and validate a head file (TOML)."""
-    path = Path(path)
+_IMPORT_FORM_KEYS = {"sample_rate_hz", "signal_kind", "transmitters", "receivers", "waveform", "truth"}
+"""Top-level keys of an import's flat head TOML (docs/IMPORT.md), which a head file has in sections."""
+
+
+def _head_toml(path: Path) -> dict[str, Any]:
     text = read_text_input(path, what="head file", max_bytes=MAX_HEAD_FILE_BYTES, error=SceneError)
     try:
-        data = tomllib.loads(text)
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise SceneError(f"{path}: not valid TOML ({error})") from None
     except (ValueError, RecursionError) as error:
         reason = "nested too deeply" if isinstance(error, RecursionError) else str(error)
         raise SceneError(f"{path}: not valid TOML ({reason})") from None
+
+
+def is_sectioned_head(path: str | Path) -> bool:
+    """Is ``path`` a head file with sections (this module's), rather than an import's flat head
+    TOML (docs/IMPORT.md)? Judged by its ``[array]`` or ``[acquisition]`` table."""
+    data = _head_toml(Path(path))
+    return isinstance(data.get("array"), dict) or isinstance(data.get("acquisition"), dict)
+
+
+def load_head(path: str | Path) -> SensorHead:
+    """Read and validate a head file (TOML)."""
+    path = Path(path)
+    data = _head_toml(path)
+    flat = sorted(_IMPORT_FORM_KEYS & set(data))
+    if flat and "array" not in data:
+        raise SceneError(
+            f"{path}: an import's head TOML (flat keys such as {flat[0]!r}, docs/IMPORT.md) lacks what a "
+            "live head needs (samples a frame, frame rate, pulse, wiring): write it with sections "
+            "[array], [acquisition], [pulse], [channels] (docs/HEAD.md)"
+        )
     return head_from_dict(data, source=str(path))
 
 

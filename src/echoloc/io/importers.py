@@ -107,8 +107,11 @@ class TruthSpan:
 
 
 @dataclass(frozen=True)
-class SensorHead:
-    """What a sensor-head TOML says; ``None`` where it says nothing.
+class ImportHead:
+    """What an import's flat head TOML says (docs/IMPORT.md section 3): the geometry, rates
+    and air, and an import's own files and truth; ``None`` where it says nothing. A live
+    head's file, with sections (:mod:`echoloc.io.head`), is read by
+    :func:`read_samples_with_head` instead.
 
     Attributes
     ----------
@@ -152,7 +155,7 @@ class SensorHead:
 
 
 SPIEL_RECEIVER_Y_M = 0.0649519052838329  # 0.075 m x sin(120°): the circle of radius 75 mm
-SPIEL_HEAD = SensorHead(
+SPIEL_HEAD = ImportHead(
     source="the SPiEL CH101 head",
     sample_rate_hz=22000.0,
     signal_kind="envelope",
@@ -259,8 +262,8 @@ def _file_key(source: str, key: str, value: object, base_dir: Path) -> Path:
     return path if path.is_absolute() else base_dir / path
 
 
-def parse_head(data: Mapping[str, object], source: str, base_dir: Path) -> SensorHead:
-    """A :class:`SensorHead` from the parsed TOML ``data`` (no file is touched).
+def parse_head(data: Mapping[str, object], source: str, base_dir: Path) -> ImportHead:
+    """A :class:`ImportHead` from the parsed TOML ``data`` (no file is touched).
 
     Parameters
     ----------
@@ -310,10 +313,10 @@ def parse_head(data: Mapping[str, object], source: str, base_dir: Path) -> Senso
             values[f"{key}_path"] = _file_key(source, key, data[key], base_dir)
     if "truth" in data:
         values["truth"] = _truth(source, data["truth"])
-    return SensorHead(source=source, **values)
+    return ImportHead(source=source, **values)
 
 
-def read_head(path: Path) -> SensorHead:
+def read_head(path: Path) -> ImportHead:
     """Read a sensor-head TOML (keys: :data:`HEAD_KEYS`); see :func:`parse_head`.
 
     Raises
@@ -331,17 +334,17 @@ def read_head(path: Path) -> SensorHead:
     return parse_head(data, str(path), path.parent)
 
 
-def merge_heads(base: SensorHead, override: SensorHead) -> SensorHead:
+def merge_heads(base: ImportHead, override: ImportHead) -> ImportHead:
     """``base`` with every field that ``override`` gives replaced (``source`` from ``override``)."""
     changes: dict[str, Any] = {"source": override.source}
-    for field in fields(SensorHead):
+    for field in fields(ImportHead):
         value = getattr(override, field.name)
         if field.name != "source" and value is not None and value != ():
             changes[field.name] = value
     return replace(base, **changes)
 
 
-def _require(head: SensorHead, keys: Sequence[str], what: str) -> None:
+def _require(head: ImportHead, keys: Sequence[str], what: str) -> None:
     attribute = {"transmitters": "transmitters_m", "receivers": "receivers_m"}
     for key in keys:
         if getattr(head, attribute.get(key, key)) is None:
@@ -573,7 +576,7 @@ def spiel_recording(
     frames: NDArray[np.float64],
     positions_mm: NDArray[np.float64],
     background: NDArray[np.float64] | None,
-    head: SensorHead,
+    head: ImportHead,
     source: str,
 ) -> Recording:
     """Build and validate the recording of a SPiEL data set (no file is touched).
@@ -601,7 +604,7 @@ def spiel_recording(
     )
 
 
-def _head_recording(head: SensorHead, source: str, **data: Any) -> Recording:
+def _head_recording(head: ImportHead, source: str, **data: Any) -> Recording:
     """The validated recording of ``head``'s attributes and geometry with the ``data`` arrays."""
     recording = Recording(
         sample_rate_hz=_given(head.sample_rate_hz),
@@ -624,7 +627,7 @@ def _given(value: Any) -> Any:
     return value
 
 
-def read_spiel(folder: Path, head: SensorHead | None = None, n_samples: int | None = None) -> Recording:
+def read_spiel(folder: Path, head: ImportHead | None = None, n_samples: int | None = None) -> Recording:
     """Read a folder of the SPiEL CSV layout into a validated recording.
 
     Every ``<name>_frames.csv`` (4 lines of 64 integers: the channels' envelope
@@ -791,7 +794,7 @@ def _as_frames(path: Path, array: NDArray[Any], n_rx: int, what: str) -> NDArray
 
 def samples_recording(
     frames: NDArray[Any],
-    head: SensorHead,
+    head: ImportHead,
     source: str,
     background: NDArray[Any] | None = None,
     waveform: NDArray[Any] | None = None,
@@ -822,7 +825,7 @@ def samples_recording(
     )
 
 
-def read_samples(path: Path, head: SensorHead) -> Recording:
+def read_samples(path: Path, head: ImportHead) -> Recording:
     """Read plain samples described by a sensor head into a validated recording.
 
     Parameters
@@ -881,3 +884,27 @@ def read_samples(path: Path, head: SensorHead) -> Recording:
             raise _error(head.waveform_path, f"has shape {wave.shape}, expected one row or one column")
         waveform = wave.astype(np.complex128 if wave.dtype.kind == "c" else np.float64)
     return samples_recording(frames, head, str(path), background, waveform)
+
+
+def read_samples_with_head(path: Path, head: Any) -> Recording:
+    """Read plain samples (as :func:`read_samples`: a ``.npy`` or a text table, receivers in
+    ``receivers_m`` order) described by a head file with sections
+    (:class:`echoloc.io.head.SensorHead`): its header gives the geometry, rates, air and pulse."""
+    header = head.header
+    iq = header.signal_kind == "iq"
+    if iq and path.suffix.lower() not in _NPY_SUFFIXES:
+        raise _error(path, "iq samples are complex: give them as a .npy (text tables hold real numbers)")
+    raw = _read_array(path, iq)
+    frames = _as_frames(path, raw, header.n_receivers, "samples")
+    if raw.dtype.kind == "f" and path.suffix.lower() not in _NPY_SUFFIXES:
+        frames = frames.astype(_samples_dtype(frames))
+    elif raw.dtype.kind in "iu":
+        frames = frames.astype(np.float64)
+    receiver_gain = header.receiver_gain
+    if receiver_gain is not None and receiver_gain.shape[-1] != frames.shape[-1]:
+        raise _error(
+            path,
+            f"has {frames.shape[-1]} samples a channel but the head's gain curve has "
+            f"{receiver_gain.shape[-1]}",
+        )
+    return validate_recording(replace(header, frames=frames, source=str(path)))
