@@ -9,16 +9,27 @@ line's click and rich. The rest are extras of the package:
   (:mod:`echoloc._jit`);
 - ``plot``: every picture (``--plot``, ``image``, a ``map`` as PNG, ``design -o``): matplotlib;
 - ``live``: the live view of ``stream --view`` (Foxglove WebSocket): foxglove-sdk;
-- ``octomap``: maps written as OctoMap (``.bt``, ``.ot``): pyoctomap.
+- ``octomap``: maps written as OctoMap (``.bt``, ``.ot``): pyoctomap;
+- ``serial``: capture from a board on a serial or USB-CDC port (``--source serial:PORT``):
+  pyserial;
+- ``soundcard``: capture from a sound card (``--source soundcard``): sounddevice, which needs
+  the PortAudio library (on Linux the system package ``libportaudio2``).
 
-``pip install 'echoloc[all]'`` installs all four.
+``pip install 'echoloc[all]'`` installs all six.
 """
 
 from __future__ import annotations
 
 from echoloc.errors import EchoLocError
 
-EXTRAS = {"fast": "numba", "plot": "matplotlib", "live": "foxglove-sdk", "octomap": "pyoctomap"}
+EXTRAS = {
+    "fast": "numba",
+    "plot": "matplotlib",
+    "live": "foxglove-sdk",
+    "octomap": "pyoctomap",
+    "serial": "pyserial",
+    "soundcard": "sounddevice",
+}
 """Each extra and the distribution it installs."""
 
 

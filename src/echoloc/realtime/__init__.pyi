@@ -1,5 +1,6 @@
 """Types of echoloc.realtime's public names; lazy_loader reads its imports to load each on first use."""
 
+from .capture import CaptureSource
 from .liveview import LiveView
 from .protocol import (
     ProtocolError,
@@ -11,7 +12,9 @@ from .protocol import (
     encode_frame,
     encode_session,
 )
+from .serial_source import SerialSource
 from .session import LiveSession, listener_events
+from .soundcard_source import SoundCardSource
 from .stream import (
     FrameQueue,
     LatencyHistogram,
@@ -26,6 +29,7 @@ from .stream import (
 from .transport import Endpoint, Listener, Recorder, parse_endpoint, send_recording
 
 __all__ = [
+    "CaptureSource",
     "Endpoint",
     "FrameQueue",
     "LatencyHistogram",
@@ -35,6 +39,8 @@ __all__ = [
     "ProtocolError",
     "Recorder",
     "SequenceTracker",
+    "SerialSource",
+    "SoundCardSource",
     "StreamFrame",
     "StreamProcessor",
     "StreamResult",
