@@ -433,3 +433,139 @@ def test_stream_detects_envelope_echoes_with_the_threshold_locate_takes(tmp_path
     ).stdout
     assert stdout == located
     assert located != at_14_db
+
+
+def test_stream_takes_every_processing_option_locate_takes():
+    """One definition (echoloc.cli.app.ChainSettings) gives both commands their options: what
+    locate takes to process frames, stream takes too; only the choice of a file's frames and
+    locate's output differ."""
+    from echoloc.cli.commands import cli
+
+    def names(command: str) -> set[str]:
+        return {name for param in cli.commands[command].params for name in param.opts}
+
+    of_a_file = {"recording_path", "--frames", "--positions", "--repair-nonfinite", "--json"}
+    assert names("locate") - of_a_file <= names("stream")
+    for option in ("--blind-zone", "--template", "--tvg", "--background", "--method", "--classes"):
+        assert option in names("stream")
+
+
+@pytest.fixture(scope="module")
+def ringing_head(tmp_path_factory):
+    """A head file, and a recording of it (two points, the transmitter ringing for 1.2 ms)."""
+    folder = tmp_path_factory.mktemp("head")
+    head_path = folder / "head.toml"
+    head_path.write_text(
+        "[array]\n"
+        "transmitters_m = [[0.0, 0.0, 0.0]]\n"
+        "receivers_m = [[0.25, 0.0, 0.0], [-0.25, 0.0, 0.0], [0.0, 0.25, 0.0], [0.0, -0.25, 0.0]]\n"
+        "[acquisition]\nsample_rate_hz = 200e3\nn_samples = 1800\nframe_rate_hz = 100\n"
+        "[channels]\norder = [1, 0, 3, 2]\n"
+    )
+    from echoloc.io.head import load_head
+
+    scene = load_head(head_path).scene(
+        {
+            "reflectors": [{"position_m": [0.1, 0.05, 0.7]}, {"position_m": [-0.2, 0.0, 1.1]}],
+            "ring_down": {"level": 3.0, "decay_s": 3e-4, "direct_path": True},
+            "noise": {"snr_db": 25.0},
+            "seed": 5,
+        }
+    )
+    recording = folder / "ringing.h5"
+    write_recording(simulate(scene, 12), recording)
+    return head_path, recording
+
+
+def test_stream_with_a_head_file_prints_what_locate_prints_with_every_option(ringing_head):
+    """--head HEAD.toml gives the session; --blind-zone auto, --classes and the rest act on the
+    stream exactly as on the file (the head's header carries what the recording's does)."""
+    head_path, recording = ringing_head
+    options = ["--blind-zone", "auto", "--classes", "--no-background", "--path-sigma-m", "0.002"]
+    stream = Proc("stream", "--listen", "127.0.0.1:0", "--once", "--json", "--head", head_path, *options)
+    port = stream.port()
+    echoloc("send", recording, "--to", f"127.0.0.1:{port}", "--speed", "0", check=True)
+    code, stdout = stream.finish()
+    assert code == 0, stream.lines
+    located = echoloc("locate", recording, "--json", *options, check=True).stdout
+    assert stdout == located
+    records = [json.loads(line) for line in stdout.splitlines()]
+    assert len(records) == 12
+    # The ring-down is not an object: both points, and only they, in every frame.
+    for record in records:
+        positions = sorted(o["position_m"] for o in record["objects"])
+        assert np.allclose(positions, [[-0.2, 0.0, 1.1], [0.1, 0.05, 0.7]], atol=0.005)
+        assert {o["kind"] for o in record["objects"]} == {"point"}
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["stream", "--source", "serial:loop://"], "needs --head HEAD.toml"),
+        (["stream", "--source", "radio"], "--source must be net, serial:PORT[@BAUD] or soundcard"),
+        (["stream", "--source", "net:7447"], "--source net takes no address"),
+        (["stream", "--method", "backprojection"], "--method backprojection is for recordings"),
+        (["stream", "--blind-zone", "soon"], "--blind-zone must be SECONDS or auto"),
+        (["stream", "--classes", "--method", "backprojection"], "backprojection"),
+        (["record", "x.h5", "--source", "soundcard", "--head", "x.h5"], "needs --head HEAD.toml"),
+    ],
+)
+def test_bad_source_or_option_is_one_line_and_exit_2(capsys, tmp_path, args, message):
+    from echoloc.cli import commands as cli
+
+    args = [str(tmp_path / a) if a == "x.h5" else a for a in args]
+    with pytest.raises(SystemExit) as info:
+        cli.main(args)
+    _, err = capsys.readouterr()
+    assert info.value.code == 2
+    assert len(err.strip().splitlines()) == 1, err
+    assert message in err
+
+
+def test_a_board_on_a_serial_port_streams_what_locate_finds_in_the_same_samples(tmp_path):
+    """`stream --source serial:socket://...` (pyserial's TCP port, a board behind a serial-to-
+    network bridge): the frames in the serial framing, the head from its file, and the JSON
+    is `locate --json` of a recording of the same samples at the same capture times."""
+    import socket
+
+    from echoloc.io.head import load_head
+    from echoloc.realtime.serial_source import encode_serial_frame
+
+    head_path = Path(__file__).resolve().parents[2] / "examples" / "heads" / "mcu-4ch.toml"
+    head = load_head(head_path)
+    scene = head.scene({"reflectors": [{"position_m": [0.1, 0.05, 0.8]}], "seed": 4})
+    simulated = simulate(scene, 8)
+    counts = [head.counts(frame) for frame in simulated.frames]
+    stamps_us = [5_000_000 + 10_000 * k for k in range(8)]
+    as_read = replace(
+        simulated,
+        frames=np.stack([head.samples(c) for c in counts]),
+        frame_times_s=np.array(stamps_us) / 1e6,
+        truth_positions_m=None,
+        truth_kinds=None,
+    )
+    recording = tmp_path / "as-read.h5"
+    write_recording(as_read, recording)
+    server = socket.create_server(("127.0.0.1", 0))
+    port = server.getsockname()[1]
+
+    def board() -> None:
+        connection, _ = server.accept()
+        with connection:
+            for k, frame in enumerate(counts):
+                connection.sendall(encode_serial_frame(frame, sequence=k, timestamp_us=stamps_us[k]))
+            time.sleep(1.0)
+
+    sender = threading.Thread(target=board, daemon=True)
+    sender.start()
+    streamed = echoloc(
+        "stream", "--source", f"serial:socket://127.0.0.1:{port}", "--head", head_path,
+        "--json", "--max-frames", "8",
+    )  # fmt: skip
+    server.close()
+    assert streamed.returncode == 0, streamed.stderr
+    assert "capturing from serial:socket://127.0.0.1" in streamed.stderr
+    assert "received 8, processed 8, lost 0" in streamed.stderr
+    located = echoloc("locate", recording, "--json", check=True).stdout
+    assert streamed.stdout == located
+    assert len(located.splitlines()) == 8

@@ -160,7 +160,9 @@ def test_calibrate_measures_the_threshold_that_locate_then_detects_with(tmp_path
     assert "threshold_db" not in json.loads(fixed.read_text())
 
     def threshold(calibration_path: Path | None, given_db: float | None) -> float:
-        processing = Processing(recording, "auto", given_db, 0.0, None, None, False, calibration_path)
+        processing = Processing(
+            recording_path=recording, threshold_db=given_db, calibration_path=calibration_path
+        )
         return processing.open()[1].echo_options.threshold_db
 
     assert threshold(calibration, None) == measured

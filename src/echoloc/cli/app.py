@@ -71,17 +71,15 @@ def _frames_option(value: str | None, n_frames: int) -> range:
     return range(start, stop)
 
 
-@dataclass(frozen=True)
-class Processing:
-    """What echoes, locate and evaluate share: the recording and how to process it."""
+@dataclass(frozen=True, kw_only=True)
+class ChainSettings:
+    """How frames are processed: the options of every command that runs the chain, on a
+    recording (`locate`, `echoes`, ...) or on live frames (`stream`), defined once."""
 
-    recording_path: Path
-    estimator: str
-    threshold_db: float | None
-    blanking_s: float
-    speed_of_sound_m_s: float | None
-    frames_text: str | None
-    repair_nonfinite: bool
+    estimator: str = AUTO
+    threshold_db: float | None = None
+    blanking_s: float = 0.0
+    speed_of_sound_m_s: float | None = None
     calibration_path: Path | None = None
     path_sigma_m: float | None = None
     template_path: Path | None = None
@@ -91,11 +89,11 @@ class Processing:
     field_of_view_deg: float | None = None
     method: str = "association"
     workers: int = 1
-    positions_text: str | None = None
     classes: bool = False
 
-    def open(self) -> tuple[Recording, Chain, Sequence[int]]:
-        """Check the options, read the recording, prepare the chain and pick the frames to run."""
+    def check(self) -> Template | None:
+        """Refuse bad values with one clear line, before any file or frame is read; read the
+        template and check the calibration file. Returns the template (None: not given)."""
         _finite("--speed-of-sound", self.speed_of_sound_m_s, positive=True)
         _finite("--blanking-s", self.blanking_s, minimum=0.0)
         if self.threshold_db is not None:
@@ -104,29 +102,25 @@ class Processing:
         _finite("--field-of-view-deg", self.field_of_view_deg, positive=True)
         if self.field_of_view_deg is not None and self.field_of_view_deg > 180:
             raise EchoLocError(f"--field-of-view-deg must be at most 180, got {self.field_of_view_deg:g}")
-        EchoOptions(workers=self.workers)  # refuses a bad --workers before the file is read
+        EchoOptions(blanking_s=self.blanking_s, workers=self.workers)
+        if self.blind_zone_text is not None:
+            parse_blind_zone(self.blind_zone_text)
         if self.classes and self.method != "association":
             raise EchoLocError(
                 "--classes needs --method association: back-projection finds no echo groups to classify"
             )
-        template = None if self.template_path is None else read_template(self.template_path)
-        recording = read_recording(self.recording_path, repair_nonfinite=self.repair_nonfinite)
-        frames: Sequence[int] = _frames_option(self.frames_text, recording.n_frames)
-        if self.positions_text is not None:
-            if recording.truth_positions_m is None:
-                raise EchoLocError(
-                    f"{self.recording_path}: --positions needs truth_positions in the recording"
-                )
-            frames = frames_at_positions(recording.truth_positions_m, self.positions_text, frames)
-        return recording, self.chain(recording, template), frames
+        if self.calibration_path is not None:
+            read_calibration(self.calibration_path)  # a missing or broken file now, not at frame 1
+        return None if self.template_path is None else read_template(self.template_path)
 
     def estimator_name(self, recording: Recording) -> str:
         """The estimator that runs: ``--estimator``, or the recording's default for ``auto``."""
         return resolve_estimator(self.estimator, recording)
 
     def chain(self, recording: Recording, template: Template | None) -> Chain:
-        """The chain for ``recording`` with these options; ``template``: the matched filter's or
-        the learnt echo shape (None: the recording's own, or the calibration's shape)."""
+        """The chain for ``recording`` (or a live session's header) with these options;
+        ``template``: the matched filter's or the learnt echo shape (None: the recording's own,
+        or the calibration's shape)."""
         calibration = (
             None
             if self.calibration_path is None
@@ -150,21 +144,41 @@ class Processing:
             calibration=calibration,
             conditioning=conditioning,
         )
+        locate_options = chain.locate_options
         if self.path_sigma_m is not None:
-            chain = replace(
-                chain, locate_options=replace(chain.locate_options, path_sigma_m=self.path_sigma_m)
-            )
+            locate_options = replace(locate_options, path_sigma_m=self.path_sigma_m)
         if self.field_of_view_deg is not None:
-            chain = replace(
-                chain,
-                locate_options=replace(chain.locate_options, field_of_view_deg=self.field_of_view_deg),
-            )
+            locate_options = replace(locate_options, field_of_view_deg=self.field_of_view_deg)
         if self.classes:
-            chain = replace(chain, locate_options=replace(chain.locate_options, reflector_classes=True))
-        return chain
+            locate_options = replace(locate_options, reflector_classes=True)
+        return replace(chain, locate_options=locate_options)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Processing(ChainSettings):
+    """What echoes, locate and evaluate share: the recording, its frames, and how to process them."""
+
+    recording_path: Path
+    frames_text: str | None = None
+    repair_nonfinite: bool = False
+    positions_text: str | None = None
+
+    def open(self) -> tuple[Recording, Chain, Sequence[int]]:
+        """Check the options, read the recording, prepare the chain and pick the frames to run."""
+        template = self.check()
+        recording = read_recording(self.recording_path, repair_nonfinite=self.repair_nonfinite)
+        frames: Sequence[int] = _frames_option(self.frames_text, recording.n_frames)
+        if self.positions_text is not None:
+            if recording.truth_positions_m is None:
+                raise EchoLocError(
+                    f"{self.recording_path}: --positions needs truth_positions in the recording"
+                )
+            frames = frames_at_positions(recording.truth_positions_m, self.positions_text, frames)
+        return recording, self.chain(recording, template), frames
 
 
 _PROCESSING_FIELDS = [f.name for f in fields(Processing)]
+_CHAIN_FIELDS = [f.name for f in fields(ChainSettings)]
 
 
 _Decorated = TypeVar("_Decorated", bound=Callable[..., Any])
@@ -201,10 +215,139 @@ def _located(
         yield objects
 
 
+def _chain_option_decorators(*, locating: bool, calibrated: bool = True) -> list[Callable[[Any], Any]]:
+    """The click options of :class:`ChainSettings` (``locating``: also those of localisation;
+    ``calibrated``: --calibration), as `locate` and `stream` both take them."""
+    decorators = [
+        click.option(
+            "--estimator",
+            type=click.Choice([AUTO, *sorted(ESTIMATORS)]),
+            default=AUTO,
+            show_default=True,
+            help="Time-of-flight estimator; auto: matched for rf, envelope-peak for envelope and "
+            "iq recordings without a waveform, envelope-fit with one.",
+        ),
+        click.option(
+            "--threshold-db",
+            type=float,
+            default=None,
+            help="Detection threshold on the echo's output SNR, dB "
+            f"[default: {EchoOptions.threshold_db:g}; "
+            f"envelope-peak {ENVELOPE_PEAK_THRESHOLD_DB:g}, on data without processing gain, or the "
+            "one `calibrate` measured, with --calibration].",
+        ),
+        click.option(
+            "--blanking-s",
+            type=float,
+            default=0.0,
+            show_default=True,
+            help="Ignore echoes arriving earlier than this (transmitter ring-down), s; "
+            "with --blind-zone the later of the two applies.",
+        ),
+        click.option(
+            "--background/--no-background",
+            default=None,
+            help="Subtract the recording's background (empty scene) from every frame "
+            "[default: when the recording has one].",
+        ),
+        click.option(
+            "--tvg/--no-tvg",
+            default=None,
+            help="Undo the receiver's time-varying gain (divide by receiver_gain) "
+            "[default: when the recording has one].",
+        ),
+        click.option(
+            "--blind-zone",
+            "blind_zone_text",
+            metavar="SECONDS|auto",
+            default=None,
+            help="Report nothing before this time: seconds, or auto (the end of the transmitter's "
+            "ring-down found in each frame, plus one pulse length).",
+        ),
+        click.option(
+            "--speed-of-sound",
+            "speed_of_sound_m_s",
+            type=float,
+            default=None,
+            help="Override the recording's speed of sound, m/s.",
+        ),
+        _WORKERS_OPTION,
+        _path_option(
+            "--template",
+            "template_path",
+            help="Template from `echoloc template`: the matched filter's (DIRECT, a recorded echo; "
+            "default: the recording's waveform, SENT) or envelope-peak's learnt echo shape "
+            "(default: the calibration's).",
+        ),
+    ]
+    if calibrated:
+        decorators.append(
+            _path_option(
+                "--calibration",
+                "calibration_path",
+                help="Speed of sound and receiver delays from `echoloc calibrate`.",
+            )
+        )
+    if locating:
+        decorators.append(
+            click.option(
+                "--path-sigma-m",
+                type=float,
+                default=None,
+                help=f"A-priori path error, m [default: {LocateOptions.path_sigma_m}].",
+            )
+        )
+        decorators.append(
+            click.option(
+                "--method",
+                type=click.Choice(["association", "backprojection"]),
+                default="association",
+                show_default=True,
+                help="Peaks to points (echoes combined across receivers) or points to peaks "
+                "(envelopes back-projected on a 5 mm grid of the cubic metre in front).",
+            )
+        )
+        decorators.append(
+            click.option(
+                "--classes",
+                is_flag=True,
+                help="Tell points, planes and concave corners apart: a wall is located as a plane "
+                "(its foot, normal and distance), a corner at its edge, and every object gets a "
+                "kind and its confidence (association only).",
+            )
+        )
+        decorators.append(
+            click.option(
+                "--field-of-view-deg",
+                type=float,
+                default=None,
+                help="Half-angle of the beams, degrees: points outside are rejected "
+                "[default: the recording's field_of_view_deg, else 90].",
+            )
+        )
+    return decorators
+
+
+def _chain_options(func: Callable[..., None]) -> Callable[..., None]:
+    """Add every option of :class:`ChainSettings` to a command that processes live frames and
+    hand it one ``ChainSettings`` value named ``settings``."""
+
+    @functools.wraps(func)
+    def command(**kwargs: Any) -> None:
+        settings = ChainSettings(**{k: kwargs.pop(k) for k in _CHAIN_FIELDS if k in kwargs})
+        func(settings=settings, **kwargs)
+
+    decorated: Callable[..., None] = command
+    for decorator in reversed(_chain_option_decorators(locating=True)):
+        decorated = decorator(decorated)
+    return decorated
+
+
 def _processing_options(
     *, locating: bool, calibrated: bool = True
 ) -> Callable[[Callable[..., None]], Callable[..., None]]:
-    """Add the shared options to a command and hand it one ``Processing`` value."""
+    """Add the recording, its frames and the chain's options to a command and hand it one
+    ``Processing`` value."""
 
     def decorate(func: Callable[..., None]) -> Callable[..., None]:
         @functools.wraps(func)
@@ -214,58 +357,6 @@ def _processing_options(
 
         decorators = [
             click.argument("recording_path", metavar="RECORDING", type=click.Path(path_type=Path)),
-            click.option(
-                "--estimator",
-                type=click.Choice([AUTO, *sorted(ESTIMATORS)]),
-                default=AUTO,
-                show_default=True,
-                help="Time-of-flight estimator; auto: matched for rf, envelope-peak for envelope and "
-                "iq recordings without a waveform, envelope-fit with one.",
-            ),
-            click.option(
-                "--threshold-db",
-                type=float,
-                default=None,
-                help="Detection threshold on the echo's output SNR, dB "
-                f"[default: {EchoOptions.threshold_db:g}; "
-                f"envelope-peak {ENVELOPE_PEAK_THRESHOLD_DB:g}, on data without processing gain, or the "
-                "one `calibrate` measured, with --calibration].",
-            ),
-            click.option(
-                "--blanking-s",
-                type=float,
-                default=0.0,
-                show_default=True,
-                help="Ignore echoes arriving earlier than this (transmitter ring-down), s; "
-                "with --blind-zone the later of the two applies.",
-            ),
-            click.option(
-                "--background/--no-background",
-                default=None,
-                help="Subtract the recording's background (empty scene) from every frame "
-                "[default: when the recording has one].",
-            ),
-            click.option(
-                "--tvg/--no-tvg",
-                default=None,
-                help="Undo the receiver's time-varying gain (divide by receiver_gain) "
-                "[default: when the recording has one].",
-            ),
-            click.option(
-                "--blind-zone",
-                "blind_zone_text",
-                metavar="SECONDS|auto",
-                default=None,
-                help="Report nothing before this time: seconds, or auto (the end of the transmitter's "
-                "ring-down found in each frame, plus one pulse length).",
-            ),
-            click.option(
-                "--speed-of-sound",
-                "speed_of_sound_m_s",
-                type=float,
-                default=None,
-                help="Override the recording's speed of sound, m/s.",
-            ),
             click.option("--frames", "frames_text", default=None, help="Frames to process: N or START:STOP."),
             click.option(
                 "--positions",
@@ -280,60 +371,8 @@ def _processing_options(
                 is_flag=True,
                 help="Replace NaN or infinite samples by 0 (with a warning) instead of refusing the file.",
             ),
-            _WORKERS_OPTION,
-            _path_option(
-                "--template",
-                "template_path",
-                help="Template from `echoloc template`: the matched filter's (DIRECT, a recorded echo; "
-                "default: the recording's waveform, SENT) or envelope-peak's learnt echo shape "
-                "(default: the calibration's).",
-            ),
+            *_chain_option_decorators(locating=locating, calibrated=calibrated),
         ]
-        if calibrated:
-            decorators.append(
-                _path_option(
-                    "--calibration",
-                    "calibration_path",
-                    help="Speed of sound and receiver delays from `echoloc calibrate`.",
-                )
-            )
-        if locating:
-            decorators.append(
-                click.option(
-                    "--path-sigma-m",
-                    type=float,
-                    default=None,
-                    help=f"A-priori path error, m [default: {LocateOptions.path_sigma_m}].",
-                )
-            )
-            decorators.append(
-                click.option(
-                    "--method",
-                    type=click.Choice(["association", "backprojection"]),
-                    default="association",
-                    show_default=True,
-                    help="Peaks to points (echoes combined across receivers) or points to peaks "
-                    "(envelopes back-projected on a 5 mm grid of the cubic metre in front).",
-                )
-            )
-            decorators.append(
-                click.option(
-                    "--classes",
-                    is_flag=True,
-                    help="Tell points, planes and concave corners apart: a wall is located as a plane "
-                    "(its foot, normal and distance), a corner at its edge, and every object gets a "
-                    "kind and its confidence (association only).",
-                )
-            )
-            decorators.append(
-                click.option(
-                    "--field-of-view-deg",
-                    type=float,
-                    default=None,
-                    help="Half-angle of the beams, degrees: points outside are rejected "
-                    "[default: the recording's field_of_view_deg, else 90].",
-                )
-            )
         for decorator in reversed(decorators):
             command = decorator(command)
         return command

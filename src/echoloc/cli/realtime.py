@@ -15,37 +15,32 @@ import click
 from rich.table import Table
 
 from echoloc.cli.app import (
-    _WORKERS_OPTION,
+    ChainSettings,
+    _chain_options,
     _Decorated,
     _finite,
     _interrupt_cleanly,
     _path_option,
-    _threshold_db,
     _warn,
     cli,
     stderr,
 )
-from echoloc.cli.basics import _object_cells
+from echoloc.cli.basics import _class_cells, _object_cells
 from echoloc.errors import EchoLocError
+from echoloc.io.head import is_head_file, load_head, read_geometry
 from echoloc.io.output import json_line, objects_record
 from echoloc.io.recording import Recording, read_recording
-from echoloc.localise.calibrate import read_calibration
 from echoloc.localise.locate import FrameObjects
 from echoloc.pipeline import (
     Chain,
     check_locatable,
-    prepare,
 )
 from echoloc.sim.simulation import simulate
-from echoloc.tof.echoes import EchoOptions
-from echoloc.tof.estimators import (
-    AUTO,
-    ESTIMATORS,
-    default_threshold_db,
-    resolve_estimator,
-)
 
 # --- real time: send, stream, record, bench ----------------------------------------
+
+DEFAULT_BAUD = 2_000_000
+"""--source serial's rate when none is given, baud (USB-CDC ignores it; a UART needs it)."""
 
 
 def _int_range_option(
@@ -64,6 +59,7 @@ class _Listening:
     to listen (address, UDP, geometry, queue, blocking, idle timeout in s) and when to stop (once,
     after frames or after a duration in s). Fields are named as the options' parameters."""
 
+    source_text: str
     listen_text: str
     udp: bool
     geometry_path: Path | None
@@ -88,6 +84,17 @@ def _listen_options(func: Callable[..., None]) -> Callable[..., None]:
 
     decorators = [
         click.option(
+            "--source",
+            "source_text",
+            metavar="net|serial:PORT[@BAUD]|soundcard[:DEVICE]",
+            default="net",
+            show_default=True,
+            help="Where frames come from: the network (the stream protocol, --listen), a board on a "
+            "serial or USB-CDC port (docs/SERIAL_PROTOCOL.md; PORT as pyserial takes it: /dev/ttyACM0, "
+            "loop://, socket://HOST:PORT) or a sound card (docs/SOUNDCARD.md). serial and soundcard "
+            "need --head.",
+        ),
+        click.option(
             "--listen",
             "listen_text",
             metavar="[HOST:]PORT",
@@ -97,10 +104,11 @@ def _listen_options(func: Callable[..., None]) -> Callable[..., None]:
         ),
         click.option("--udp", is_flag=True, help="UDP (one datagram a frame) instead of TCP."),
         _path_option(
+            "--head",
             "--geometry",
             "geometry_path",
-            help="Take the session (geometry, waveform, air) from this recording instead of the "
-            "sender's session message.",
+            help="The sensor head: a head file (HEAD.toml, docs/HEAD.md) or a recording whose geometry, "
+            "waveform and air to take; on the network, instead of the sender's session message.",
         ),
         _int_range_option(
             "--queue",
@@ -156,20 +164,81 @@ def _events(listener: Any, listening: _Listening) -> Iterator[Any]:
 
 
 def _open_listener(listening: _Listening, accept_session: Callable[[Recording], object] | None = None) -> Any:
-    """The listener of `stream` and `record`; ``accept_session`` refuses (by raising) a session
-    they cannot use, before it reaches them (the sender is told, the stream goes on)."""
+    """The source of `stream` and `record` (:mod:`echoloc.realtime.capture`): the network
+    listener, or a capture source reading the head's hardware. ``accept_session`` refuses (by
+    raising) a session they cannot use, before it reaches them (a network sender is told, and
+    the stream goes on)."""
     from echoloc.realtime.stream import FrameQueue
+
+    queue = FrameQueue(listening.queue_frames, block=listening.block)
+    kind, _, where = listening.source_text.partition(":")
+    if kind != "net":
+        return _open_capture(kind, where, listening, queue, accept_session)
+    if where:
+        raise EchoLocError(
+            f"--source net takes no address (give it with --listen), got {listening.source_text!r}"
+        )
     from echoloc.realtime.transport import Listener, parse_endpoint
 
     endpoint = parse_endpoint(listening.listen_text, "udp" if listening.udp else "tcp")
     _finite("--idle-timeout", listening.idle_timeout_s, positive=True)
-    geometry = None if listening.geometry_path is None else read_recording(listening.geometry_path)
+    geometry = None if listening.geometry_path is None else read_geometry(listening.geometry_path)
     return Listener(
         endpoint,
-        FrameQueue(listening.queue_frames, block=listening.block),
+        queue,
         geometry=geometry,
         idle_timeout_s=listening.idle_timeout_s,
         accept_session=accept_session,
+    )
+
+
+def _open_capture(
+    kind: str,
+    where: str,
+    listening: _Listening,
+    queue: Any,
+    accept_session: Callable[[Recording], object] | None,
+) -> Any:
+    """A capture source: ``serial`` at port ``where`` (``PORT[@BAUD]``) or ``soundcard`` (device
+    ``where``, an index or part of a name; empty: the default device)."""
+    if kind not in ("serial", "soundcard"):
+        raise EchoLocError(
+            f"--source must be net, serial:PORT[@BAUD] or soundcard[:DEVICE], got {listening.source_text!r}"
+        )
+    if listening.udp:
+        raise EchoLocError(f"--udp is for --source net, not {kind}")
+    if listening.geometry_path is None or not is_head_file(listening.geometry_path):
+        raise EchoLocError(
+            f"--source {kind} needs --head HEAD.toml: the head's geometry, pulse and wiring (docs/HEAD.md)"
+        )
+    head = load_head(listening.geometry_path)
+    if kind == "serial":
+        from echoloc.realtime.serial_source import SerialSource
+
+        port, _, baud_text = where.partition("@")
+        if not port:
+            raise EchoLocError("--source serial needs a port: serial:/dev/ttyACM0, serial:loop://, ...")
+        try:
+            baudrate = int(baud_text) if baud_text else DEFAULT_BAUD
+        except ValueError:
+            raise EchoLocError(
+                f"--source serial:PORT@BAUD: BAUD must be a whole number, got {baud_text!r}"
+            ) from None
+        return SerialSource(head, queue, port, baudrate=baudrate, accept_session=accept_session)
+    from echoloc.realtime.soundcard_source import SoundCardSource
+
+    device: int | str | None = int(where) if where.isdigit() else (where or None)
+    return SoundCardSource(head, queue, device=device, accept_session=accept_session)
+
+
+def _reading(source: Any) -> str:
+    """What a started source does, for the first line on stderr."""
+    from echoloc.realtime.capture import CaptureSource
+
+    return (
+        f"capturing from {source.address}"
+        if isinstance(source, CaptureSource)
+        else f"listening on {source.address}"
     )
 
 
@@ -263,43 +332,16 @@ def send_command(
     show_default=True,
     help="Frames waiting longer than this before processing are counted as late.",
 )
-@click.option(
-    "--estimator",
-    type=click.Choice([AUTO, *sorted(ESTIMATORS)]),
-    default=AUTO,
-    show_default=True,
-    help="Time-of-flight estimator; auto, as locate's: matched for rf sessions, envelope-peak "
-    "for envelope and iq sessions without a waveform, envelope-fit with one.",
-)
-@click.option(
-    "--threshold-db",
-    type=float,
-    default=None,
-    help="Detection threshold on the echo's output SNR, dB [default: as `locate`'s, from the "
-    "estimator and the calibration].",
-)
-@click.option("--blanking-s", type=float, default=0.0, show_default=True, help="Ignore earlier echoes, s.")
-@click.option("--speed-of-sound", "speed_of_sound_m_s", type=float, default=None, help="Override, m/s.")
-@_path_option(
-    "--calibration",
-    "calibration_path",
-    help="From `echoloc calibrate`.",
-)
-@_WORKERS_OPTION
+@_chain_options
 def stream_command(
     listening: _Listening,
+    settings: ChainSettings,
     as_json: bool,
     record_path: Path | None,
     force: bool,
     view: bool,
     view_port: int,
     deadline_ms: float,
-    estimator: str,
-    threshold_db: float | None,
-    blanking_s: float,
-    speed_of_sound_m_s: float | None,
-    calibration_path: Path | None,
-    workers: int,
 ) -> None:
     """Locate objects in frames arriving over the network, as they arrive.
 
@@ -316,31 +358,14 @@ def stream_command(
     from echoloc.realtime.transport import Recorder
 
     _finite("--deadline-ms", deadline_ms, positive=True)
-    _finite("--speed-of-sound", speed_of_sound_m_s, positive=True)
-    _finite("--blanking-s", blanking_s, minimum=0.0)
-    if threshold_db is not None:
-        _threshold_db(threshold_db)
-    EchoOptions(blanking_s=blanking_s, workers=workers)  # refuses bad options before any frame
-    if calibration_path is not None:
-        read_calibration(calibration_path)  # a missing or broken file now, not when frames come
+    if settings.method != "association":
+        raise EchoLocError(
+            f"--method {settings.method} is for recordings: stream locates each frame by association"
+        )
+    template = settings.check()  # bad options and files now, before any frame
 
     def make_chain(header: Recording) -> Chain:
-        calibration = (
-            None if calibration_path is None else read_calibration(calibration_path, header.n_receivers)
-        )
-        # The threshold as locate takes it: given, else the estimator's default for this
-        # session's data, or the one the calibration measured.
-        threshold = threshold_db
-        if threshold is None:
-            measured = None if calibration is None else calibration.threshold_db
-            threshold = default_threshold_db(resolve_estimator(estimator, header), measured)
-        chain = prepare(
-            header,
-            estimator=estimator,
-            echo_options=EchoOptions(threshold_db=threshold, blanking_s=blanking_s, workers=workers),
-            speed_of_sound_m_s=speed_of_sound_m_s,
-            calibration=calibration,
-        )
+        chain = settings.chain(header, template)
         check_locatable(chain)
         return chain
 
@@ -350,8 +375,8 @@ def stream_command(
     # A session is prepared as it arrives, in the listener: one the chain cannot use is refused
     # to its sender, and the stream goes on serving.
     listener = _open_listener(listening, accept_session=make_chain)
-    warm_kernels(estimator, workers)
-    printer = _StreamPrinter(as_json)
+    warm_kernels(settings.estimator, settings.workers)
+    printer = _StreamPrinter(as_json, settings.classes)
     session = LiveSession(
         listener,
         make_chain,
@@ -362,6 +387,7 @@ def stream_command(
     )
     printer.session = session
     interrupted = False
+    listener.start()  # a device that cannot be opened: its one line, before anything else
     try:
         if view:
             from echoloc.realtime.liveview import LiveView
@@ -370,8 +396,7 @@ def stream_command(
             stderr.print(
                 f"echoloc: stream: live view on {session.view.url} (Foxglove: open connection)", markup=False
             )
-        listener.start()
-        stderr.print(f"echoloc: stream: listening on {listener.address}", markup=False, highlight=False)
+        stderr.print(f"echoloc: stream: {_reading(listener)}", markup=False, highlight=False)
         table = not as_json and stderr.is_terminal
         with (
             _interrupt_cleanly(),
@@ -401,8 +426,9 @@ class _StreamPrinter:
 
     STATUS_EVERY_S = 10.0
 
-    def __init__(self, as_json: bool) -> None:
+    def __init__(self, as_json: bool, classes: bool = False) -> None:
         self.as_json = as_json
+        self.classes = classes
         self.session: Any = None
         self.live: Any = None
         self._last_status = time.monotonic()  # the first status line comes after STATUS_EVERY_S
@@ -415,7 +441,7 @@ class _StreamPrinter:
         if self.live is not None:
             if now - self._last_table > 0.2:
                 self._last_table = now
-                self.live.update(_stream_table(result.objects, self.session.stats()))
+                self.live.update(_stream_table(result.objects, self.session.stats(), self.classes))
         elif now - self._last_status > self.STATUS_EVERY_S:
             self._last_status = now
             self.message(self.session.stats().summary())
@@ -426,16 +452,17 @@ class _StreamPrinter:
         )
 
 
-def _stream_table(objects: FrameObjects, stats: Any) -> Table:
+def _stream_table(objects: FrameObjects, stats: Any, classes: bool = False) -> Table:
     """The live view on a terminal: the latest frame's objects and the stream's counters."""
     table = Table(
         title=f"frame {objects.frame} at {objects.time_s:.3f} s: {len(objects.objects)} objects",
         caption=stats.summary(),
     )
-    for column in ("x mm", "y mm", "z mm", "±σ x, y, z mm", "range mm", "rx", "score"):
+    columns = ["x mm", "y mm", "z mm", "±σ x, y, z mm", "range mm", "rx", "score"]
+    for column in columns + (["kind", "normal or edge"] if classes else []):
         table.add_column(column, justify="right")
     for obj in objects.objects:
-        table.add_row(*_object_cells(obj))
+        table.add_row(*_object_cells(obj), *(_class_cells(obj) if classes else []))
     return table
 
 
@@ -479,9 +506,9 @@ def record_command(
     listener = _open_listener(listening)
     recorder: Recorder | None = None
     interrupted = False
+    listener.start()  # a device that cannot be opened: its one line, before anything else
     try:
-        listener.start()
-        stderr.print(f"echoloc: record: listening on {listener.address}", markup=False, highlight=False)
+        stderr.print(f"echoloc: record: {_reading(listener)}", markup=False, highlight=False)
         with _interrupt_cleanly():
             try:
                 for item in _events(listener, listening):
