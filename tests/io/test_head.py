@@ -202,3 +202,28 @@ def test_import_samples_takes_a_live_head_file(tmp_path: Path):
     assert np.array_equal(imported.waveform, head.header.waveform)
     objects = [o for _, o in run(prepare(imported))]
     assert evaluate(objects, np.tile([[[0.1, -0.05, 0.8]]], (3, 1, 1))).recall == 1.0
+
+
+def test_head_check_prints_the_figures_and_refuses_a_head_that_cannot_work(tmp_path: Path, capsys):
+    from click.testing import CliRunner
+
+    from echoloc.cli import commands
+    from echoloc.cli.commands import cli
+
+    picture = tmp_path / "head.png"
+    result = CliRunner().invoke(cli, ["head", "check", str(HEADS / "mcu-4ch.toml"), "--plot", str(picture)])
+    assert result.exit_code == 0, result.output
+    # 2400 samples at 250 kHz: 9.6 ms, c T / 2 = 343.2 x 0.0096 / 2 = 1.65 m; 4 x 2400 x 2 B x 100/s.
+    assert "hears to 1.65 m" in result.output
+    assert "19200 bytes a frame, 1.92 MB/s" in result.output
+    assert picture.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    overlapping = tmp_path / "overlap.toml"
+    text = (HEADS / "mcu-4ch.toml").read_text().replace("sample_rate_hz = 250e3", "sample_rate_hz = 200e3")
+    overlapping.write_text(text)
+    with pytest.raises(SystemExit) as info:
+        commands.main(["head", "check", str(overlapping)])
+    assert info.value.code == 2
+    error = capsys.readouterr().err.strip()
+    assert error.startswith("echoloc: error: ")
+    assert "\n" not in error
+    assert "frames would overlap" in error

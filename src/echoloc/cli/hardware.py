@@ -62,7 +62,7 @@ def head_check_command(head_path: Path, plot_path: Path | None) -> None:
         f"{head.frame_bytes()} bytes a frame, {check.bytes_per_s / 1e6:.2f} MB/s",
     ]
     for line in lines:
-        stdout.print(line, markup=False, highlight=False)
+        click.echo(line)  # plain lines, never wrapped
     for note in check.notes:
         stderr.print(f"echoloc: warning: {head_path}: {note}", markup=False, highlight=False)
     if plot_path is not None:
