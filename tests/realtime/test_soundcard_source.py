@@ -21,7 +21,7 @@ from echoloc.errors import EchoLocError
 from echoloc.io.head import SensorHead, head_from_dict, load_head
 from echoloc.pipeline import prepare, run
 from echoloc.realtime.soundcard_source import START_DELAY_S, SoundCardSource
-from echoloc.realtime.stream import FrameQueue, StreamFrame, StreamProcessor
+from echoloc.realtime.stream import FrameQueue, StreamFrame, StreamProcessor, StreamStats
 from echoloc.sim.simulation import simulate
 from repo_paths import REPO
 
@@ -303,6 +303,9 @@ def test_a_break_drops_the_frames_in_flight_and_the_stream_goes_on(
 
     assert [f.index for f in frames] == [k for k in range(N_FRAMES) if k not in dropped]
     assert source.counters()["lost"] == len(dropped)
+    # The stream's summary says the break, beside the frame it cost.
+    summary = StreamStats(**source.counters()).summary()
+    assert ("xruns" in summary) == (kind != "silent_slip")
     said = list(source.errors())
     if kind == "silent_slip":
         assert sum(source.xruns.values()) == 0

@@ -542,13 +542,14 @@ def record_command(
     # second session.
     unrecorded = counters["received"] - recorder.frames - dropped
     left = f", unrecorded {unrecorded}" if unrecorded else ""
+    xruns = counters.get("xruns", 0)  # a sound card's breaks
     end = " (interrupted)" if interrupted else ""
     stderr.print(
         f"echoloc: record: {recorder.frames} frames in {recorder.batches} "
         f"batch{'' if recorder.batches == 1 else 'es'} to {output}; "
         f"received {counters['received']}, lost {counters['lost']}, dropped {dropped}{left}, "
         f"malformed {counters['malformed']}, rejected {counters['rejected']}"
-        f"{rare_counts(refused=counters['refused'], restarts=counters['restarts'])}{end}",
+        f"{rare_counts(refused=counters['refused'], restarts=counters['restarts'], xruns=xruns)}{end}",
         markup=False,
         highlight=False,
     )

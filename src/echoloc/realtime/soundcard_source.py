@@ -502,6 +502,11 @@ class SoundCardSource(CaptureSource):
         except (ValueError, sd.PortAudioError) as error:
             raise self._device_error(f"{error} (at {fs:g} Hz)") from None
 
+    def counters(self) -> dict[str, int]:
+        """The capture side's counters (:meth:`CaptureSource.counters`) and the card's breaks,
+        ``xruns``: callbacks PortAudio flagged with an over- or underflow."""
+        return {**super().counters(), "xruns": sum(self.xruns.values())}
+
     @property
     def address(self) -> str:
         return "soundcard" + ("" if self.device is None else f":{self.device}")

@@ -123,6 +123,9 @@ class StreamStats:
     restarts
         Times a sender's frame numbering started afresh mid-session (a UDP sender that
         started again).
+    xruns
+        Breaks in a sound card's sample stream (PortAudio's over- and underflows); the frames
+        a break cut are counted lost.
     latency_p50_s, latency_p99_s, latency_max_s
         From arrival to result, s (NaN before the first frame).
     """
@@ -138,6 +141,7 @@ class StreamStats:
     unprocessed: int = 0
     refused: int = 0
     restarts: int = 0
+    xruns: int = 0
     latency_p50_s: float = math.nan
     latency_p99_s: float = math.nan
     latency_max_s: float = math.nan
@@ -160,6 +164,7 @@ class StreamStats:
             "unprocessed": self.unprocessed,
             "refused": self.refused,
             "restarts": self.restarts,
+            "xruns": self.xruns,
             "latency_p50_ms": ms(self.latency_p50_s),
             "latency_p99_ms": ms(self.latency_p99_s),
             "latency_max_ms": ms(self.latency_max_s),
@@ -177,7 +182,7 @@ class StreamStats:
             f"received {self.received}, processed {self.processed}, lost {self.lost}, "
             f"dropped {self.dropped}{unprocessed}, late {self.late}, out of order {self.out_of_order}, "
             f"malformed {self.malformed}, rejected {self.rejected}"
-            f"{rare_counts(refused=self.refused, restarts=self.restarts)}; latency p50 "
+            f"{rare_counts(refused=self.refused, restarts=self.restarts, xruns=self.xruns)}; latency p50 "
             f"{fmt(r['latency_p50_ms'])} ms, p99 {fmt(r['latency_p99_ms'])} ms, "
             f"max {fmt(r['latency_max_ms'])} ms"
         )
