@@ -525,7 +525,8 @@ def test_bad_source_or_option_is_one_line_and_exit_2(capsys, tmp_path, args, mes
 def test_a_board_on_a_serial_port_streams_what_locate_finds_in_the_same_samples(tmp_path):
     """`stream --source serial:socket://...` (pyserial's TCP port, a board behind a serial-to-
     network bridge): the frames in the serial framing, the head from its file, and the JSON
-    is `locate --json` of a recording of the same samples at the same capture times."""
+    is `locate --json` of a recording of the same samples at the same capture times. When the
+    board goes away the stream ends by itself: nothing can come after."""
     import socket
 
     from echoloc.io.head import load_head
@@ -552,6 +553,9 @@ def test_a_board_on_a_serial_port_streams_what_locate_finds_in_the_same_samples(
     def board() -> None:
         connection, _ = server.accept()
         with connection:
+            # pyserial's socket:// empties its input as it opens: a board streaming all along
+            # loses only what came before; this one waits until the port is surely open.
+            time.sleep(2.0)
             for k, frame in enumerate(counts):
                 connection.sendall(encode_serial_frame(frame, sequence=k, timestamp_us=stamps_us[k]))
             time.sleep(1.0)
@@ -560,12 +564,30 @@ def test_a_board_on_a_serial_port_streams_what_locate_finds_in_the_same_samples(
     sender.start()
     streamed = echoloc(
         "stream", "--source", f"serial:socket://127.0.0.1:{port}", "--head", head_path,
-        "--json", "--max-frames", "8",
+        "--json",
     )  # fmt: skip
     server.close()
     assert streamed.returncode == 0, streamed.stderr
     assert "capturing from serial:socket://127.0.0.1" in streamed.stderr
     assert "received 8, processed 8, lost 0" in streamed.stderr
+    assert "the port went away" in streamed.stderr
     located = echoloc("locate", recording, "--json", check=True).stdout
     assert streamed.stdout == located
     assert len(located.splitlines()) == 8
+
+
+def test_a_head_the_chain_cannot_use_ends_a_capture_at_once_in_one_line(tmp_path):
+    """Two receivers cannot locate: the capture source's session is refused, and since no other
+    session can come, `stream` says so and exits 2 instead of waiting for frames."""
+    head = tmp_path / "two.toml"
+    head.write_text(
+        "[array]\ntransmitters_m = [[0.0, 0.0, 0.0]]\nreceivers_m = [[0.2, 0.0, 0.0], [-0.2, 0.0, 0.0]]\n"
+        "[acquisition]\nsample_rate_hz = 200e3\nn_samples = 1600\nframe_rate_hz = 100\n"
+    )
+    start = time.monotonic()
+    result = echoloc("stream", "--source", "serial:loop://", "--head", head, "--json")
+    assert result.returncode == 2
+    assert time.monotonic() - start < 30
+    lines = result.stderr.strip().splitlines()
+    assert lines[-1].startswith("echoloc: error: serial:loop://: the head cannot be used:")
+    assert "at least 3 are needed" in lines[-1]

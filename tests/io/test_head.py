@@ -112,6 +112,8 @@ def test_counts_and_samples_round_trip_within_half_a_count(form, bits, iq, seed)
         ({"receiver": {"adc_bits": 12}}, "[receiver]: unknown key 'adc_bits'"),
         ({"acquisition": {"sample_rate_hz": -1}}, "sample_rate_hz"),
         ({"array": {"receivers_m": [[0, 0, 0]]}}, "transmitters_m and array.receivers_m are required"),
+        ({"array": 5}, "[array] must be a table"),
+        ({"adc": {"format": ["int16"]}}, "adc.format must be one of"),
     ],
 )
 def test_a_bad_head_file_is_one_clear_error_naming_the_key(change, message):
@@ -227,3 +229,16 @@ def test_head_check_prints_the_figures_and_refuses_a_head_that_cannot_work(tmp_p
     assert error.startswith("echoloc: error: ")
     assert "\n" not in error
     assert "frames would overlap" in error
+
+
+def test_a_head_named_in_brackets_is_shown_as_written(tmp_path: Path):
+    from click.testing import CliRunner
+
+    from echoloc.cli.commands import cli
+
+    text = (HEADS / "mcu-4ch.toml").read_text().replace('name = "mcu-4ch"', 'name = "board [/b] v2"')
+    path = tmp_path / "head.toml"
+    path.write_text(text)
+    result = CliRunner().invoke(cli, ["head", "check", str(path)])
+    assert result.exit_code == 0, result.output
+    assert "board [/b] v2" in result.output

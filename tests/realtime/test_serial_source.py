@@ -483,7 +483,7 @@ def test_a_head_played_through_a_pty_gives_the_batch_chain_s_objects_then_the_un
     assert counters["received"] == N_FRAMES - 1
     assert counters["lost"] == 1
     assert counters["malformed"] == 0
-    assert end == EndEvent(disconnected=True)
+    assert end == EndEvent(disconnected=True, final=True)  # nothing can follow: the stream ends
     (line,) = source.errors()
     assert line == f"serial:{path}: the port went away (disconnected): capture stopped"
 

@@ -47,9 +47,14 @@ from echoloc.tof.estimators import (
 from echoloc.tof.templates import Template, read_template
 
 # Tables wrap at 80 columns when piped; give them room (COLUMNS still wins).
-stdout = Console() if sys.stdout.isatty() else Console(width=int(os.environ.get("COLUMNS", 120)))
+# emoji=False: a path or port such as serial:loop:// is printed as written, never as an emoji.
+stdout = (
+    Console(emoji=False)
+    if sys.stdout.isatty()
+    else Console(width=int(os.environ.get("COLUMNS", 120)), emoji=False)
+)
 # Messages on stderr are one line each, however long: never wrap them.
-stderr = Console(stderr=True, soft_wrap=True)
+stderr = Console(stderr=True, soft_wrap=True, emoji=False)
 
 
 def _frames_option(value: str | None, n_frames: int) -> range:

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 from rich.table import Table
+from rich.text import Text
 
 from echoloc.cli.app import _check_plot, _path_option, cli, stderr, stdout
 from echoloc.errors import EchoLocError
@@ -30,7 +31,8 @@ def head_check_command(head_path: Path, plot_path: Path | None) -> None:
     head = load_head(head_path)
     check = check_head(head)
     header = head.header
-    table = Table(title=f"{head.name}: {head.description}" if head.description else head.name)
+    title = f"{head.name}: {head.description}" if head.description else head.name
+    table = Table(title=Text(title))  # the user's own words, never read as markup
     for column in ("transducer", "x mm", "y mm", "z mm", "axis", "channel"):
         table.add_column(column, justify="right")
     axes = (header.transmitter_axes, header.receiver_axes)

@@ -177,7 +177,7 @@ def _whole(where: str, value: Any, low: int, high: int | None = None) -> int:
 
 def _adc(table: Mapping[str, Any]) -> AdcFormat:
     form = table.get("format", "int16")
-    if form not in SAMPLE_FORMATS:
+    if not isinstance(form, str) or form not in SAMPLE_FORMATS:
         raise SceneError(f"adc.format must be one of {', '.join(SAMPLE_FORMATS)}; got {form!r}")
     width = 8 * np.dtype(SAMPLE_FORMATS[form]).itemsize
     bits = _whole("adc.bits", table.get("bits", 24 if form == "float32" else width), 1, 32)
@@ -217,6 +217,8 @@ def _head_from_dict(data: Mapping[str, Any], source: str) -> SensorHead:
     for name in ("array", "acquisition"):
         if name not in data:
             raise SceneError(f"[{name}] is required: a head's transducers and its sampling")
+        if not isinstance(data[name], dict):
+            raise SceneError(f"[{name}] must be a table")
     if "receivers_m" not in data["array"] or "transmitters_m" not in data["array"]:
         raise SceneError("array.transmitters_m and array.receivers_m are required")
     sensor_tables = {k: data[k] for k in _SENSOR_SECTIONS if k in data}

@@ -89,18 +89,17 @@ class CaptureSource:
         return self._thread.is_alive() and not self._stop.is_set()
 
     def start(self) -> CaptureSource:
-        """Offer the head's session (refused: nothing is captured), open the device (an
-        EchoLocError if it cannot be: nothing queued), then capture in a thread."""
+        """Offer the head's session, open the device, then capture in a thread. A session the
+        caller refuses, or a device that cannot be opened: EchoLocError, nothing queued."""
         header = self.head.header
         try:
             prepared = None if self.accept_session is None else self.accept_session(header)
-        except EchoLocError as error:
+        except EchoLocError as error:  # no other session can come: capturing would wait forever
             with self._lock:
                 self.refused += 1
                 self.sessions_refused += 1
             self.last_session_refusal = str(error)
-            self._warnings.add("session", f"{self.address}: the head's session was refused: {error}")
-            return self
+            raise EchoLocError(f"{self.address}: the head cannot be used: {error}") from None
         self._open()
         self.queue.put(SessionEvent(header, prepared))
         self._thread.start()
@@ -158,7 +157,7 @@ class CaptureSource:
                 self._complain("malformed", "device", f"{self.address}: capture stopped: {error}")
         finally:
             if not self._stop.is_set():
-                self.queue.put(EndEvent(disconnected=True))
+                self.queue.put(EndEvent(disconnected=True, final=True))
 
     def _complain(self, counter: str, kind: str, message: str) -> None:
         """Count one refused thing in ``counter``; one warning line, rate-limited per ``kind``."""

@@ -59,7 +59,7 @@ def listener_events(
             continue
         item = items[0]
         if isinstance(item, EndEvent):
-            if once:
+            if once or item.final:
                 return
             continue
         if not isinstance(item, StreamFrame):

@@ -41,6 +41,7 @@ it). A worker that falls so far behind that the ring overwrote a frame drops it 
 
 from __future__ import annotations
 
+import contextlib
 import math
 import statistics
 import threading
@@ -554,7 +555,10 @@ class SoundCardSource(CaptureSource):
             )
             self._stream.start()
         except (ValueError, sd.PortAudioError) as error:
-            self._stream = None
+            opened, self._stream = self._stream, None
+            if opened is not None:  # opened but not started: give the device back
+                with contextlib.suppress(Exception):
+                    opened.close()
             raise self._device_error(f"cannot open it: {error}") from None
 
     def _close(self) -> None:

@@ -188,9 +188,12 @@ class SessionEvent:
 
 @dataclass(frozen=True)
 class EndEvent:
-    """The sender said it is done (an end message), or, on TCP, it disconnected."""
+    """The sender said it is done (an end message), or, on TCP, it disconnected; ``final``:
+    nothing can come after it (a capture source's device went away), so the stream ends
+    whether or not it was asked to stop at the first end (``--once``)."""
 
     disconnected: bool = False
+    final: bool = False
 
 
 @dataclass(eq=False)
