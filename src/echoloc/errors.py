@@ -34,6 +34,13 @@ class GeometryError(EchoLocError):
     """Transducer positions or measured paths that no reflector can explain."""
 
 
+def scene_error_from(source: str, error: EchoLocError) -> SceneError:
+    """``error`` as a :class:`SceneError` whose message starts with the file it is about,
+    ``source`` (once: a message that already names it keeps its own)."""
+    message = str(error)
+    return SceneError(message if message.startswith(source) else f"{source}: {message}")
+
+
 def missing_directory(path: Path) -> str | None:
     """Why ``path``'s directory cannot take a new file ("directory 'd' does not exist", or
     "'d' is not a directory" where a file stands), for an output's message; None when it can."""

@@ -31,6 +31,7 @@ from echoloc.localise.locate import FrameObjects, LocatedObject
 from echoloc.physics.transducer import PRESETS, piston_beam_angles
 from echoloc.sim.scene import default_scene
 from echoloc.sim.simulation import simulate
+from ros_messages import cloud_points
 
 
 @pytest.fixture(scope="module")
@@ -74,22 +75,9 @@ def _read_mcap(path: Path) -> list[tuple[str, str, int, Any]]:
 
 
 def _cloud_points(msg: Any) -> np.ndarray:
-    """Decode PointCloud2 data from its own field list (offsets, datatype) rather than assuming a layout."""
-    assert msg.is_bigendian is False
+    """The objects' cloud decoded from its own field list, which is the documented one."""
     assert [f.name for f in msg.fields] == list(POINT_FIELDS)
-    assert all(f.datatype == 7 and f.count == 1 for f in msg.fields)  # FLOAT32
-    dtype = np.dtype(
-        {
-            "names": [f.name for f in msg.fields],
-            "formats": ["<f4"] * len(msg.fields),
-            "offsets": [f.offset for f in msg.fields],
-            "itemsize": msg.point_step,
-        }
-    )
-    assert msg.height == 1
-    assert msg.row_step == msg.point_step * msg.width
-    assert len(msg.data) == msg.row_step * msg.height
-    return np.frombuffer(bytes(msg.data), dtype=dtype)
+    return cloud_points(msg)
 
 
 def _expected(frame: FrameObjects) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

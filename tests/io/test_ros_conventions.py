@@ -34,6 +34,7 @@ from echoloc.maps.mapping import GridSpec, OccupancyGrid, SensorModel
 from echoloc.physics.transducer import PRESETS, piston_beam_angles
 from echoloc.sim.scene import default_scene
 from echoloc.sim.simulation import simulate
+from ros_messages import cloud_points
 
 
 @pytest.fixture(scope="module")
@@ -361,17 +362,9 @@ def test_the_full_covariance_round_trips_through_point_cloud2(tmp_path: Path) ->
     clouds = [m for name, m in messages if name == OBJECTS_TOPIC]
     got = []
     for cloud in clouds:
-        assert all(f.datatype == 7 and f.count == 1 for f in cloud.fields)  # FLOAT32
-        layout = np.dtype(
-            {
-                "names": [f.name for f in cloud.fields],
-                "formats": ["<f4"] * len(cloud.fields),
-                "offsets": [f.offset for f in cloud.fields],
-                "itemsize": cloud.point_step,
-            }
-        )
-        assert set(COVARIANCE_FIELDS) <= set(layout.names)
-        for p in np.frombuffer(bytes(cloud.data), dtype=layout):
+        points = cloud_points(cloud)  # decoded from the message's own field list
+        assert set(COVARIANCE_FIELDS) <= set(points.dtype.names)
+        for p in points:
             xx, yy, zz = float(p["cov_xx"]), float(p["cov_yy"]), float(p["cov_zz"])
             xy, xz, yz = float(p["cov_xy"]), float(p["cov_xz"]), float(p["cov_yz"])
             got.append(np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]]))

@@ -335,24 +335,19 @@ class _NoPortAudio(importlib.abc.MetaPathFinder):
 def test_without_sounddevice_or_portaudio_one_clear_error(
     head: SensorHead, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setitem(sys.modules, "sounddevice", None)  # not installed
-    with pytest.raises(EchoLocError) as missing:
-        SoundCardSource(head, FrameQueue(10))
-    message = str(missing.value)
-    assert "pip install 'echoloc[soundcard]'" in message
-    assert "libportaudio2" in message
-    assert missing.value.__suppress_context__
-    assert "\n" not in message
+    def one_line_saying(*needles: str) -> None:
+        with pytest.raises(EchoLocError) as error:
+            SoundCardSource(head, FrameQueue(10))
+        message = str(error.value)
+        assert all(needle in message for needle in needles), message
+        assert error.value.__suppress_context__
+        assert "\n" not in message
 
+    monkeypatch.setitem(sys.modules, "sounddevice", None)  # not installed
+    one_line_saying("pip install 'echoloc[soundcard]'", "libportaudio2")
     monkeypatch.delitem(sys.modules, "sounddevice")
     monkeypatch.setattr(sys, "meta_path", [_NoPortAudio(), *sys.meta_path])
-    with pytest.raises(EchoLocError) as no_library:
-        SoundCardSource(head, FrameQueue(10))
-    message = str(no_library.value)
-    assert "PortAudio library" in message
-    assert "libportaudio2" in message
-    assert no_library.value.__suppress_context__
-    assert "\n" not in message
+    one_line_saying("PortAudio library", "libportaudio2")
 
 
 def test_the_command_says_it_in_one_line_without_a_traceback(tmp_path: Path) -> None:

@@ -34,7 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from echoloc._toml import tomllib
-from echoloc.errors import EchoLocError, SceneError, read_text_input
+from echoloc.errors import EchoLocError, SceneError, read_text_input, scene_error_from
 from echoloc.io.recording import Recording
 
 HEAD_FILE_SUFFIX = ".toml"
@@ -199,8 +199,7 @@ def head_from_dict(data: Mapping[str, Any], source: str = "<head>") -> SensorHea
     try:
         return _head_from_dict(data, source)
     except EchoLocError as error:
-        message = str(error)
-        raise SceneError(message if message.startswith(source) else f"{source}: {message}") from None
+        raise scene_error_from(source, error) from None
 
 
 def _head_from_dict(data: Mapping[str, Any], source: str) -> SensorHead:

@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from echoloc._toml import tomllib
-from echoloc.errors import EchoLocError, SceneError, read_text_input
+from echoloc.errors import EchoLocError, SceneError, read_text_input, scene_error_from
 from echoloc.io.recording import MAX_EXTENT_M
 from echoloc.physics.transducer import PRESETS
 from echoloc.sim.receiver import AdcSpec, GainSpec
@@ -220,8 +220,7 @@ def scene_from_dict(data: Mapping[str, Any], source: str = "<scene>") -> Scene:
     try:
         return _scene_from_dict(data, source)
     except EchoLocError as error:
-        message = str(error)
-        raise SceneError(message if message.startswith(source) else f"{source}: {message}") from None
+        raise scene_error_from(source, error) from None
 
 
 def _array(table: _Table) -> Array:
