@@ -591,3 +591,58 @@ def test_a_head_the_chain_cannot_use_ends_a_capture_at_once_in_one_line(tmp_path
     lines = result.stderr.strip().splitlines()
     assert lines[-1].startswith("echoloc: error: serial:loop://: the head cannot be used:")
     assert "at least 3 are needed" in lines[-1]
+
+
+def test_stream_writes_ros_messages_live_that_read_back_as_locate_found_them(tmp_path, recording_path):
+    """--mcap: the objects of every frame as ROS 2 PointCloud2 (and Range, /tf_static with
+    QoS), written as they come, stamped with the frames' capture times; read back with the
+    MCAP libraries they are `locate --json`'s objects."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    from ros_messages import cloud_points
+
+    out = tmp_path / "live.mcap"
+    stream = Proc("stream", "--listen", "127.0.0.1:0", "--once", "--mcap", out)
+    port = stream.port()
+    echoloc("send", recording_path, "--to", f"127.0.0.1:{port}", "--speed", "0", check=True)
+    code, _ = stream.finish()
+    assert code == 0, stream.lines
+    assert any(f"ROS 2 messages to {out}" in line for line in stream.lines)
+    located = [
+        json.loads(line)
+        for line in echoloc("locate", recording_path, "--json", check=True).stdout.splitlines()
+    ]
+    clouds, statics = [], []
+    with out.open("rb") as handle:
+        reader = make_reader(handle, decoder_factories=[DecoderFactory()])
+        qos = {c.topic: c.metadata["offered_qos_profiles"] for c in reader.get_summary().channels.values()}
+        for _, channel, _, message in reader.iter_decoded_messages():
+            if channel.topic == "/echoloc/objects":
+                clouds.append(message)
+            elif channel.topic == "/tf_static":
+                statics.append(message)
+    assert "durability: 1" in qos["/tf_static"]  # transient local: latched on replay
+    assert len(statics) == 1
+    assert len(clouds) == len(located) == 15
+    for cloud, record in zip(clouds, located, strict=True):
+        stamp = cloud.header.stamp.sec + cloud.header.stamp.nanosec * 1e-9
+        assert stamp == pytest.approx(record["time_s"], abs=1e-9)
+        points = cloud_points(cloud)
+        got = sorted(np.column_stack([points["x"], points["y"], points["z"]]).tolist())
+        want = sorted(o["position_m"] for o in record["objects"])
+        np.testing.assert_allclose(got, want, atol=1e-6)  # float32 in the cloud
+
+
+def test_an_mcap_target_is_checked_before_anything_arrives(capsys, tmp_path):
+    from echoloc.cli import commands as cli
+
+    existing = tmp_path / "old.mcap"
+    existing.write_bytes(b"")
+    for target, message in ((tmp_path / "x.bag", "writes an .mcap file"), (existing, "already exists")):
+        with pytest.raises(SystemExit) as info:
+            cli.main(["stream", "--mcap", str(target)])
+        assert info.value.code == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1
+        assert message in err

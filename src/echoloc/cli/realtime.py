@@ -26,7 +26,7 @@ from echoloc.cli.app import (
     stderr,
 )
 from echoloc.cli.basics import _class_cells, _object_cells
-from echoloc.errors import EchoLocError
+from echoloc.errors import EchoLocError, missing_directory
 from echoloc.io.head import is_head_file, load_head, read_geometry
 from echoloc.io.output import json_line, objects_record
 from echoloc.io.recording import Recording, read_recording
@@ -322,7 +322,13 @@ def send_command(
 @_listen_options
 @click.option("--json", "as_json", is_flag=True, help="JSON Lines of `echoloc locate --json`, one a frame.")
 @_path_option("--record", "record_path", default=None, help="Also record to HDF5.")
-@click.option("--force", is_flag=True, help="Let --record replace an existing file.")
+@_path_option(
+    "--mcap",
+    "mcap_path",
+    default=None,
+    help="Also write the objects as ROS 2 messages to this MCAP, as they come (docs/ROS.md).",
+)
+@click.option("--force", is_flag=True, help="Let --record and --mcap replace existing files.")
 @click.option("--view", is_flag=True, help="Serve the live view (Foxglove WebSocket) on 127.0.0.1.")
 @_int_range_option("--view-port", low=0, high=65535, default=8765, help="Live view's port.")
 @click.option(
@@ -338,6 +344,7 @@ def stream_command(
     settings: ChainSettings,
     as_json: bool,
     record_path: Path | None,
+    mcap_path: Path | None,
     force: bool,
     view: bool,
     view_port: int,
@@ -371,6 +378,8 @@ def stream_command(
 
     if record_path is not None:
         Recorder.check_path(record_path, force=force)
+    if mcap_path is not None:
+        _check_mcap_path(mcap_path, force=force)
     _finite("--duration", listening.duration_s, positive=True)
     # A session is prepared as it arrives, in the listener: one the chain cannot use is refused
     # to its sender, and the stream goes on serving.
@@ -382,6 +391,7 @@ def stream_command(
         make_chain,
         deadline_ms / 1e3,
         record_path,
+        mcap_path=mcap_path,
         on_result=printer.result,
         on_message=printer.message,
     )
@@ -418,6 +428,19 @@ def stream_command(
         raise session.record_error
     if session.processor is None and listener.sessions_refused:
         raise _no_session_error("", listener)
+
+
+def _check_mcap_path(path: Path, *, force: bool) -> None:
+    """Refuse, before anything arrives, an MCAP target that cannot be written (one line), and one
+    that exists unless ``force``."""
+    if path.suffix.lower() != ".mcap":
+        raise EchoLocError(f"{path}: --mcap writes an .mcap file, not {path.suffix or 'no extension'!r}")
+    if problem := missing_directory(path):
+        raise EchoLocError(f"{path}: {problem}")
+    if path.is_dir():
+        raise EchoLocError(f"{path}: is a directory")
+    if (path.exists() or path.is_symlink()) and not force:
+        raise EchoLocError(f"{path}: already exists; give --force to replace it")
 
 
 class _StreamPrinter:

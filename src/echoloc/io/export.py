@@ -862,6 +862,205 @@ def _max_range_m(recording: Recording, speed_m_s: float, receiver: int) -> float
     return float((window_path_m + baselines.max()) / 2)
 
 
+_COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+
+
+class RosObjectsWriter:
+    """Located objects as ROS 2 (Jazzy) messages in an MCAP file, a frame at a time: what
+    :func:`write_mcap` writes for a whole recording and ``echoloc stream --mcap`` as frames
+    arrive (``ros2 bag play`` replays it; :meth:`close` finishes the file).
+
+    Per frame (:meth:`add`) one ``sensor_msgs/msg/PointCloud2`` on ``/echoloc/objects`` in
+    ``frame_id`` (:func:`point_cloud2`: position, intensity, full covariance); with a
+    ``header`` and ``ranges``, one ``sensor_msgs/msg/Range`` per receiver on
+    ``/echoloc/range/rx{N}`` (frame ``echoloc_rx{N}``; :func:`receiver_ranges_m`;
+    ULTRASOUND; field of view :func:`range_field_of_view_rad`; ``min_range`` =
+    ``min_range_m``, ``max_range`` from the recording window, :func:`_max_range_m`); from
+    the first frame with a classified object on, a ``visualization_msgs/msg/MarkerArray``
+    of its planes and corners on ``/echoloc/surfaces`` (:func:`surface_markers`); with a
+    ``pose``, one ``/tf`` from ``odom_frame_id`` (or ``map_frame_id`` when it is None) to
+    ``body_frame_id`` (:func:`body_pose_in_map`).
+
+    With ``tf_static``, one ``/tf_static`` message at ``first_stamp_s`` holds the
+    body-to-optical rotation (``body_frame_id`` -> ``frame_id``, unless ``body_frame_id``
+    is None), the receiver frames in ``frame_id`` (with a header) and, when ``moving``,
+    ``map_frame_id`` -> ``odom_frame_id`` (identity). Every channel carries its QoS
+    (:class:`QosWriter`): ``/tf_static`` transient local, depth 1 (latched on replay);
+    the rest volatile. ``count`` is the number of messages written.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        header: Recording | None,
+        *,
+        first_stamp_s: float,
+        frame_id: str = SENSOR_FRAME_ID,
+        ranges: bool = True,
+        tf_static: bool = True,
+        moving: bool = False,
+        min_range_m: float = 0.0,
+        compression: str = "zstd",
+        body_frame_id: str | None = BODY_FRAME_ID,
+        map_frame_id: str = ROS_MAP_FRAME_ID,
+        odom_frame_id: str | None = ODOM_FRAME_ID,
+    ) -> None:
+        target = _check_path(path, ".mcap")
+        self.source = str(target)
+        if compression not in _COMPRESSIONS:
+            raise EchoLocError(f"{target}: compression must be zstd, lz4 or none, got {compression!r}")
+        ros_time(first_stamp_s)  # raises for a stamp ROS cannot hold, before the file is created
+        self.header = header
+        self.frame_id = frame_id
+        self.body_frame_id = body_frame_id
+        self.pose_parent = map_frame_id if odom_frame_id is None else odom_frame_id
+        self.min_range_m = float(min_range_m)
+        self.count = 0
+        self._index = 0
+        try:
+            self._stream = target.open("wb")
+        except OSError as error:
+            raise EchoLocError(f"{target}: cannot write: {error.strerror or error}") from error
+        writer = QosWriter(self._stream, compression=_COMPRESSIONS[compression])
+        self._writer = writer
+        writer.add_metadata(
+            "echoloc",
+            {
+                "ros_distribution": ROS_DISTRIBUTION,
+                "frame_id": frame_id,
+                "frame_convention": "REP 103 optical: x right, y down, z boresight",
+                "body_frame_id": body_frame_id or "",
+                "body_frame_convention": "REP 103 body: x forward (boresight), y left, z up",
+            },
+        )
+        self._cloud_schema = writer.register_msgdef("sensor_msgs/msg/PointCloud2", POINT_CLOUD2_SCHEMA)
+        writer.add_topic(OBJECTS_TOPIC, self._cloud_schema, STREAM_QOS)
+        statics: list[dict[str, Any]] = []
+        if tf_static and body_frame_id is not None:
+            statics.append(optical_transform(first_stamp_s, body_frame_id, frame_id))
+        if tf_static and header is not None:
+            receiver_axes = (
+                header.receiver_axes
+                if header.receiver_axes is not None
+                else np.tile([0.0, 0.0, 1.0], (header.n_receivers, 1))
+            )
+            for rx in range(header.n_receivers):
+                statics.append(
+                    transform_stamped(
+                        frame_id,
+                        receiver_frame_id(rx),
+                        first_stamp_s,
+                        header.receivers_m[rx],
+                        _axis_quaternion(receiver_axes[rx]),
+                    )
+                )
+        if tf_static and moving and odom_frame_id is not None:
+            statics.append(map_odom_transform(first_stamp_s, map_frame_id, odom_frame_id))
+        self._tf_schema = writer.register_msgdef("tf2_msgs/msg/TFMessage", TF_MESSAGE_SCHEMA)
+        if statics:
+            writer.add_topic(TF_STATIC_TOPIC, self._tf_schema, LATCHED_QOS)
+            t_ns = round(first_stamp_s * 1e9)
+            writer.write_message(
+                TF_STATIC_TOPIC, self._tf_schema, {"transforms": statics}, log_time=t_ns, publish_time=t_ns
+            )
+            self.count += 1
+        self._tf_topic = False
+        self._ranges = header is not None and ranges
+        if header is not None and self._ranges:
+            self._range_schema = writer.register_msgdef("sensor_msgs/msg/Range", RANGE_SCHEMA)
+            for rx in range(header.n_receivers):
+                writer.add_topic(f"{RANGE_TOPIC_PREFIX}{rx}", self._range_schema, STREAM_QOS)
+            speed = recording_speed_of_sound_m_s(header)
+            self._fov_rad = range_field_of_view_rad(header, speed)
+            self._max_ranges = [_max_range_m(header, speed, rx) for rx in range(header.n_receivers)]
+        self._marker_schema: Schema | None = None
+
+    def add(
+        self,
+        frame: FrameObjects,
+        stamp_s: float,
+        *,
+        intensity: ArrayLike | None = None,
+        pose: NDArray[np.float64] | None = None,
+    ) -> None:
+        """One frame's messages, stamped ``stamp_s`` (header and log time): the frame's time on
+        the capture clock, plus any offset; ``pose`` ``[x, y, z, qx, qy, qz, qw]`` of the sensor
+        frame in the map (echoloc's convention) adds its ``/tf``."""
+        writer = self._writer
+        ros_time(stamp_s)  # raises for a stamp ROS cannot hold
+        t_ns = round(stamp_s * 1e9)
+        index = self._index
+        self._index += 1
+        if pose is not None and self.body_frame_id is not None:
+            if not self._tf_topic:
+                writer.add_topic(TF_TOPIC, self._tf_schema, TF_QOS)
+                self._tf_topic = True
+            moved = pose_transform(pose, stamp_s, self.pose_parent, self.body_frame_id)
+            writer.write_message(
+                TF_TOPIC,
+                self._tf_schema,
+                {"transforms": [moved]},
+                log_time=t_ns,
+                publish_time=t_ns,
+                sequence=index,
+            )
+            self.count += 1
+        cloud = point_cloud2(frame, stamp_s, intensity=intensity, frame_id=self.frame_id)
+        writer.write_message(
+            OBJECTS_TOPIC, self._cloud_schema, cloud, log_time=t_ns, publish_time=t_ns, sequence=index
+        )
+        self.count += 1
+        if self._marker_schema is None and any(obj.surface is not None for obj in frame.objects):
+            self._marker_schema = writer.register_msgdef(
+                "visualization_msgs/msg/MarkerArray", MARKER_ARRAY_SCHEMA
+            )
+            writer.add_topic(SURFACES_TOPIC, self._marker_schema, STREAM_QOS)
+        if self._marker_schema is not None:
+            markers = surface_markers(frame, stamp_s, frame_id=self.frame_id)
+            writer.write_message(
+                SURFACES_TOPIC, self._marker_schema, markers, log_time=t_ns, publish_time=t_ns, sequence=index
+            )
+            self.count += 1
+        header = self.header
+        if header is None or not self._ranges:
+            return
+        distances, variances = receiver_ranges_m(frame, header.receivers_m)
+        for rx in range(header.n_receivers):
+            message = {
+                "header": {"stamp": ros_time(stamp_s), "frame_id": receiver_frame_id(rx)},
+                "radiation_type": RADIATION_ULTRASOUND,
+                "field_of_view": self._fov_rad,
+                "min_range": self.min_range_m,
+                "max_range": self._max_ranges[rx],
+                "range": float(distances[rx]),
+                "variance": float(variances[rx]),
+            }
+            writer.write_message(
+                f"{RANGE_TOPIC_PREFIX}{rx}",
+                self._range_schema,
+                message,
+                log_time=t_ns,
+                publish_time=t_ns,
+                sequence=index,
+            )
+            self.count += 1
+
+    def close(self) -> int:
+        """Finish the file (its summary and index); the number of messages written."""
+        if not self._stream.closed:
+            try:
+                self._writer.finish()  # type: ignore[no-untyped-call]
+            finally:
+                self._stream.close()
+        return self.count
+
+    def __enter__(self) -> RosObjectsWriter:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+
 def write_mcap(
     path: str | Path,
     recording: Recording | None,
@@ -879,32 +1078,15 @@ def write_mcap(
     map_frame_id: str = ROS_MAP_FRAME_ID,
     odom_frame_id: str | None = ODOM_FRAME_ID,
 ) -> int:
-    """Write the objects of every frame as ROS 2 (Jazzy) messages in an MCAP file.
+    """Write the objects of every frame as ROS 2 (Jazzy) messages in an MCAP file
+    (:class:`RosObjectsWriter`: the topics, frames and QoS; ``docs/ROS.md``).
 
-    Per frame one ``sensor_msgs/msg/PointCloud2`` on ``/echoloc/objects`` in
-    ``frame_id`` (:func:`point_cloud2`: position, intensity, full covariance) and, when
-    ``recording`` is given and ``ranges``, one ``sensor_msgs/msg/Range`` per receiver on
-    ``/echoloc/range/rx{N}`` (frame ``echoloc_rx{N}``; :func:`receiver_ranges_m`;
-    ULTRASOUND; field of view :func:`range_field_of_view_rad`; ``min_range`` =
-    ``min_range_m``, ``max_range`` from the recording window, :func:`_max_range_m`). When
-    any object carries a reflector class, each frame also gets a
-    ``visualization_msgs/msg/MarkerArray`` of its planes and corners on
-    ``/echoloc/surfaces`` (:func:`surface_markers`).
-
-    Frames (``docs/ROS.md``): with ``tf_static``, one ``/tf_static`` message holds the
-    body-to-optical rotation (``body_frame_id`` -> ``frame_id``, unless ``body_frame_id``
-    is None), the receiver frames in ``frame_id`` (with a recording) and, for a moving
-    sensor, ``map_frame_id`` -> ``odom_frame_id`` (identity). A recording with
-    ``sensor_poses`` adds one ``/tf`` per frame: ``odom_frame_id`` (or ``map_frame_id``
-    when it is None) -> ``body_frame_id``, the pose of :func:`body_pose_in_map`.
-
-    Stamps (header and MCAP log time) are ``start_time_s`` (e.g. the Unix time of the
-    first emission) plus the frame's time on the capture clock: the recording's
-    ``frame_times`` (or back-to-back frames) when ``recording`` is given, else ``frame /
-    frame_rate_hz`` when given, else each frame's ``time_s``; ``/tf_static`` takes the
-    first. Never the wall clock. Every channel carries its QoS (:class:`QosWriter`):
-    ``/tf_static`` transient local, depth 1 (latched on replay); the rest volatile.
-    Returns the number of messages written.
+    A recording with ``sensor_poses`` adds one ``/tf`` per frame and ``map`` -> ``odom`` to
+    ``/tf_static``. Stamps (header and MCAP log time) are ``start_time_s`` (e.g. the Unix
+    time of the first emission) plus the frame's time on the capture clock: the
+    recording's ``frame_times`` (or back-to-back frames) when ``recording`` is given, else
+    ``frame / frame_rate_hz`` when given, else each frame's ``time_s``; ``/tf_static`` takes
+    the first. Never the wall clock. Returns the number of messages written.
     """
     target = _check_path(path, ".mcap")
     source = str(target)
@@ -915,14 +1097,6 @@ def write_mcap(
         raise EchoLocError(f"{source}: frame rate must be positive, got {frame_rate_hz}")
     if not math.isfinite(start_time_s):
         raise EchoLocError(f"{source}: start time must be finite, got {start_time_s}")
-    try:
-        compression_type = {
-            "zstd": CompressionType.ZSTD,
-            "lz4": CompressionType.LZ4,
-            "none": CompressionType.NONE,
-        }[compression]
-    except KeyError:
-        raise EchoLocError(f"{source}: compression must be zstd, lz4 or none, got {compression!r}") from None
     if recording is not None:
         for frame in frames:
             if not 0 <= frame.frame < recording.n_frames:
@@ -941,121 +1115,28 @@ def write_mcap(
     stamps = [stamp_of(frame) for frame in frames]
     for stamp in stamps:
         ros_time(stamp)  # raises for stamps ROS cannot hold, before the file is created
-    first = min(stamps) if stamps else start_time_s
-    ros_time(first)
+    for index in range(len(frames)):
+        _intensity_for(intensities, index, len(frames), source)  # a bad list: before the file too
     poses = None if recording is None or body_frame_id is None else recording.sensor_poses
-    pose_parent = map_frame_id if odom_frame_id is None else odom_frame_id
-    try:
-        stream = target.open("wb")
-    except OSError as error:
-        raise EchoLocError(f"{target}: cannot write: {error.strerror or error}") from error
-    count = 0
-    with stream, QosWriter(stream, compression=compression_type) as writer:
-        writer.add_metadata(
-            "echoloc",
-            {
-                "ros_distribution": ROS_DISTRIBUTION,
-                "frame_id": frame_id,
-                "frame_convention": "REP 103 optical: x right, y down, z boresight",
-                "body_frame_id": body_frame_id or "",
-                "body_frame_convention": "REP 103 body: x forward (boresight), y left, z up",
-            },
-        )
-        cloud_schema = writer.register_msgdef("sensor_msgs/msg/PointCloud2", POINT_CLOUD2_SCHEMA)
-        writer.add_topic(OBJECTS_TOPIC, cloud_schema, STREAM_QOS)
-        with_ranges = recording is not None and ranges
-        statics: list[dict[str, Any]] = []
-        if tf_static and body_frame_id is not None:
-            statics.append(optical_transform(first, body_frame_id, frame_id))
-        if tf_static and recording is not None:
-            receiver_axes = (
-                recording.receiver_axes
-                if recording.receiver_axes is not None
-                else np.tile([0.0, 0.0, 1.0], (recording.n_receivers, 1))
-            )
-            for rx in range(recording.n_receivers):
-                statics.append(
-                    transform_stamped(
-                        frame_id,
-                        receiver_frame_id(rx),
-                        first,
-                        recording.receivers_m[rx],
-                        _axis_quaternion(receiver_axes[rx]),
-                    )
-                )
-        if tf_static and poses is not None and odom_frame_id is not None:
-            statics.append(map_odom_transform(first, map_frame_id, odom_frame_id))
-        tf_schema = None
-        if statics or poses is not None:
-            tf_schema = writer.register_msgdef("tf2_msgs/msg/TFMessage", TF_MESSAGE_SCHEMA)
-        if statics:
-            assert tf_schema is not None
-            writer.add_topic(TF_STATIC_TOPIC, tf_schema, LATCHED_QOS)
-            t_ns = round(first * 1e9)
-            writer.write_message(
-                TF_STATIC_TOPIC, tf_schema, {"transforms": statics}, log_time=t_ns, publish_time=t_ns
-            )
-            count += 1
-        if poses is not None:
-            assert tf_schema is not None
-            writer.add_topic(TF_TOPIC, tf_schema, TF_QOS)
-        if recording is not None and with_ranges:
-            range_schema = writer.register_msgdef("sensor_msgs/msg/Range", RANGE_SCHEMA)
-            for rx in range(recording.n_receivers):
-                writer.add_topic(f"{RANGE_TOPIC_PREFIX}{rx}", range_schema, STREAM_QOS)
-            speed = recording_speed_of_sound_m_s(recording)
-            fov_rad = range_field_of_view_rad(recording, speed)
-            max_ranges = [_max_range_m(recording, speed, rx) for rx in range(recording.n_receivers)]
-        classified = any(obj.surface is not None for frame in frames for obj in frame.objects)
-        if classified:
-            marker_schema = writer.register_msgdef("visualization_msgs/msg/MarkerArray", MARKER_ARRAY_SCHEMA)
-            writer.add_topic(SURFACES_TOPIC, marker_schema, STREAM_QOS)
+    with RosObjectsWriter(
+        target,
+        recording,
+        first_stamp_s=min(stamps) if stamps else start_time_s,
+        frame_id=frame_id,
+        ranges=ranges,
+        tf_static=tf_static,
+        moving=poses is not None,
+        min_range_m=min_range_m,
+        compression=compression,
+        body_frame_id=body_frame_id,
+        map_frame_id=map_frame_id,
+        odom_frame_id=odom_frame_id,
+    ) as writer:
         for index, (frame, stamp) in enumerate(zip(frames, stamps, strict=True)):
-            t_ns = round(stamp * 1e9)
-            if poses is not None and body_frame_id is not None:
-                assert tf_schema is not None
-                moved = pose_transform(poses[frame.frame], stamp, pose_parent, body_frame_id)
-                writer.write_message(
-                    TF_TOPIC,
-                    tf_schema,
-                    {"transforms": [moved]},
-                    log_time=t_ns,
-                    publish_time=t_ns,
-                    sequence=index,
-                )
-                count += 1
-            intensity = _intensity_for(intensities, index, len(frames), source)
-            cloud = point_cloud2(frame, stamp, intensity=intensity, frame_id=frame_id)
-            writer.write_message(
-                OBJECTS_TOPIC, cloud_schema, cloud, log_time=t_ns, publish_time=t_ns, sequence=index
+            writer.add(
+                frame,
+                stamp,
+                intensity=_intensity_for(intensities, index, len(frames), source),
+                pose=None if poses is None else poses[frame.frame],
             )
-            count += 1
-            if classified:
-                markers = surface_markers(frame, stamp, frame_id=frame_id)
-                writer.write_message(
-                    SURFACES_TOPIC, marker_schema, markers, log_time=t_ns, publish_time=t_ns, sequence=index
-                )
-                count += 1
-            if recording is None or not with_ranges:
-                continue
-            distances, variances = receiver_ranges_m(frame, recording.receivers_m)
-            for rx in range(recording.n_receivers):
-                message = {
-                    "header": {"stamp": ros_time(stamp), "frame_id": receiver_frame_id(rx)},
-                    "radiation_type": RADIATION_ULTRASOUND,
-                    "field_of_view": fov_rad,
-                    "min_range": float(min_range_m),
-                    "max_range": max_ranges[rx],
-                    "range": float(distances[rx]),
-                    "variance": float(variances[rx]),
-                }
-                writer.write_message(
-                    f"{RANGE_TOPIC_PREFIX}{rx}",
-                    range_schema,
-                    message,
-                    log_time=t_ns,
-                    publish_time=t_ns,
-                    sequence=index,
-                )
-                count += 1
-    return count
+    return writer.count

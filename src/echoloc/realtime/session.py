@@ -93,7 +93,9 @@ class LiveSession:
 
     ``make_chain`` prepares a session's chain when the listener did not (``--geometry``);
     ``deadline_s`` is each frame's processing deadline; ``record_path``: record the first
-    session's frames there; ``view``: a :class:`~echoloc.realtime.liveview.LiveView`.
+    session's frames there; ``mcap_path``: write the first session's objects there as ROS 2
+    messages (:class:`~echoloc.io.export.RosObjectsWriter`, stamped with the capture clock);
+    ``view``: a :class:`~echoloc.realtime.liveview.LiveView`.
     The fields after those are its state: the processor (from the first session on), the
     recorder, the current session's header and live map, and a recorder's failure.
     """
@@ -103,6 +105,7 @@ class LiveSession:
     deadline_s: float
     record_path: Path | None = None
     view: Any = field(default=None, kw_only=True)
+    mcap_path: Path | None = field(default=None, kw_only=True)
     on_result: Callable[[StreamFrame, StreamResult], None] = field(default=_ignore_result, kw_only=True)
     on_message: Callable[[str], None] = field(default=_ignore_message, kw_only=True)
     processor: StreamProcessor | None = field(default=None, init=False)
@@ -110,6 +113,8 @@ class LiveSession:
     header: Recording | None = field(default=None, init=False)
     mapper: Any = field(default=None, init=False)
     record_error: BaseException | None = field(default=None, init=False)
+    ros_writer: Any = field(default=None, init=False)
+    _ros_done: bool = field(default=False, init=False)
     _last_map: float = field(default=0.0, init=False)
 
     def stats(self) -> Any:
@@ -135,6 +140,8 @@ class LiveSession:
                 self.mapper = live_mapper(header, chain)
             if self.recorder is not None and self.header is not None:
                 self._stop_recording("the sender started a different session")
+            if self.header is not None:
+                self._stop_ros("the sender started a different session")
             if self.record_path is not None and self.recorder is None and self.header is None:
                 self.recorder = Recorder(self.record_path, header)
             self.header = header
@@ -151,6 +158,8 @@ class LiveSession:
         assert self.processor is not None, "frames before any session"
         for frame, result in zip(frames, self.processor.process_batch(frames), strict=True):
             self.on_result(frame, result)
+            if self.mcap_path is not None and not self._ros_done:
+                self._write_ros(result)
             # The live map takes only the frames the view shows (at most 20 a second): it
             # costs more than the chain per frame, and the view must never slow the chain.
             if self.view is not None and self.view.publish(result, frame.samples, self.stats()):
@@ -172,6 +181,36 @@ class LiveSession:
             cells, corner = map_floor_plan(grid)  # a still sensor: its body frame is the map
             self.view.publish_map(cells, grid.spec.cell_m, corner, stamp_s=result.objects.time_s)
 
+    def _write_ros(self, result: StreamResult) -> None:
+        """The frame's objects as ROS 2 messages; the file opens at the first frame (whose time
+        stamps /tf_static). A failure (a full disk) stops the MCAP, never the stream."""
+        from echoloc.io.export import RosObjectsWriter
+
+        stamp_s = result.objects.time_s
+        try:
+            if self.ros_writer is None:
+                assert self.mcap_path is not None
+                assert self.header is not None
+                self.ros_writer = RosObjectsWriter(self.mcap_path, self.header, first_stamp_s=stamp_s)
+            self.ros_writer.add(result.objects, stamp_s)
+        except (OSError, ValueError) as error:  # EchoLocError is a ValueError: a stamp ROS cannot hold
+            self.record_error = error
+            self._stop_ros(f"cannot write: {error}")
+
+    def _stop_ros(self, why: str) -> None:
+        """Finish the MCAP (if it was opened) and write no more to it."""
+        if self._ros_done:
+            return
+        self._ros_done = True
+        if self.ros_writer is None:
+            return
+        try:
+            count = self.ros_writer.close()
+        except (OSError, ValueError) as error:
+            self.record_error = error
+            return
+        self.on_message(f"ROS 2 messages stopped ({why}): {count} messages in {self.mcap_path}")
+
     def _stop_recording(self, why: str) -> None:
         try:
             self.recorder.close()
@@ -184,6 +223,13 @@ class LiveSession:
         """Close the view and the recorder; the final counts go to ``on_message``."""
         if self.view is not None:
             self.view.close()
+        if self.ros_writer is not None and not self._ros_done:
+            self._ros_done = True
+            try:
+                count = self.ros_writer.close()
+                self.on_message(f"wrote {count} ROS 2 messages to {self.mcap_path}")
+            except (OSError, ValueError) as error:
+                self.record_error = error
         if self.recorder is not None:
             try:
                 self.recorder.close()
