@@ -350,10 +350,11 @@ def stream_command(
     view_port: int,
     deadline_ms: float,
 ) -> None:
-    """Locate objects in frames arriving over the network, as they arrive.
+    """Locate objects in frames as they arrive: over the network, from a serial port or a sound card.
 
     Listens for the stream protocol (docs/STREAM_PROTOCOL.md; `echoloc send` replays a
-    recording in it), runs the chain of `echoloc locate` on every frame and shows
+    recording in it), or captures from a head's hardware (--source, --head; docs/HEAD.md),
+    runs the chain of `echoloc locate` with the same options on every frame and shows
     the latest objects (a live table on a terminal; with --json the lines of `locate
     --json` on stdout). Lost, dropped and late frames are counted and reported at the
     end; Ctrl-C or SIGTERM ends the stream cleanly.
@@ -508,7 +509,9 @@ def record_command(
     force: bool,
     verbose: bool,
 ) -> None:
-    """Record frames arriving over the network to OUT.h5, in batches flushed as they are written.
+    """Record arriving frames (network, serial port or sound card: --source) to OUT.h5, in batches.
+
+    Each batch is flushed as it is written.
 
     A recorder killed at any moment (even SIGKILL, or a power cut) leaves OUT.h5
     readable, with every frame but at most those of the last batch. An existing OUT.h5
