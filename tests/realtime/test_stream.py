@@ -569,3 +569,23 @@ def test_warm_up_is_not_taken_for_a_frame_by_the_channel_check(recording):
     assert watch.frames_seen == 0
     processor.process(StreamFrame(0, recording.frames[0], 0.0))  # a real frame is checked
     assert watch.frames_seen == 1
+
+
+def test_a_frame_that_does_not_fit_is_rejected_not_also_lost(recording):
+    """Frames 0, 1 (3 channels: a misfit), 2: one rejected, none lost (the misfit's sequence
+    number still belongs to the numbering)."""
+    with Listener(Endpoint("127.0.0.1", 0, "udp"), FrameQueue(64)) as listener:
+        out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        address = ("127.0.0.1", listener.address.port)
+        frame = recording.frames[0]
+        out.sendto(encode_session(recording), address)
+        out.sendto(encode_frame(frame, sequence=0, sample_rate_hz=2e5), address)
+        out.sendto(encode_frame(frame[:3], sequence=1, sample_rate_hz=2e5), address)
+        out.sendto(encode_frame(frame, sequence=2, sample_rate_hz=2e5), address)
+        out.close()
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and listener.received + listener.rejected < 3:
+            time.sleep(0.02)
+        counters = listener.counters()
+    assert (counters["received"], counters["rejected"], counters["lost"]) == (2, 1, 0)
+

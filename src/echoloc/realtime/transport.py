@@ -793,6 +793,8 @@ class Listener:
                 "misfit",
                 f"{self._address}: from {peer.name}: frame {wire.sequence} refused: {problem}",
             )
+            with self._lock:  # still a frame of the numbering: refused, not also counted lost
+                peer.tracker.observe(wire.sequence)
             return None
         self._prove(peer)
         if not self._claim(peer):
