@@ -588,4 +588,3 @@ def test_a_frame_that_does_not_fit_is_rejected_not_also_lost(recording):
             time.sleep(0.02)
         counters = listener.counters()
     assert (counters["received"], counters["rejected"], counters["lost"]) == (2, 1, 0)
-
