@@ -13,9 +13,10 @@ line's click and rich. The rest are extras of the package:
 - ``serial``: capture from a board on a serial or USB-CDC port (``--source serial:PORT``):
   pyserial;
 - ``soundcard``: capture from a sound card (``--source soundcard``): sounddevice, which needs
-  the PortAudio library (on Linux the system package ``libportaudio2``).
+  the PortAudio library (on Linux the system package ``libportaudio2``);
+- ``cluster``: ``echoloc batch`` and ``echoloc sweep`` on a Dask cluster: dask.distributed.
 
-``pip install 'echoloc[all]'`` installs all six.
+``pip install 'echoloc[all]'`` installs all seven.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ EXTRAS = {
     "octomap": "pyoctomap",
     "serial": "pyserial",
     "soundcard": "sounddevice",
+    "cluster": "dask[distributed]",
 }
 """Each extra and the distribution it installs."""
 

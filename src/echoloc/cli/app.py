@@ -438,7 +438,20 @@ def _progress(total: int, label: str, enabled: bool) -> Iterator[Callable[[int],
 
 
 _KERNEL_COMMANDS = frozenset(
-    {"demo", "echoes", "locate", "image", "export", "map", "evaluate", "calibrate", "stream", "bench"}
+    {
+        "demo",
+        "echoes",
+        "locate",
+        "image",
+        "export",
+        "map",
+        "evaluate",
+        "calibrate",
+        "stream",
+        "bench",
+        "batch",
+        "sweep",
+    }
 )
 """The commands that run compiled kernels: on a first run they compile them first."""
 
