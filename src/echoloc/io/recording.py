@@ -29,6 +29,7 @@ import struct
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import tokenize
 import warnings
@@ -262,17 +263,21 @@ def _check_shape(source: str, name: str, arr: _AnyArray, expected: tuple[int, ..
         raise _error(source, f"{name} has shape {arr.shape}, expected {want}")
 
 
-def _refuse_flagged(source: str, arr: _AnyArray, flagged: NDArray[np.bool_], has: str, what: str) -> None:
+def _refuse_flagged(
+    source: str, arr: _AnyArray, flagged: NDArray[np.bool_], has: str, what: str, first_row: int = 0
+) -> None:
     """Raise if any element of ``arr`` is ``flagged``, saying how many and which comes first.
 
     The message reads ``"{has} {count} {what}, first {value} at index [i, j, ...]"``, so
-    a reader can find the offending sample in the file.
+    a reader can find the offending sample in the file (``arr`` holding the file's rows from
+    ``first_row`` on: the index is the file's).
     """
     if flagged.any():
         first = tuple(int(i) for i in np.argwhere(flagged)[0])
+        where = [first[0] + first_row, *first[1:]]
         raise _error(
             source,
-            f"{has} {int(flagged.sum())} {what}, first {arr[first].item()} at index {list(first)}",
+            f"{has} {int(flagged.sum())} {what}, first {arr[first].item()} at index {where}",
         )
 
 
@@ -900,7 +905,9 @@ def _pattern_text(pattern: tuple[int | None, ...]) -> str:
     )
 
 
-def _check_declared(source: str, declared: dict[str, _Declared]) -> None:
+def _check_declared(
+    source: str, declared: dict[str, _Declared], streamed: frozenset[str] = frozenset()
+) -> None:
     """Check every dataset's declared shape, dtype and size before any of its data is read.
 
     The shapes must agree with one another as the contract says (frames with
@@ -908,7 +915,8 @@ def _check_declared(source: str, declared: dict[str, _Declared]) -> None:
     dataset must have all its declared bytes stored in the file (a corrupt dimension
     would otherwise read as gigabytes of fill values); a compressed one may expand at
     most :data:`MAX_COMPRESSION_RATIO`-fold; and all of them together must fit in
-    :data:`MAX_RECORDING_BYTES` once in memory.
+    :data:`MAX_RECORDING_BYTES` once in memory, except those ``streamed`` (read a range
+    of frames at a time, :class:`RecordingParts`).
     """
     for name, item in declared.items():
         if item.dtype is None:
@@ -945,7 +953,7 @@ def _check_declared(source: str, declared: dict[str, _Declared]) -> None:
                 f"{name} declares shape {item.shape} of {item.dtype_text} ({item.file_bytes} bytes) "
                 f"but the file stores only {item.stored} bytes of it (a corrupt file?)",
             )
-    total = sum(item.memory_bytes for item in declared.values())
+    total = sum(item.memory_bytes for name, item in declared.items() if name not in streamed)
     if total > MAX_RECORDING_BYTES:
         largest = max(declared, key=lambda name: declared[name].memory_bytes)
         raise _error(
@@ -1294,19 +1302,7 @@ def read_recording(path: str | os.PathLike[str], *, repair_nonfinite: bool = Fal
         When samples were repaired, and when a receiver's samples are all identical
         (a dead channel).
     """
-    file = Path(path)
-    source = str(path)
-    suffix = file.suffix.lower()
-    if file.is_dir():
-        raise _error(source, "is a directory, not a recording file (.h5, .hdf5 or .npz)")
-    if suffix not in _HDF5_SUFFIXES + _NPZ_SUFFIXES:
-        raise _error(source, f"unknown extension {file.suffix!r}, expected .h5, .hdf5 or .npz")
-    if not file.exists():
-        raise _error(source, "no such file")
-    if not file.is_file():
-        raise _error(source, "not a regular file")
-
-    kind = "HDF5" if suffix in _HDF5_SUFFIXES else "NPZ"
+    file, source, kind = _check_recording_path(path)
     try:
         if kind == "HDF5":
             attrs, data = _load_hdf5(source, file)
@@ -1357,6 +1353,496 @@ def read_recording(path: str | os.PathLike[str], *, repair_nonfinite: bool = Fal
             stacklevel=2,
         )
     return rec
+
+
+# ----------------------------------------------------------------------------- reading in parts
+
+STREAMED_DATASETS = ("frames", "background")
+"""The datasets :class:`RecordingParts` reads a range of frames at a time (``background`` when
+it has one frame per frame); every other dataset is read whole when the file is opened."""
+
+
+def _check_recording_path(path: str | os.PathLike[str]) -> tuple[Path, str, str]:
+    """The file, its name for messages and its kind ("HDF5" or "NPZ"), as :func:`read_recording`
+    checks them before opening it."""
+    file = Path(path)
+    source = str(path)
+    suffix = file.suffix.lower()
+    if file.is_dir():
+        raise _error(source, "is a directory, not a recording file (.h5, .hdf5 or .npz)")
+    if suffix not in _HDF5_SUFFIXES + _NPZ_SUFFIXES:
+        raise _error(source, f"unknown extension {file.suffix!r}, expected .h5, .hdf5 or .npz")
+    if not file.exists():
+        raise _error(source, "no such file")
+    if not file.is_file():
+        raise _error(source, "not a regular file")
+    return file, source, "HDF5" if suffix in _HDF5_SUFFIXES else "NPZ"
+
+
+def _serve_hdf5() -> None:
+    """The reader child of :class:`RecordingParts` for an HDF5 file (started as
+    :func:`_load_hdf5` starts :mod:`echoloc.io._hdf5_child`, with the same arguments).
+
+    It sends ``R`` and ``H`` as that child does, then answers each request line on stdin,
+    JSON ``[name, start, stop]`` (``start`` null: the whole dataset), with the ``D`` blocks
+    of those rows (at most :data:`echoloc.io._hdf5_child.SLICE_BYTES` each) and ``Z``; ``E``
+    ends it on an error. It stops at the end of stdin, or when its parent dies.
+    """
+    from echoloc.io import _hdf5_child as child
+
+    out = sys.stdout.buffer
+    child._die_with_parent(int(sys.argv[3]))
+    child._limit_memory()
+    child.send(out, b"R")
+    path = sys.argv[1]
+    try:
+        if not h5py.is_hdf5(path):
+            child.send(out, b"E", b"not an HDF5 file (no HDF5 signature)")
+            return
+        with h5py.File(path, "r") as f:
+            attrs = {name: child._attribute(f.attrs[name]) for name in child.ATTRIBUTES if name in f.attrs}
+            names = json.loads(sys.argv[2])
+            datasets = {name: child._describe(f[name]) for name in names if name in f}
+            child.send(out, b"H", json.dumps({"attrs": attrs, "datasets": datasets}).encode())
+            for line in sys.stdin:
+                name, start, stop = json.loads(line)
+                dataset = f[name]
+                if start is None:
+                    child._stream(out, dataset)
+                else:
+                    row_bytes = max(1, dataset.dtype.itemsize * math.prod(dataset.shape[1:]))
+                    rows = max(1, child.SLICE_BYTES // row_bytes)
+                    for first in range(start, stop, rows):
+                        block = np.ascontiguousarray(dataset[first : min(first + rows, stop)])
+                        child.send(out, b"D", block.reshape(-1).view(np.uint8).data)
+                child.send(out, b"Z")
+    except BrokenPipeError:  # the parent went away
+        return
+    except (OSError, ValueError, KeyError, TypeError, RuntimeError, MemoryError) as exc:
+        message = " ".join(f"cannot read as HDF5: {exc}".split())
+        child.send(out, b"E", message.encode("utf-8", "replace"))
+
+
+class _Hdf5Parts:
+    """An HDF5 file served by a reader child (:func:`_serve_hdf5`) that stays up between reads:
+    libhdf5 runs there, abandoned when it stalls, as in :func:`_load_hdf5`."""
+
+    def __init__(self, source: str, path: Path) -> None:
+        self._source = source
+        self._stall_s = hdf5_stall_timeout_s()
+        env = dict(os.environ)
+        env.setdefault("OPENBLAS_NUM_THREADS", "1")
+        names = json.dumps(list(_DATASET_FIELDS))
+        bootstrap = (
+            f"import sys; sys.path[:] = {_child_sys_path()!r}; "
+            "from echoloc.io.recording import _serve_hdf5; _serve_hdf5()"
+        )
+        command = [sys.executable, "-I", "-c", bootstrap, str(path), names, str(os.getpid())]
+        self._process: subprocess.Popen[bytes] | None = subprocess.Popen(
+            command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, env=env
+        )
+        try:
+            self._pipe = _ChildPipe(source, self._process)
+            self._pipe.expect(b"R", HDF5_START_TIMEOUT_S)
+            header = json.loads(self._pipe.expect(b"H", self._stall_s))
+            self.attrs = {name: _child_attribute(value) for name, value in header["attrs"].items()}
+            self.declared = _hdf5_declared(source, header["datasets"])
+        except BaseException:
+            self.close()
+            raise
+        self.random_access = True
+
+    def read(self, name: str, start: int | None = None, stop: int | None = None) -> _AnyArray:
+        """The dataset ``name`` (rows ``start:stop`` along its first axis), in the file's dtype."""
+        process = self._process
+        if process is None:
+            raise _error(self._source, "cannot read as HDF5: the file was closed after an error")
+        item = self.declared[name]
+        assert item.dtype is not None
+        assert process.stdin is not None
+        shape = item.shape if start is None or stop is None else (stop - start, *item.shape[1:])
+        arr = np.empty(shape, dtype=item.dtype)
+        try:
+            try:
+                process.stdin.write(json.dumps([name, start, stop]).encode() + b"\n")
+                process.stdin.flush()
+            except BrokenPipeError:
+                pass  # the child ended: its message, or its end, is read next
+            view = arr.reshape(-1).view(np.uint8).data
+            done = 0
+            while done < len(view):
+                kind, _, length = self._pipe.message(self._stall_s, view[done:])
+                if kind != b"D" or length == 0:
+                    raise _error(self._source, f"cannot read as HDF5: {name} ended early")
+                done += length
+            self._pipe.expect(b"Z", self._stall_s)
+        except BaseException:
+            self.close()  # the conversation is out of step: no read after this one
+            raise
+        return arr
+
+    def close(self) -> None:
+        process, self._process = self._process, None
+        if process is None:
+            return
+        for stream in (process.stdin, process.stdout):
+            with contextlib.suppress(OSError):
+                if stream is not None:
+                    stream.close()
+        if process.poll() is None:
+            process.kill()
+        process.wait()
+
+
+def _npy_fortran_order(source: str, archive: zipfile.ZipFile, member: str) -> bool:
+    """Whether a member's ``.npy`` header says its data are in Fortran (column-major) order."""
+    try:
+        with archive.open(member) as fh:
+            version = np.lib.format.read_magic(fh)
+            read = (
+                np.lib.format.read_array_header_1_0
+                if version == (1, 0)
+                else np.lib.format.read_array_header_2_0
+            )
+            return bool(read(fh)[1])
+    except (ValueError, TypeError, SyntaxError, EOFError, tokenize.TokenError, zipfile.BadZipFile) as error:
+        raise _error(source, f"{member} has no readable .npy header ({error})") from None
+
+
+class _NpzParts:
+    """An NPZ archive read in parts. An uncompressed member in C order (what
+    :func:`write_recording` writes) is read at any rows straight from the file; a compressed
+    one can only be read from its start, so rows are read by going on from where the last
+    read ended (starting again from the top for rows before it); a member in Fortran order
+    is read whole, once."""
+
+    def __init__(self, source: str, path: Path) -> None:
+        self._source = source
+        self._file = open(path, "rb")  # noqa: SIM115 -- closed by close()
+        self._streams: dict[str, tuple[IO[bytes], int]] = {}
+        self._whole: dict[str, _AnyArray] = {}
+        try:
+            if self._file.read(len(_ZIP_MAGIC)) != _ZIP_MAGIC:
+                raise _error(source, "not an NPZ file (no zip signature)")
+            self._file.seek(0)
+            self._archive = zipfile.ZipFile(self._file)
+            members = set(self._archive.namelist())
+            if not members:
+                raise _error(source, "not an NPZ archive (it holds no .npy member)")
+            self.attrs: dict[str, object] = {}
+            for name in (*_REQUIRED_ATTRS, *_STR_ATTRS, *_OPTIONAL_FLOAT_ATTRS):
+                if f"{name}.npy" not in members:
+                    continue
+                item, _ = _npy_header(source, self._archive, f"{name}.npy")
+                if item.file_bytes > _MAX_ATTRIBUTE_BYTES or item.dtype is None:
+                    raise _error(
+                        source,
+                        f"attribute {name} is an array of shape {item.shape} and dtype {item.dtype_text}, "
+                        "expected a single value",
+                    )
+                self.attrs[name] = _read_member(source, self._archive, name)
+            self.declared: dict[str, _Declared] = {}
+            self._header_bytes: dict[str, int] = {}
+            for name in _DATASET_FIELDS:
+                if f"{name}.npy" in members:
+                    self.declared[name], self._header_bytes[name] = _npy_header(
+                        source, self._archive, f"{name}.npy"
+                    )
+            self._offsets = {
+                name: self._data_offset(name) for name in STREAMED_DATASETS if name in self.declared
+            }
+        except BaseException:
+            self.close()
+            raise
+        self.random_access = all(offset is not None for offset in self._offsets.values())
+
+    def _data_offset(self, name: str) -> int | None:
+        """Where the rows of member ``name`` start in the file; None unless it is stored
+        uncompressed, unencrypted and in C order."""
+        info = self._archive.getinfo(f"{name}.npy")
+        if info.compress_type != zipfile.ZIP_STORED or info.flag_bits & 0x1:
+            return None
+        if _npy_fortran_order(self._source, self._archive, f"{name}.npy"):
+            return None
+        self._file.seek(info.header_offset)
+        local = self._file.read(30)
+        if len(local) != 30 or local[:4] != _ZIP_MAGIC:
+            raise _error(self._source, f"{name}.npy has no local zip header where the directory says")
+        name_length, extra_length = struct.unpack("<HH", local[26:30])
+        return int(info.header_offset) + 30 + int(name_length) + int(extra_length) + self._header_bytes[name]
+
+    def read(self, name: str, start: int | None = None, stop: int | None = None) -> _AnyArray:
+        """The member ``name`` (rows ``start:stop`` along its first axis), in the file's dtype."""
+        if start is None or stop is None:
+            return np.asarray(_read_member(self._source, self._archive, name))
+        item = self.declared[name]
+        assert item.dtype is not None
+        if _npy_fortran_order(self._source, self._archive, f"{name}.npy"):
+            if name not in self._whole:
+                self._whole[name] = np.asarray(_read_member(self._source, self._archive, name))
+            return np.ascontiguousarray(self._whole[name][start:stop])
+        row_bytes = item.dtype.itemsize * math.prod(item.shape[1:])
+        arr = np.empty((stop - start, *item.shape[1:]), dtype=item.dtype)
+        view = arr.reshape(-1).view(np.uint8).data
+        offset = self._offsets.get(name)
+        if offset is not None:
+            self._file.seek(offset + start * row_bytes)
+            self._fill(self._file, name, view)
+            return arr
+        stream, row = self._streams.pop(name, (None, 0))
+        if stream is None or row > start:
+            if stream is not None:
+                stream.close()
+            stream = self._archive.open(f"{name}.npy")
+            _skip(stream, self._header_bytes[name])
+            row = 0
+        try:
+            _skip(stream, (start - row) * row_bytes)
+            self._fill(stream, name, view)
+        except BaseException:
+            stream.close()
+            raise
+        self._streams[name] = (stream, stop)
+        return arr
+
+    def _fill(self, stream: IO[bytes], name: str, view: memoryview) -> None:
+        done = 0
+        while done < len(view):
+            n = stream.readinto(view[done:])  # type: ignore[attr-defined]
+            if not n:
+                raise _error(self._source, f"{name}.npy ended early")
+            done += n
+
+    def close(self) -> None:
+        for stream, _ in self._streams.values():
+            with contextlib.suppress(OSError):
+                stream.close()
+        self._streams.clear()
+        archive = getattr(self, "_archive", None)
+        if archive is not None:
+            archive.close()
+        self._file.close()
+
+
+def _skip(stream: IO[bytes], n_bytes: int) -> None:
+    """Read and drop ``n_bytes`` of ``stream``, :data:`_CHUNK_BYTES` at a time."""
+    while n_bytes > 0:
+        got = len(stream.read(min(n_bytes, _CHUNK_BYTES)))
+        if not got:
+            raise EOFError("the member ended early")
+        n_bytes -= got
+
+
+class RecordingParts(contextlib.AbstractContextManager["RecordingParts"]):
+    """A recording file (``.h5``/``.hdf5`` or ``.npz``) read in parts: every dataset but the
+    samples when it is opened, the samples a range of frames at a time.
+
+    Opening checks the file as :func:`read_recording` does, except for the values of the
+    samples (``frames``, and a ``background`` with one frame per frame), which are checked
+    range by range as they are read (a non-finite or, for envelopes, negative sample then
+    raises naming its index in the file, or with ``repair_nonfinite`` is set to 0 with a
+    :class:`RecordingWarning`); and the samples are left out of the
+    :data:`MAX_RECORDING_BYTES` a recording may declare, since they never are in memory
+    at once. A dead receiver (every sample equal, over the whole file) is not warned about:
+    that takes every sample.
+
+    An HDF5 file is read by a child process that stays up while the file is open (a corrupt
+    file stalls it, not this process: :func:`_load_hdf5`), any rows at any time. In an NPZ
+    archive, uncompressed members in C order (as :func:`write_recording` writes them) are
+    read straight at any rows (:attr:`random_access`); a compressed member only from its
+    start, each read going on from the last one (rows before it mean starting again).
+
+    Use it as a context manager, or :meth:`close` it. Its reads are serialised (a lock), so
+    threads may share it.
+
+    Attributes
+    ----------
+    source
+        The path as given, for messages.
+    header
+        Every per-recording field (:func:`as_header`: ``frames`` of shape (0, n_rx, n_samples),
+        float64 or complex128; the per-frame fields None; ``background`` only when it is one
+        frame for all).
+    per_frame
+        The per-frame datasets, whole, by field name (``frame_times_s``, ``frame_transmitter``,
+        ``truth_positions_m``, ``sensor_poses``), None where the file has none.
+    n_frames
+        Frames in the file.
+    per_frame_background
+        Whether the file has one background per frame (:meth:`background` reads it).
+    random_access
+        Whether any range of frames is read without reading the ones before it.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], *, repair_nonfinite: bool = False) -> None:
+        file, source, kind = _check_recording_path(path)
+        self.source = source
+        self._kind = kind
+        self._repair = repair_nonfinite
+        self._lock = threading.Lock()
+        self._backend: _Hdf5Parts | _NpzParts | None = None
+        with self._errors():
+            self._backend = _Hdf5Parts(source, file) if kind == "HDF5" else _NpzParts(source, file)
+            self._open()
+
+    @contextlib.contextmanager
+    def _errors(self) -> Iterator[None]:
+        """Errors of reading as :func:`read_recording` words them; the file closed after one."""
+        try:
+            yield
+        except RecordingError:
+            self.close()
+            raise
+        except (
+            OSError,
+            ValueError,
+            KeyError,
+            TypeError,
+            RuntimeError,
+            EOFError,
+            zipfile.BadZipFile,
+        ) as exc:
+            self.close()
+            raise _error(self.source, f"cannot read as {self._kind}: {exc}") from exc
+        except BaseException:
+            self.close()
+            raise
+
+    def _open(self) -> None:
+        backend = self._backend
+        assert backend is not None
+        source, declared = self.source, backend.declared
+        background = declared.get("background")
+        self.per_frame_background = background is not None and len(background.shape) == 3
+        per_frame_background = self.per_frame_background
+        streamed = frozenset(
+            name for name in declared if name == "frames" or (name == "background" and per_frame_background)
+        )
+        _check_declared(source, declared, streamed)
+        data = {name: backend.read(name) for name in declared if name not in streamed}
+        for name in streamed:
+            item = declared[name]
+            data[name] = np.empty((0, *item.shape[1:]), dtype=item.dtype)
+        rec = _build(source, backend.attrs, data)
+        self.n_frames = declared["frames"].shape[0]
+        self.per_frame: dict[str, _AnyArray | None] = {
+            field: getattr(rec, field) for field in _PER_FRAME_DATASETS.values()
+        }
+        kept_background = None if self.per_frame_background else rec.background
+        header = replace(
+            rec,
+            frame_times_s=None,
+            frame_transmitter=None,
+            truth_positions_m=None,
+            sensor_poses=None,
+            background=kept_background,
+        )
+        # Everything read_recording checks but the samples' values: the header as a stream's
+        # (a background of one frame stands in for one per frame, for its dtype), then the
+        # per-frame datasets against the frame count.
+        stand_in = (
+            np.zeros(rec.frames.shape[1:], dtype=np.asarray(rec.background).dtype)
+            if self.per_frame_background
+            else kept_background
+        )
+        _validate(replace(header, background=stand_in), allow_nonfinite=self._repair, header_only=True)
+        _check_per_frame(source, self.n_frames, len(rec.transmitters_m), *self.per_frame.values())
+        _check_truth_kinds(source, rec.truth_kinds, self.per_frame["truth_positions_m"])
+        if self._repair and kept_background is not None:
+            fixed, count = _zero_nonfinite(kept_background)
+            if count:
+                warnings.warn(
+                    _one_line(f"{source}: replaced {count} non-finite sample(s) of background with 0"),
+                    RecordingWarning,
+                    stacklevel=3,
+                )
+                header = replace(header, background=fixed)
+        self.header = header
+        n_samples = header.n_samples
+        if header.waveform is not None and n_samples < len(header.waveform):
+            warnings.warn(
+                _one_line(
+                    f"{source}: frames of {n_samples} samples are shorter than the "
+                    f"{len(header.waveform)}-sample waveform: no whole echo fits in a frame"
+                ),
+                RecordingWarning,
+                stacklevel=3,
+            )
+
+    @property
+    def random_access(self) -> bool:
+        return self._backend is not None and self._backend.random_access
+
+    def frames(self, start: int, stop: int) -> _AnyArray:
+        """Frames ``start:stop`` (stop - start, n_rx, n_samples), float64 or complex128, checked."""
+        return self._samples("frames", start, stop)
+
+    def frames_at(self, indices: Iterable[int]) -> _AnyArray:
+        """The frames at ``indices`` (ascending), stacked; each run of consecutive frames in one read."""
+        return self.samples_at("frames", indices)
+
+    def samples_at(self, name: str, indices: Iterable[int]) -> _AnyArray:
+        """``frames`` or a per-frame ``background`` at ``indices`` (ascending), stacked, checked;
+        each run of consecutive frames in one read."""
+        if name not in STREAMED_DATASETS or (name == "background" and not self.per_frame_background):
+            raise ValueError(f"{name} is not read by frames")
+        runs: list[list[int]] = []
+        for index in indices:
+            if runs and index == runs[-1][1]:
+                runs[-1][1] += 1
+            else:
+                runs.append([index, index + 1])
+        parts = [self._samples(name, start, stop) for start, stop in runs]
+        if not parts:
+            return np.empty((0, *self.header.frames.shape[1:]), dtype=self.header.frames.dtype)
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+    def background(self, start: int, stop: int) -> _AnyArray | None:
+        """The backgrounds of frames ``start:stop``, checked; None without one per frame."""
+        return self._samples("background", start, stop) if self.per_frame_background else None
+
+    def _samples(self, name: str, start: int, stop: int) -> _AnyArray:
+        if not 0 <= start <= stop <= self.n_frames:
+            raise _error(self.source, f"frames {start}:{stop} are outside its {self.n_frames} frames")
+        with self._lock, self._errors():
+            if self._backend is None:
+                raise _error(self.source, "is closed")
+            raw = self._backend.read(name, start, stop)
+        kind = self.header.signal_kind
+        arr = _as_samples(self.source, name, raw, allow_complex=name == "frames" or kind == "iq")
+        what = f"{name}[{start}:{stop}]"
+        if self._repair:
+            arr, count = _zero_nonfinite(arr)
+            if count:
+                warnings.warn(
+                    _one_line(f"{self.source}: replaced {count} non-finite sample(s) of {what} with 0"),
+                    RecordingWarning,
+                    stacklevel=3,
+                )
+        else:
+            _refuse_flagged(
+                self.source, arr, ~np.isfinite(arr), f"{what} has", "non-finite value(s)", first_row=start
+            )
+        if kind == "envelope":
+            negative = (arr < 0) & np.isfinite(arr)
+            _refuse_flagged(
+                self.source,
+                arr,
+                negative,
+                f"{what} is envelope data but has",
+                "negative sample(s)",
+                first_row=start,
+            )
+        return arr
+
+    def close(self) -> None:
+        """Close the file (and end its reader process). Idempotent."""
+        backend, self._backend = self._backend, None
+        if backend is not None:
+            backend.close()
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
 
 
 # ----------------------------------------------------------------------------- writing
