@@ -6,7 +6,7 @@ Exit codes (docs/FORMATS.md): 0 success, 2 bad input or usage (one line on stder
 internal error.
 """
 
-from echoloc.cli import basics, hardware, physics, processing, realtime  # noqa: F401  (register their commands)
+from echoloc.cli import basics, batch, hardware, physics, processing, realtime, sweep  # noqa: F401  (register their commands)
 from echoloc.cli.app import cli, main
 from echoloc.cli.importing import import_group
 
