@@ -533,7 +533,8 @@ class SoundCardSource(CaptureSource):
             )
 
     def levels(self) -> NDArray[np.float64]:
-        """The highest |sample| of each input (of full scale) in the frames cut since the last call."""
+        """The largest magnitude of a sample of each input (a fraction of full scale) in the frames cut
+        since the last call."""
         with self._report_lock:
             peaks = self._peaks.copy()
             self._peaks[:] = 0.0
