@@ -41,6 +41,18 @@ def scene_error_from(source: str, error: EchoLocError) -> SceneError:
     return SceneError(message if message.startswith(source) else f"{source}: {message}")
 
 
+def refuse_new_output(path: Path, *, force: bool) -> None:
+    """Refuse, with one line, an output file that cannot be written where it is asked for (no
+    such folder, a folder there) or that exists unless ``force``: a file is never replaced
+    without asking."""
+    if problem := missing_directory(path):
+        raise EchoLocError(f"{path}: {problem}")
+    if path.is_dir():
+        raise EchoLocError(f"{path}: is a directory")
+    if (path.exists() or path.is_symlink()) and not force:
+        raise EchoLocError(f"{path}: already exists; give --force to replace it")
+
+
 def missing_directory(path: Path) -> str | None:
     """Why ``path``'s directory cannot take a new file ("directory 'd' does not exist", or
     "'d' is not a directory" where a file stands), for an output's message; None when it can."""

@@ -26,7 +26,7 @@ from echoloc.cli.app import (
     stderr,
 )
 from echoloc.cli.basics import _class_cells, _object_cells
-from echoloc.errors import EchoLocError, missing_directory
+from echoloc.errors import EchoLocError, refuse_new_output
 from echoloc.io.head import is_head_file, load_head, read_geometry
 from echoloc.io.output import json_line, objects_record
 from echoloc.io.recording import Recording, read_recording
@@ -436,12 +436,7 @@ def _check_mcap_path(path: Path, *, force: bool) -> None:
     that exists unless ``force``."""
     if path.suffix.lower() != ".mcap":
         raise EchoLocError(f"{path}: --mcap writes an .mcap file, not {path.suffix or 'no extension'!r}")
-    if problem := missing_directory(path):
-        raise EchoLocError(f"{path}: {problem}")
-    if path.is_dir():
-        raise EchoLocError(f"{path}: is a directory")
-    if (path.exists() or path.is_symlink()) and not force:
-        raise EchoLocError(f"{path}: already exists; give --force to replace it")
+    refuse_new_output(path, force=force)
 
 
 class _StreamPrinter:

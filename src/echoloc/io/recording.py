@@ -1273,6 +1273,10 @@ def _read_member(source: str, archive: zipfile.ZipFile, name: str) -> _AnyArray:
 _repair = repair_nonfinite  # read_recording's keyword shadows the function's name
 
 
+_READ_ERRORS = (OSError, ValueError, KeyError, TypeError, RuntimeError, EOFError, zipfile.BadZipFile)
+"""What reading a broken file raises besides RecordingError: each becomes one line naming the file."""
+
+
 def read_recording(path: str | os.PathLike[str], *, repair_nonfinite: bool = False) -> Recording:
     """Read and validate a recording file (``.h5``/``.hdf5`` or ``.npz``).
 
@@ -1310,15 +1314,7 @@ def read_recording(path: str | os.PathLike[str], *, repair_nonfinite: bool = Fal
             attrs, data = _load_npz(source, file)
     except RecordingError:
         raise
-    except (
-        OSError,
-        ValueError,
-        KeyError,
-        TypeError,
-        RuntimeError,
-        EOFError,
-        zipfile.BadZipFile,
-    ) as exc:
+    except _READ_ERRORS as exc:
         raise _error(source, f"cannot read as {kind}: {exc}") from exc
 
     rec = _build(source, attrs, data)
@@ -1693,15 +1689,7 @@ class RecordingParts(contextlib.AbstractContextManager["RecordingParts"]):
         except RecordingError:
             self.close()
             raise
-        except (
-            OSError,
-            ValueError,
-            KeyError,
-            TypeError,
-            RuntimeError,
-            EOFError,
-            zipfile.BadZipFile,
-        ) as exc:
+        except _READ_ERRORS as exc:
             self.close()
             raise _error(self.source, f"cannot read as {self._kind}: {exc}") from exc
         except BaseException:

@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from echoloc.errors import EchoLocError, missing_directory
+from echoloc.errors import EchoLocError, refuse_new_output
 from echoloc.io.recording import FrameBatch, Recording, append_recording_stream, as_header
 from echoloc.realtime.protocol import (
     KIND_END,
@@ -1260,12 +1260,7 @@ class Recorder:
         if suffix not in (".h5", ".hdf5"):
             why = ": a .npz is readable only once complete" if suffix == ".npz" else ""
             raise EchoLocError(f"{path}: a stream is recorded to HDF5 (.h5 or .hdf5){why}")
-        if problem := missing_directory(path):
-            raise EchoLocError(f"{path}: {problem}")
-        if path.is_dir():
-            raise EchoLocError(f"{path}: is a directory")
-        if (path.exists() or path.is_symlink()) and not force:
-            raise EchoLocError(f"{path}: already exists; give --force to replace it")
+        refuse_new_output(path, force=force)
 
     def __init__(
         self,
