@@ -35,10 +35,10 @@ from echoloc.localise.locate import (
 from echoloc.localise.reflector_kinds import classify_points, locate_with_classes
 from echoloc.physics.air import speed_of_sound_m_s
 from echoloc.tof.channel_health import (
-    ASSESS_FRAMES,
     ChannelHealth,
     ChannelWatch,
     assess_channels,
+    assessed_frames,
     clipped_samples,
     correct_frames,
     healthy,
@@ -307,9 +307,8 @@ def channel_watch(
     )
     if recording.n_frames == 0:  # a session header: assessed on its first frames as they come
         return watch()
-    picks = np.unique(np.linspace(0, recording.n_frames - 1, min(recording.n_frames, ASSESS_FRAMES)).round())
     health = assess_channels(
-        np.asarray(recording.frames)[picks.astype(int)],
+        np.asarray(recording.frames)[assessed_frames(recording.n_frames)],
         recording.signal_kind,
         min_receivers=min_receivers,
         ring_down_samples=ring_down,
@@ -352,12 +351,14 @@ def frame_objects(chain: Chain, echoes: FrameEchoes) -> FrameObjects:
 
 def combines_transmitters(chain: Chain) -> bool:
     """Whether frames of different transmitters are located together (sequential firing of several)."""
-    recording = chain.recording
-    return (
-        len(recording.transmitters_m) > 1
-        and recording.firing != "simultaneous"
-        and recording.frame_transmitter is not None
-    )
+    return recording_combines_transmitters(chain.recording, chain.recording.frame_transmitter)
+
+
+def recording_combines_transmitters(header: Recording, frame_transmitter: NDArray[np.int64] | None) -> bool:
+    """:func:`combines_transmitters` of a recording's ``header`` whose frames' transmitters are
+    ``frame_transmitter`` (read apart from the header when a file is read in parts)."""
+    several = len(header.transmitters_m) > 1
+    return several and header.firing != "simultaneous" and frame_transmitter is not None
 
 
 RUN_BATCH_FRAMES = 32

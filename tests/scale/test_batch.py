@@ -39,7 +39,7 @@ from echoloc.scale.batch import BatchJob, find_inputs, output_path, run_batch, t
 from echoloc.scale.cluster import open_client
 from echoloc.sim.scenefile import load_scene, preset_path
 from echoloc.sim.simulation import simulate
-from echoloc.tof.channel_health import ASSESS_FRAMES
+from echoloc.tof.channel_health import ASSESS_FRAMES, assessed_frames
 from echoloc.tof.envelope_peaks import RING_DOWN_FRAMES
 
 distributed = pytest.importorskip("distributed", reason="echoloc batch needs the cluster extra")
@@ -374,7 +374,7 @@ def test_a_failing_file_leaves_no_output_and_no_temporary(clients: dict[int, Any
     """A NaN sample late in a file, in a frame the channel check does not read: the file fails
     in its chunk, naming the sample as the serial reader does, and nothing of it stays."""
     n_frames = 100
-    late = max(set(range(n_frames)) - set(batch._assessed_frames(n_frames).tolist()))
+    late = max(set(range(n_frames)) - set(assessed_frames(n_frames).tolist()))
     path = tmp_path / "nan.h5"
     write_recording(simulate(load_scene(preset_path("random-1m3-six")), n_frames), path)
     with h5py.File(path, "r+") as file:

@@ -327,34 +327,19 @@ def _reporting(function: Callable[..., Any]) -> Callable[..., _Reported]:
     return task
 
 
-def _assessed_frames(n_frames: int) -> NDArray[np.intp]:
-    """The frames :func:`echoloc.pipeline.channel_watch` assesses a recording's channels on."""
-    from echoloc.tof.channel_health import ASSESS_FRAMES
-
-    picks = np.unique(np.linspace(0, n_frames - 1, min(n_frames, ASSESS_FRAMES)).round())
-    return picks.astype(np.intp)
-
-
-def _combines(header: Recording, frame_transmitter: NDArray[np.int64] | None) -> bool:
-    """Whether frames of different transmitters are located together
-    (:func:`echoloc.pipeline.combines_transmitters`)."""
-    return (
-        len(header.transmitters_m) > 1 and header.firing != "simultaneous" and frame_transmitter is not None
-    )
-
-
 @_reporting
 def _plan_task(path: str, job: BatchJob, template: Template | None) -> FilePlan:
     """Open the file, check it as the serial command would, and find what its chunks share."""
     from echoloc.cli.app import _frames_option
-    from echoloc.pipeline import check_locatable
+    from echoloc.pipeline import check_locatable, recording_combines_transmitters
+    from echoloc.tof.channel_health import assessed_frames
     from echoloc.tof.envelope_peaks import RING_DOWN_FRAMES, ring_down_samples
 
     parts = _parts(path, job.repair_nonfinite)
     header = parts.header
     n_frames = parts.n_frames
     frames = _frames_option(job.frames_text, n_frames)
-    assessed = replace(header, frames=parts.frames_at(_assessed_frames(n_frames).tolist()))
+    assessed = replace(header, frames=parts.frames_at(assessed_frames(n_frames).tolist()))
     _warn_dead(assessed)
     chain = job.settings.chain(assessed, template)
     if job.job == "evaluate" and parts.per_frame["truth_positions_m"] is None:
@@ -374,7 +359,8 @@ def _plan_task(path: str, job: BatchJob, template: Template | None) -> FilePlan:
     if job.job != "echoes" and job.settings.method == "backprojection":
         backprojection = _plan_backprojection(parts, assessed, chain, job.chunk_frames)
     fired = parts.per_frame["frame_transmitter"]
-    context = len(header.transmitters_m) - 1 if job.job != "echoes" and _combines(header, fired) else 0
+    combined = job.job != "echoes" and recording_combines_transmitters(header, fired)
+    context = len(header.transmitters_m) - 1 if combined else 0
     plan = FilePlan(
         source=path,
         n_frames=n_frames,

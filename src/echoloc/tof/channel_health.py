@@ -79,6 +79,14 @@ ASSESS_FRAMES = 64
 """Frames a recording or a live session's start is assessed on: 150 k samples a channel at
 4 x 2400, enough for the medians to settle (their spread is 1.25 sigma / sqrt(n))."""
 
+
+def assessed_frames(n_frames: int) -> NDArray[np.intp]:
+    """The frames a recording of ``n_frames`` frames has its channels assessed on: up to
+    :data:`ASSESS_FRAMES` spread evenly over it, the first and the last among them."""
+    picks = np.unique(np.linspace(0, n_frames - 1, min(n_frames, ASSESS_FRAMES)).round())
+    return picks.astype(np.intp)
+
+
 MAD_TO_SIGMA = 1.482602218505602
 """Median absolute deviation to the standard deviation of Gaussian noise: 1 / Phi^-1(3/4)."""
 
