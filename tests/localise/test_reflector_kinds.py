@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from echoloc.cli.commands import main
 from echoloc.io.output import objects_record
@@ -349,3 +351,91 @@ def test_a_ghost_built_on_an_echo_a_real_object_took_is_explained_away() -> None
         assert (ghost in kept) is stays
         assert ball_a in kept
         assert ball_b in kept
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v)
+
+
+def _mirrored(point: np.ndarray, foot: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    return point - 2 * ((point - foot) @ normal) * normal
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.floats(-50.0, 50.0),
+    st.floats(-20.0, 20.0),
+    st.floats(0.6, 3.0),
+    st.tuples(st.floats(-0.2, 0.2), st.floats(-0.2, 0.2), st.floats(-0.05, 0.05)),
+)
+def test_one_image_fixes_what_another_transmitter_hears(
+    azimuth_deg: float, elevation_deg: float, distance_m: float, second: tuple[float, float, float]
+) -> None:
+    """Kleeman and Kuc's test in closed form. A plane's image of one transmitter makes the plane
+    (the bisector of transmitter and image), so another transmitter hears its own mirror image.
+    A vertical corner's image is where its two walls' mirrors put the transmitter, one after
+    the other; another transmitter hears the same two mirrors' image of itself. A point stays
+    put."""
+    from echoloc.localise import reflector_kinds
+
+    az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
+    toward = np.array([math.sin(az) * math.cos(el), math.sin(el), math.cos(az) * math.cos(el)])
+    t0, t1 = np.zeros(3), np.array(second)
+    rx = np.array([[0.25, 0, 0], [-0.25, 0, 0], [0, 0.25, 0], [0, -0.25, 0]])
+    vertical = (0.0, 1.0, 0.0)
+
+    # A plane with its foot at distance_m along `toward`, normal towards the sensor.
+    foot = distance_m * toward
+    image = _mirrored(t0, foot, -toward)
+    point = np.array([0.1, -0.2, 1.0])
+    predicted = reflector_kinds._predicted_elsewhere(image, point, t0, t1, rx, vertical)
+    np.testing.assert_allclose(predicted["plane"], np.linalg.norm(_mirrored(t1, foot, -toward) - rx, axis=1))
+    np.testing.assert_allclose(
+        predicted["point"], np.linalg.norm(point - t1) + np.linalg.norm(point - rx, axis=1)
+    )
+
+    # A vertical corner whose edge passes through the foot of the horizontal direction: walls at
+    # +-45 degrees to the line of sight, both through the edge.
+    flat = _unit(np.array([toward[0], 0.0, toward[2]]))
+    edge = distance_m * flat
+    across = np.cross([0.0, 1.0, 0.0], flat)
+    normal_a, normal_b = _unit(-flat + across), _unit(-flat - across)
+    twice = _mirrored(_mirrored(t0, edge, normal_a), edge, normal_b)
+    predicted = reflector_kinds._predicted_elsewhere(twice, point, t0, t1, rx, vertical)
+    expected = _mirrored(_mirrored(t1, edge, normal_a), edge, normal_b)
+    np.testing.assert_allclose(predicted["corner"], np.linalg.norm(expected - rx, axis=1), atol=1e-12)
+
+
+def test_walls_whose_echoes_merge_with_double_reflections_are_planes() -> None:
+    """The doorway with two transmitters: the wall beside the door and the far wall echo within
+    millimetres of their double reflections via the jambs, whose peaks merge with theirs. Once
+    both transmitters have fired, each wall heard is a plane whichever fired last (the class does
+    not depend on the order), its normal within 0.5 degree and its distance within 2 mm of the
+    newest transmitter's; the jambs are points. Without the robust cross-check of the other
+    transmitter's echoes the walls stay points on the newest frame's echoes in most frames."""
+    recording = simulate(_with_transmitters(load_scene(preset_path("rooms/doorway")), 2), 7)
+    assert recording.truth_positions_m is not None
+    assert recording.truth_kinds is not None
+    assert recording.frame_transmitter is not None
+    fired = recording.transmitters_m[recording.frame_transmitter]
+    normal = np.array([-0.342, 0.0, 0.9397])  # the doorway's walls, towards the sensor
+    normal /= -np.linalg.norm(normal)
+    planes = 0
+    for frame in _located(recording)[1:]:
+        truth = recording.truth_positions_m[frame.frame]
+        for row, kind in enumerate(recording.truth_kinds):
+            if not np.all(np.isfinite(truth[row])):
+                continue
+            distance, found = _nearest(frame, truth[row])
+            assert distance < 5e-3
+            assert found.surface is not None
+            assert found.surface.kind == kind
+            if kind == "plane":
+                planes += 1
+                assert found.surface.normal is not None
+                assert found.surface.distance_m is not None
+                cosine = min(1.0, float(found.surface.normal @ normal))
+                assert math.degrees(math.acos(cosine)) < 0.5
+                expected = float(np.linalg.norm(truth[row] - fired[frame.frame]))
+                assert found.surface.distance_m == pytest.approx(expected, abs=2e-3)
+    assert planes == 12  # two walls heard in each of six frames

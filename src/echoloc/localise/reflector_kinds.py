@@ -75,6 +75,18 @@ MIRROR_CANDIDATE = 0.05
 """A point found on one transmitter's echoes whose plane probability is at least this is tried
 as a mirror with the other transmitters' echoes (where one transmitter cannot tell them apart)."""
 
+CROSS_CHECK_SIGMAS = 3.0
+"""How far (in merged-peak sigmas, :func:`echoloc.localise.locate._merge_sigma`) another
+transmitter's echo may lie from where a plane, corner or point predicts it and still confirm it."""
+
+MERGED_PRIOR = 0.1
+"""Prior probability that an echo is a merged peak, for :func:`_robust_object`'s mixture."""
+
+MISSED_PRICE = CROSS_CHECK_SIGMAS**2 + 2 * math.log(9.0 * (1 - MERGED_PRIOR) / MERGED_PRIOR)
+"""What a channel of another transmitter costs a hypothesis when it holds no echo within reach of
+its prediction: as much as an echo at the edge of the reach that was called merged (a merged
+peak's sigma about 9 times a clean echo's)."""
+
 MAX_COMBINATIONS = 200_000
 """Most echo combinations one transmitter's mirror search weighs; beyond, the frame's mirror
 search stops at this many (the point association still runs)."""
@@ -570,6 +582,8 @@ def locate_with_classes(
         points.objects, frames, newest_t, transmitters_m, receivers_m, options, alternatives
     )
     objects = _explained_away(objects, frames, transmitters_m, receivers_m, options, alternatives)
+    if len(frames) > 1:
+        objects = _cross_checked(objects, frames, newest_t, transmitters_m, receivers_m, options)
 
     # The echoes no object took may still hold planes and corners the point association cannot fit.
     # With several transmitters, the other frames' mirror groups may also be the other half of
@@ -619,6 +633,319 @@ def locate_with_classes(
     if len(frames) > 1:
         real = [o for o in real if _seen_by_others(o, frames, newest_t, transmitters_m, receivers_m)]
     return FrameObjects(points.frame, points.time_s, tuple(real))
+
+
+def _predicted_elsewhere(
+    image_m: FloatArray,
+    point_m: FloatArray,
+    newest_m: FloatArray,
+    transmitter_m: FloatArray,
+    receivers_m: FloatArray,
+    edge_axis: tuple[float, float, float] | None,
+) -> dict[str, FloatArray]:
+    """The paths (m) another transmitter at ``transmitter_m`` would hear on ``receivers_m`` (m, 3)
+    from what one transmitter at ``newest_m`` heard as the image ``image_m`` or the point
+    ``point_m``: as that point, as the plane that makes the image (the bisector of transmitter and
+    image), and as a corner whose edge crosses the image's midpoint along ``edge_axis`` (made
+    perpendicular to the image's direction; no corner without an axis). Kleeman and Kuc's test:
+    one image fixes a plane, and, with the edge's direction, a corner; a point stays put."""
+    tx = np.broadcast_to(transmitter_m, receivers_m.shape)
+    feet = (0.5 * (image_m - newest_m))[None]
+    predicted = {
+        "point": surfaces.point_paths_m(point_m[None], tx, receivers_m)[0],
+        "plane": surfaces.plane_paths_m(feet, tx, receivers_m, newest_m)[0],
+    }
+    if edge_axis is not None:
+        u = feet[0] / np.linalg.norm(feet[0])
+        e = np.asarray(edge_axis, dtype=float)
+        e = e - (e @ u) * u
+        if np.linalg.norm(e) > 1e-6:
+            e = e / np.linalg.norm(e)
+            g = newest_m + feet[0]
+            image = 2 * (g + ((transmitter_m - g) @ e) * e) - transmitter_m
+            predicted["corner"] = np.linalg.norm(image - receivers_m, axis=1)
+    return predicted
+
+
+def _cross_checked(
+    objects: list[LocatedObject],
+    frames: Sequence[tuple[int, FrameEchoes]],
+    newest_t: int,
+    transmitters_m: FloatArray,
+    receivers_m: FloatArray,
+    options: LocateOptions,
+) -> list[LocatedObject]:
+    """``objects``, each point the other transmitters hear as a plane or corner refitted as such
+    (:func:`_cross_check`); nothing changes with one transmitter position."""
+    distinct = {tuple(np.round(transmitters_m[t], 9)) for t, _ in frames}
+    if len(distinct) < 2 or options.resolution_m is None:
+        return objects
+    return [
+        o
+        if o.surface is not None and o.surface.kind != "point"
+        else _cross_check(o, frames, newest_t, transmitters_m, receivers_m, options)
+        for o in objects
+    ]
+
+
+def _cross_check(
+    o: LocatedObject,
+    frames: Sequence[tuple[int, FrameEchoes]],
+    newest_t: int,
+    transmitters_m: FloatArray,
+    receivers_m: FloatArray,
+    options: LocateOptions,
+) -> LocatedObject:
+    """A point of the newest frame, or the plane or corner the other transmitters' echoes say it is.
+
+    Its newest-frame echoes (four or more) fix an image and a point; where the other
+    transmitters hear a point, a plane or a corner follows from them (:func:`_predicted_elsewhere`).
+    Each hypothesis takes, on every other channel, the echo nearest its prediction within
+    :data:`CROSS_CHECK_SIGMAS` merged-peak sigmas (a wall's echo merges with its own double
+    reflections, which moves the peak by millimetres); a channel with none costs it
+    :data:`MISSED_PRICE`. Each is then fitted on its own echoes, merged peaks allowed
+    (:func:`_robust_hypotheses`), with Schwarz's penalty. A plane or corner (confirmed by three
+    or more echoes) replaces the point when it scores :data:`DECISIVE_CHI2` better and its fit
+    passes the chi-square gate.
+    """
+    tx_of = _channel_transmitters(o, frames)
+    own = [k for k, t in enumerate(tx_of) if t == newest_t]
+    if len(own) < 4:
+        return o
+    assert options.resolution_m is not None
+    merge = _merge_sigma(options.resolution_m)
+    newest_m = transmitters_m[newest_t]
+    paths, sigmas = _group_paths(o, tx_of, frames, options)
+    base = _Channels(
+        transmitters_m[[newest_t] * len(own)],
+        receivers_m[[o.receivers[k] for k in own]],
+        paths[own],
+        sigmas[own],
+        (newest_t,) * len(own),
+        tuple(o.receivers[k] for k in own),
+        tuple(o.echo_indices[k] for k in own),
+    )
+    sources = _image_and_point(base, o.position_m, np.sqrt(base.sigmas_m**2 + merge**2), options)
+    if sources is None:
+        return o
+    image, point = sources
+    hits = _nearest_echoes(image, point, frames, newest_t, transmitters_m, receivers_m, options, merge)
+    n_other = sum(len(echoes.channels) for t, echoes in frames if t != newest_t)
+    start_m = newest_m + 0.5 * (image - newest_m)
+    scores = np.full(len(surfaces.KINDS), np.inf)
+    fits: list[tuple[_Channels, _RobustFit] | None] = [None] * len(surfaces.KINDS)
+    for k, kind in enumerate(surfaces.KINDS):
+        extra = hits.get(kind, [])
+        if kind != "point" and len(extra) < 3:
+            continue
+        group = _with_echoes(base, extra, dict(frames), transmitters_m, receivers_m, options)
+        robust = _robust_hypotheses(group, newest_m, start_m, merge, options)
+        penalty = surfaces.PARAMETERS[kind] * math.log(len(own) + n_other)
+        scores[k] = robust.priced[k] + MISSED_PRICE * (n_other - len(extra)) + penalty
+        fits[k] = (group, robust)
+    best = int(np.argmin(scores))
+    entry = fits[best]
+    if best == 0 or entry is None or scores[0] - scores[best] < DECISIVE_CHI2:
+        return o
+    group, robust = entry
+    dof = len(group.paths_m) - surfaces.PARAMETERS[surfaces.KINDS[best]]
+    if robust.chi2[best] > _chi2_gate(options.gate_probability, dof):
+        return o
+    return replace(_robust_object(group, robust, best, scores, newest_m), score=o.score)
+
+
+def _image_and_point(
+    group: _Channels, near_m: FloatArray, sigmas_m: FloatArray, options: LocateOptions
+) -> tuple[FloatArray, FloatArray] | None:
+    """The image and the point (m) that fit one transmitter's echo group (sigmas ``sigmas_m``), the
+    point started at ``near_m``; None when the image is not ahead of the transmitter."""
+    boresight = np.asarray(options.boresight, dtype=float)
+    boresight = boresight / np.linalg.norm(boresight)
+    tx, rx, paths = group.transmitters_m, group.receivers_m, group.paths_m[None]
+    start = surfaces.image_start_m(rx, paths, boresight)
+    image = surfaces.fit(
+        _image_model(rx), start, paths, sigmas_m[None], jacobian=surfaces.mirror_jacobian(rx)
+    ).parameters[0]
+    if not (np.all(np.isfinite(image)) and (image - tx[0]) @ boresight > 0):
+        return None
+    point = surfaces.fit(
+        lambda p: surfaces.point_paths_m(p, tx, rx),
+        near_m[None],
+        paths,
+        sigmas_m[None],
+        jacobian=lambda p: surfaces.point_jacobian(p, tx, rx),
+    ).parameters[0]
+    return image, point
+
+
+def _nearest_echoes(
+    image_m: FloatArray,
+    point_m: FloatArray,
+    frames: Sequence[tuple[int, FrameEchoes]],
+    newest_t: int,
+    transmitters_m: FloatArray,
+    receivers_m: FloatArray,
+    options: LocateOptions,
+    merge: float,
+) -> dict[str, list[tuple[int, int, int]]]:
+    """For each hypothesis, the (transmitter, receiver, echo) of the other frames' echoes nearest
+    its prediction (:func:`_predicted_elsewhere`), where within :data:`CROSS_CHECK_SIGMAS` ``merge``."""
+    reach = CROSS_CHECK_SIGMAS * merge
+    newest_m = transmitters_m[newest_t]
+    hits: dict[str, list[tuple[int, int, int]]] = {}
+    for t, echoes in frames:
+        if t == newest_t:
+            continue
+        c = echoes.speed_of_sound_m_s
+        predictions = _predicted_elsewhere(
+            image_m, point_m, newest_m, transmitters_m[t], receivers_m, options.edge_axis
+        )
+        for kind, predicted in predictions.items():
+            for r, ch in enumerate(echoes.channels):
+                if len(ch.tof_s) == 0 or not np.isfinite(predicted[r]):
+                    continue
+                gap = np.abs(ch.tof_s * c - predicted[r])
+                e = int(np.argmin(gap))
+                if gap[e] <= reach:
+                    hits.setdefault(kind, []).append((t, r, e))
+    return hits
+
+
+def _hypothesis_paths(
+    found: surfaces.Hypotheses, kind: str, group: _Channels, reference_m: FloatArray
+) -> FloatArray:
+    """The paths (m) the fit of ``kind`` in ``found`` (one row) predicts on the group's channels."""
+    tx, rx = group.transmitters_m, group.receivers_m
+    if kind == "point":
+        paths = surfaces.point_paths_m(found.point.parameters, tx, rx)
+    elif kind == "plane":
+        paths = surfaces.plane_paths_m(found.plane.parameters, tx, rx, reference_m)
+    else:
+        assert found.corner is not None
+        assert found.corner_helper is not None
+        images = surfaces.corner_images_m(found.corner.parameters, tx, reference_m, found.corner_helper)
+        paths = surfaces.mirror_paths_images(images, rx)
+    return np.asarray(paths[0], dtype=float)
+
+
+class _RobustFit(NamedTuple):
+    """The three hypotheses of one echo group under :func:`_robust_hypotheses`: chi-squares with the
+    price of the echoes called merged (for the class), without it (for the gate), and each
+    hypothesis's refit (None where not fitted)."""
+
+    priced: FloatArray
+    chi2: FloatArray
+    refits: list[surfaces.Hypotheses | None]
+
+
+def _robust_hypotheses(
+    group: _Channels, reference_m: FloatArray, start_m: FloatArray, merge: float, options: LocateOptions
+) -> _RobustFit:
+    """Fit the point, plane and corner to an echo group some of whose echoes may be merged peaks.
+
+    Each echo is either clean (its own sigma) or merged with another (its sigma widened by a
+    merged peak's ``merge``): a two-component mixture. Every hypothesis is fitted first with all
+    sigmas widened, then again with only the echoes it misses by more than three plain sigmas
+    widened; each widened echo costs ``2 ln((sigma_merged / sigma) (1 - p) / p)``, the mixture's
+    price of calling it merged (p = :data:`MERGED_PRIOR`).
+    """
+    plain = group.sigmas_m
+    widened = np.sqrt(plain**2 + merge**2)
+    price = 2 * np.log(widened / plain * (1 - MERGED_PRIOR) / MERGED_PRIOR)
+
+    def fitted(sigmas: FloatArray) -> surfaces.Hypotheses:
+        return surfaces.hypotheses(
+            group.transmitters_m,
+            group.receivers_m,
+            group.paths_m[None],
+            sigmas[None],
+            reference_m,
+            start_m[None],
+            options.gate_probability,
+        )
+
+    first = fitted(widened)
+    priced = np.full(len(surfaces.KINDS), np.inf)
+    chi2 = np.full(len(surfaces.KINDS), np.inf)
+    refits: list[surfaces.Hypotheses | None] = [None] * len(surfaces.KINDS)
+    for k, kind in enumerate(surfaces.KINDS):
+        if not np.isfinite(first.chi2[0, k]):
+            continue
+        loose = np.abs(group.paths_m - _hypothesis_paths(first, kind, group, reference_m)) > 3 * plain
+        again = fitted(np.where(loose, widened, plain))
+        if not np.isfinite(again.chi2[0, k]):
+            continue
+        chi2[k] = float(again.chi2[0, k])
+        priced[k] = chi2[k] + float(np.sum(price[loose]))
+        refits[k] = again
+    return _RobustFit(priced, chi2, refits)
+
+
+def _with_echoes(
+    group: _Channels,
+    extra: Sequence[tuple[int, int, int]],
+    by_tx: dict[int, FrameEchoes],
+    transmitters_m: FloatArray,
+    receivers_m: FloatArray,
+    options: LocateOptions,
+) -> _Channels:
+    """``group`` with the echoes ``extra`` (transmitter, receiver, echo index) added."""
+    if not extra:
+        return group
+    paths, sigmas = [], []
+    for t, r, e in extra:
+        ch, c = by_tx[t].channels[r], by_tx[t].speed_of_sound_m_s
+        paths.append(ch.tof_s[e] * c)
+        sigmas.append(float(path_sigmas_m(ch.snr_db[e : e + 1], c, options)[0]))
+    return _Channels(
+        np.vstack([group.transmitters_m, transmitters_m[[t for t, _, _ in extra]]]),
+        np.vstack([group.receivers_m, receivers_m[[r for _, r, _ in extra]]]),
+        np.concatenate([group.paths_m, paths]),
+        np.concatenate([group.sigmas_m, sigmas]),
+        group.transmitters + tuple(t for t, _, _ in extra),
+        group.receivers + tuple(r for _, r, _ in extra),
+        group.echoes + tuple(e for _, _, e in extra),
+    )
+
+
+def _robust_object(
+    group: _Channels, robust: _RobustFit, kind: int, scores: FloatArray, reference_m: FloatArray
+) -> LocatedObject:
+    """The object hypothesis ``kind`` (an index into :data:`echoloc.localise.surfaces.KINDS`) makes of
+    ``group``, with class probabilities from the hypotheses' ``scores`` (chi-squares with their
+    prices and Schwarz's penalties, each on its own echoes)."""
+    refit = robust.refits[kind]
+    assert refit is not None
+    finite = np.isfinite(scores)
+    weights = np.where(finite, np.exp(-0.5 * (scores - scores[kind])), 0.0)
+    probability = (weights / weights.sum())[None]
+    # describe() reports the likeliest class of its Hypotheses: this one, with these probabilities.
+    chi2 = np.where(finite, scores, np.inf)[None]
+    found = replace(refit, chi2=chi2, probability=probability)
+    surface, position, covariance = surfaces.describe(
+        found, 0, group.transmitters_m, group.receivers_m, reference_m
+    )
+    dof = len(group.paths_m) - surfaces.PARAMETERS[surface.kind]
+    fit_chi2 = float(robust.chi2[kind])
+    return LocatedObject(
+        position_m=np.asarray(position, dtype=float),
+        covariance_m2=np.asarray(covariance, dtype=float),
+        receivers=group.receivers,
+        echo_indices=group.echoes,
+        chi2=fit_chi2,
+        score=chi2_tail(dof, fit_chi2) if dof > 0 else 1.0,
+        transmitters=group.transmitters,
+        surface=surface,
+    )
+
+
+def _image_model(receivers: FloatArray) -> Callable[[FloatArray], FloatArray]:
+    """One-way paths from images (n, 3) to ``receivers`` (m, 3), for :func:`surfaces.fit`."""
+
+    def model(images: FloatArray) -> FloatArray:
+        return surfaces.mirror_paths_m(images, receivers)
+
+    return model
 
 
 def _seen_by_others(
