@@ -439,3 +439,38 @@ def test_walls_whose_echoes_merge_with_double_reflections_are_planes() -> None:
                 expected = float(np.linalg.norm(truth[row] - fired[frame.frame]))
                 assert found.surface.distance_m == pytest.approx(expected, abs=2e-3)
     assert planes == 12  # two walls heard in each of six frames
+
+
+@pytest.mark.parametrize("kind", ["point", "plane"])
+def test_a_merged_peak_costs_its_price_not_the_class(kind: str) -> None:
+    """Eight exact paths of a point or a plane (two transmitters, four receivers), one of them moved
+    4 mm as a merged peak moves it: the robust fit calls that echo merged, and only that one,
+    keeps the true class decisively, and fits the other seven to within 0.1 mm."""
+    from echoloc.localise import reflector_kinds, surfaces
+
+    tx = np.array([[0.0, 0.0, 0.0]] * 4 + [[0.12, 0.12, 0.0]] * 4)
+    rx = np.array([[0.25, 0, 0], [-0.25, 0, 0], [0, 0.25, 0], [0, -0.25, 0]] * 2)
+    reference = tx[0]
+    where = np.array([0.3, 0.05, 1.6])
+    if kind == "point":
+        paths = surfaces.point_paths_m(where[None], tx, rx)[0]
+    else:
+        paths = surfaces.plane_paths_m(where[None], tx, rx, reference)[0]
+    moved = paths.copy()
+    moved[5] += 0.004
+    sigmas = np.full(8, 6e-4)
+    group = reflector_kinds._Channels(tx, rx, moved, sigmas, (0,) * 4 + (1,) * 4, (0, 1, 2, 3) * 2, (0,) * 8)
+    options = prepare(simulate(load_scene(preset_path("rooms/corridor")), 1)).locate_options
+    merge = reflector_kinds._merge_sigma(0.029)
+    robust = reflector_kinds._robust_hypotheses(group, reference, where, merge, options)
+    k = surfaces.KINDS.index(kind)
+    widened = math.sqrt(6e-4**2 + merge**2)
+    price = 2 * math.log(widened / 6e-4 * (1 - reflector_kinds.MERGED_PRIOR) / reflector_kinds.MERGED_PRIOR)
+    assert robust.priced[k] - robust.chi2[k] == pytest.approx(price)  # one echo called merged
+    others = [j for j in range(len(surfaces.KINDS)) if j != k and np.isfinite(robust.priced[j])]
+    assert others
+    assert all(robust.priced[j] - robust.priced[k] > reflector_kinds.DECISIVE_CHI2 for j in others)
+    refit = robust.refits[k]
+    assert refit is not None
+    residual = reflector_kinds._hypothesis_paths(refit, kind, group, reference) - paths
+    assert np.max(np.abs(np.delete(residual, 5))) < 1e-4  # it still weighs 1/50 of a clean echo

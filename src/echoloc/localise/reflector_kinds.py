@@ -82,6 +82,9 @@ transmitter's echo may lie from where a plane, corner or point predicts it and s
 MERGED_PRIOR = 0.1
 """Prior probability that an echo is a merged peak, for :func:`_robust_object`'s mixture."""
 
+_ROBUST_ROUNDS = 2
+"""Refits of :func:`_robust_hypotheses` after the first that may call more echoes merged."""
+
 MISSED_PRICE = CROSS_CHECK_SIGMAS**2 + 2 * math.log(9.0 * (1 - MERGED_PRIOR) / MERGED_PRIOR)
 """What a channel of another transmitter costs a hypothesis when it holds no echo within reach of
 its prediction: as much as an echo at the edge of the reach that was called merged (a merged
@@ -846,7 +849,8 @@ def _robust_hypotheses(
     Each echo is either clean (its own sigma) or merged with another (its sigma widened by a
     merged peak's ``merge``): a two-component mixture. Every hypothesis is fitted first with all
     sigmas widened, then again with only the echoes it misses by more than three plain sigmas
-    widened; each widened echo costs ``2 ln((sigma_merged / sigma) (1 - p) / p)``, the mixture's
+    widened (again while the refit misses more, :data:`_ROBUST_ROUNDS` times at most); each
+    widened echo costs ``2 ln((sigma_merged / sigma) (1 - p) / p)``, the mixture's
     price of calling it merged (p = :data:`MERGED_PRIOR`).
     """
     plain = group.sigmas_m
@@ -862,6 +866,7 @@ def _robust_hypotheses(
             reference_m,
             start_m[None],
             options.gate_probability,
+            corner_always=True,
         )
 
     first = fitted(widened)
@@ -873,6 +878,14 @@ def _robust_hypotheses(
             continue
         loose = np.abs(group.paths_m - _hypothesis_paths(first, kind, group, reference_m)) > 3 * plain
         again = fitted(np.where(loose, widened, plain))
+        for _ in range(_ROBUST_ROUNDS):
+            if not np.isfinite(again.chi2[0, k]):
+                break
+            missed = np.abs(group.paths_m - _hypothesis_paths(again, kind, group, reference_m)) > 3 * plain
+            if not np.any(missed & ~loose):
+                break
+            loose |= missed
+            again = fitted(np.where(loose, widened, plain))
         if not np.isfinite(again.chi2[0, k]):
             continue
         chi2[k] = float(again.chi2[0, k])
