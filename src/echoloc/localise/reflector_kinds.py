@@ -733,6 +733,8 @@ def _cross_check(
         return o
     image, point = sources
     hits = _nearest_echoes(image, point, frames, newest_t, transmitters_m, receivers_m, options, merge)
+    if all(len(hits.get(kind, [])) < 3 for kind in ("plane", "corner")):
+        return o
     n_other = sum(len(echoes.channels) for t, echoes in frames if t != newest_t)
     start_m = newest_m + 0.5 * (image - newest_m)
     scores = np.full(len(surfaces.KINDS), np.inf)
@@ -742,7 +744,7 @@ def _cross_check(
         if kind != "point" and len(extra) < 3:
             continue
         group = _with_echoes(base, extra, dict(frames), transmitters_m, receivers_m, options)
-        robust = _robust_hypotheses(group, newest_m, start_m, merge, options)
+        robust = _robust_hypotheses(group, newest_m, start_m, merge, options, (kind,))
         penalty = surfaces.PARAMETERS[kind] * math.log(len(own) + n_other)
         scores[k] = robust.priced[k] + MISSED_PRICE * (n_other - len(extra)) + penalty
         fits[k] = (group, robust)
@@ -842,7 +844,12 @@ class _RobustFit(NamedTuple):
 
 
 def _robust_hypotheses(
-    group: _Channels, reference_m: FloatArray, start_m: FloatArray, merge: float, options: LocateOptions
+    group: _Channels,
+    reference_m: FloatArray,
+    start_m: FloatArray,
+    merge: float,
+    options: LocateOptions,
+    kinds: Sequence[str] = surfaces.KINDS,
 ) -> _RobustFit:
     """Fit the point, plane and corner to an echo group some of whose echoes may be merged peaks.
 
@@ -851,7 +858,8 @@ def _robust_hypotheses(
     sigmas widened, then again with only the echoes it misses by more than three plain sigmas
     widened (again while the refit misses more, :data:`_ROBUST_ROUNDS` times at most); each
     widened echo costs ``2 ln((sigma_merged / sigma) (1 - p) / p)``, the mixture's
-    price of calling it merged (p = :data:`MERGED_PRIOR`).
+    price of calling it merged (p = :data:`MERGED_PRIOR`). Only ``kinds`` are scored (the corner,
+    the costliest fit, only when asked).
     """
     plain = group.sigmas_m
     widened = np.sqrt(plain**2 + merge**2)
@@ -866,7 +874,7 @@ def _robust_hypotheses(
             reference_m,
             start_m[None],
             options.gate_probability,
-            corner_always=True,
+            corner_mode="always" if "corner" in kinds else "never",
         )
 
     first = fitted(widened)
@@ -874,7 +882,7 @@ def _robust_hypotheses(
     chi2 = np.full(len(surfaces.KINDS), np.inf)
     refits: list[surfaces.Hypotheses | None] = [None] * len(surfaces.KINDS)
     for k, kind in enumerate(surfaces.KINDS):
-        if not np.isfinite(first.chi2[0, k]):
+        if kind not in kinds or not np.isfinite(first.chi2[0, k]):
             continue
         loose = np.abs(group.paths_m - _hypothesis_paths(first, kind, group, reference_m)) > 3 * plain
         again = fitted(np.where(loose, widened, plain))

@@ -458,7 +458,7 @@ def hypotheses(
     start_m: FloatArray,
     gate_probability: float = 0.999,
     *,
-    corner_always: bool = False,
+    corner_mode: str = "auto",
 ) -> Hypotheses:
     """Fit the three hypotheses to echo groups (n, m) on channels ``transmitters_m``,
     ``receivers_m`` (m, 3), m.
@@ -469,7 +469,8 @@ def hypotheses(
     channels hold two or more transmitters (with one it is the plane's twin) and
     neither the point nor the plane fits within the chi-square gate of
     ``gate_probability`` (a corner is the hypothesis of last resort: it has the most
-    parameters), or, with ``corner_always``, whenever two or more transmitters can tell it.
+    parameters); ``corner_mode="always"`` fits it whenever two or more transmitters can tell it,
+    ``"never"`` not at all.
     """
     tx = np.asarray(transmitters_m, dtype=float)
     rx = np.asarray(receivers_m, dtype=float)
@@ -506,9 +507,9 @@ def hypotheses(
     simple = np.minimum(point.chi2, plane.chi2) <= 2.0 * special.gammaincinv(
         np.maximum(n_paths - 3, 1) / 2, gate_probability
     )
-    if corner_always:
+    if corner_mode == "always":
         simple = np.zeros_like(simple)
-    if distinct_transmitters(tx) >= 2 and not np.all(simple):
+    if corner_mode != "never" and distinct_transmitters(tx) >= 2 and not np.all(simple):
         corner, helper = _fit_corner(tx, rx, ref, paths, sigmas, plane.parameters + ref)
         # A corner whose edge runs along the transmitters' baseline (projected on the plane)
         # makes the very images of a plane: where the two fits predict the same paths (within
