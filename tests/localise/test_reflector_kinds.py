@@ -24,6 +24,7 @@ from echoloc.sim.reflectors import Edge, Plane, PointReflector, corner, truth_ki
 from echoloc.sim.scene import Scene
 from echoloc.sim.scenefile import load_scene, preset_path
 from echoloc.sim.simulation import _objects, simulate
+from echoloc.tof.echoes import ChannelEchoes, FrameEchoes
 
 SECOND_TRANSMITTER_M = (0.12, 0.12, 0.0)
 
@@ -474,3 +475,68 @@ def test_a_merged_peak_costs_its_price_not_the_class(kind: str) -> None:
     assert refit is not None
     residual = reflector_kinds._hypothesis_paths(refit, kind, group, reference) - paths
     assert np.max(np.abs(np.delete(residual, 5))) < 1e-4  # it still weighs 1/50 of a clean echo
+
+
+def _frames_of(paths_by_tx: list[np.ndarray], c: float) -> list[tuple[int, FrameEchoes]]:
+    """Two frames (transmitter t fired frame t) whose channels hold the given paths (k, 4) sorted."""
+    frames = []
+    for t, paths in enumerate(paths_by_tx):
+        channels = []
+        for r in range(paths.shape[1]):
+            tof = np.sort(paths[:, r]) / c
+            channels.append(ChannelEchoes(tof, np.ones_like(tof), np.full_like(tof, 30.0)))
+        frames.append((t, FrameEchoes(t, 0.01 * t, c, tuple(channels))))
+    return frames
+
+
+@pytest.mark.parametrize("plane_first", [True, False])
+@pytest.mark.parametrize("ball", [(-0.2, 0.1, 0.9), (0.15, -0.05, 1.2), (-0.15, 0.2, 0.7)])
+def test_a_ball_seen_in_a_wall_never_heard_is_explained_by_that_wall(
+    ball: tuple[float, float, float], plane_first: bool
+) -> None:
+    """A ball 15 cm from a wall the array never hears itself (its foot lies off the wall): the
+    receivers hear the ball via the wall (wall first, or last) as if from the ball's mirror
+    image, which the point association takes for a point. Fitted as the ball's double reflection
+    via an unknown plane (both transmitters' echoes) it is explained away. A real point with the
+    same echoes on the newest frame, but its own on the other, is not."""
+    from echoloc.localise import reflector_kinds, surfaces
+
+    c = 343.0
+    tx = np.array([[0.0, 0.0, 0.0], [0.12, 0.12, 0.0]])
+    rx = np.array([[0.25, 0, 0], [-0.25, 0, 0], [0, 0.25, 0], [0, -0.25, 0]])
+    v = np.array(ball)
+    u = _unit(np.array([math.copysign(1.0, v[0]), 0.0, 0.0]))  # the wall beside the ball, beyond it
+    plane = (u @ v + 0.15) * u
+    ghost_paths, point_paths = [], []
+    for t in range(2):
+        channel_tx = np.broadcast_to(tx[t], rx.shape)
+        ghost_paths.append(
+            reflector_kinds.mirrored_paths_m(plane[None], v, channel_tx, rx, plane_first=plane_first)[0]
+        )
+        point_paths.append(surfaces.point_paths_m(v[None], channel_tx, rx)[0])
+    channel_tx = np.broadcast_to(tx[1], rx.shape)
+    start = 0.5 * (tx[1] + (v + 2 * (u @ plane / np.linalg.norm(plane) - u @ v) * u))
+    apparent = surfaces.fit(
+        lambda p: surfaces.point_paths_m(p, channel_tx, rx),
+        start[None],
+        ghost_paths[1][None],
+        np.full((1, 4), 1e-4),
+    ).parameters[0]
+    options = prepare(simulate(load_scene(preset_path("rooms/corridor")), 1)).locate_options
+
+    def located(position: np.ndarray, ghost: bool) -> LocatedObject:
+        # Each channel's echoes are sorted: the ghost is the later one unless it is shorter there.
+        later = ghost_paths[1] > point_paths[1]
+        index = tuple(int(k) for k in np.where(later == ghost, 1, 0))
+        return LocatedObject(position, np.eye(3) * 1e-6, (0, 1, 2, 3), index, 0.0, 1.0, (1, 1, 1, 1))
+
+    ball_object = located(v, False)
+    # The ghost's echoes on both frames, beside the ball's own.
+    frames = _frames_of([np.vstack([point_paths[t], ghost_paths[t]]) for t in range(2)], c)
+    ghost_object = located(apparent, True)
+    points = [ball_object, ghost_object]
+    assert reflector_kinds._unheard_mirror(ghost_object, points, frames, 1, tx, rx, options)
+    # A real point where the ghost seemed to be: its echoes on the older frame are its own.
+    real = surfaces.point_paths_m(apparent[None], np.broadcast_to(tx[0], rx.shape), rx)[0]
+    frames = _frames_of([np.vstack([point_paths[0], real]), np.vstack([point_paths[1], ghost_paths[1]])], c)
+    assert not reflector_kinds._unheard_mirror(ghost_object, points, frames, 1, tx, rx, options)

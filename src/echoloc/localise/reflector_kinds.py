@@ -635,6 +635,7 @@ def locate_with_classes(
     real = _explained_away(objects, frames, transmitters_m, receivers_m, options, alternatives)
     if len(frames) > 1:
         real = [o for o in real if _seen_by_others(o, frames, newest_t, transmitters_m, receivers_m)]
+        real = _without_unheard_mirrors(real, frames, newest_t, transmitters_m, receivers_m, options)
     return FrameObjects(points.frame, points.time_s, tuple(real))
 
 
@@ -967,6 +968,287 @@ def _image_model(receivers: FloatArray) -> Callable[[FloatArray], FloatArray]:
         return surfaces.mirror_paths_m(images, receivers)
 
     return model
+
+
+def mirrored_paths_m(
+    planes_m: FloatArray,
+    point_m: FloatArray,
+    transmitters_m: FloatArray,
+    receivers_m: FloatArray,
+    *,
+    plane_first: bool,
+) -> FloatArray:
+    """The double reflections of a point ``point_m`` via planes (n, 3), on channels (m, 3): (n, m), m.
+
+    A plane is ``{x: u.x = h}`` given as ``h u`` (its foot from the origin). Plane first
+    (transmitter -> plane -> point -> receiver) the path is ``|P - T'| + |P - R|`` with T' the
+    transmitter's image; plane last, ``|P - T| + |P - R'|`` (the image-source method, Allen and
+    Berkley 1979).
+    """
+    h = np.linalg.norm(planes_m, axis=1, keepdims=True)
+    u = planes_m / h
+
+    def mirrored(x: FloatArray) -> FloatArray:
+        return np.asarray(x[None] + 2 * (h - u @ x.T)[..., None] * u[:, None, :])
+
+    if plane_first:
+        return np.asarray(
+            np.linalg.norm(point_m - mirrored(transmitters_m), axis=-1)
+            + np.linalg.norm(point_m - receivers_m, axis=-1)
+        )
+    return np.asarray(
+        np.linalg.norm(point_m - transmitters_m, axis=-1)
+        + np.linalg.norm(point_m - mirrored(receivers_m), axis=-1)
+    )
+
+
+def _without_unheard_mirrors(
+    objects: list[LocatedObject],
+    frames: Sequence[tuple[int, FrameEchoes]],
+    newest_t: int,
+    transmitters_m: FloatArray,
+    receivers_m: FloatArray,
+    options: LocateOptions,
+) -> list[LocatedObject]:
+    """``objects`` less the points that are another point's double reflection via a wall never
+    heard itself (:func:`_unheard_mirror`); with one transmitter position nothing goes (a point at
+    the same range as another is then such a reflection of it for some plane)."""
+    distinct = {tuple(np.round(transmitters_m[t], 9)) for t, _ in frames}
+    if len(distinct) < 2 or options.resolution_m is None:
+        return objects
+    points = [o for o in objects if o.surface is None or o.surface.kind == "point"]
+    return [
+        o
+        for o in objects
+        if o not in points
+        or not _unheard_mirror(o, points, frames, newest_t, transmitters_m, receivers_m, options)
+    ]
+
+
+def _unheard_mirror(
+    o: LocatedObject,
+    points: Sequence[LocatedObject],
+    frames: Sequence[tuple[int, FrameEchoes]],
+    newest_t: int,
+    transmitters_m: FloatArray,
+    receivers_m: FloatArray,
+    options: LocateOptions,
+) -> bool:
+    """Whether a point is a nearer point's double reflection via a plane that made no echo of its own.
+
+    A wall whose foot lies outside it (or beyond the beam) is never heard, but the sound of a
+    ball beside it still reaches the receivers via the wall, as if from the ball's mirror image:
+    a point that fits no other reflector. Each nearer point V is tried as the reflector and the
+    object as its double reflection via a wall, first or last (:func:`_mirror_explains`), on the
+    newest frame's echoes and on the other transmitters' echoes where it predicts them.
+    """
+    tx_of = _channel_transmitters(o, frames)
+    own = [k for k, t in enumerate(tx_of) if t == newest_t]
+    if len(own) < 4:
+        return False
+    assert options.resolution_m is not None
+    merge = _merge_sigma(options.resolution_m)
+    paths, sigmas = _group_paths(o, tx_of, frames, options)
+    base = _Channels(
+        transmitters_m[[newest_t] * len(own)],
+        receivers_m[[o.receivers[k] for k in own]],
+        paths[own],
+        sigmas[own],
+        (newest_t,) * len(own),
+        tuple(o.receivers[k] for k in own),
+        tuple(o.echo_indices[k] for k in own),
+    )
+    mean_path = float(np.mean(base.paths_m))
+    for v in points:
+        if v is o:
+            continue
+        if (
+            np.mean(surfaces.point_paths_m(v.position_m[None], base.transmitters_m, base.receivers_m))
+            >= mean_path
+        ):
+            continue
+        if np.allclose(o.position_m, v.position_m):
+            continue
+        if _mirror_explains(
+            base,
+            o.position_m,
+            v.position_m,
+            frames,
+            newest_t,
+            transmitters_m,
+            receivers_m,
+            options,
+            merge,
+        ):
+            return True
+    return False
+
+
+def _point_fit(
+    near_m: FloatArray, paths_m: FloatArray, sigmas_m: FloatArray, tx: FloatArray, rx: FloatArray
+) -> surfaces.Fit:
+    """The point that best fits ``paths_m`` on channels (tx, rx), started at ``near_m``."""
+    return surfaces.fit(
+        lambda p: surfaces.point_paths_m(p, tx, rx),
+        near_m[None],
+        paths_m[None],
+        sigmas_m[None],
+        jacobian=lambda p: surfaces.point_jacobian(p, tx, rx),
+    )
+
+
+def _echoes_near(
+    predict: Callable[[FloatArray], FloatArray],
+    frames: Sequence[tuple[int, FrameEchoes]],
+    newest_t: int,
+    transmitters_m: FloatArray,
+    receivers_m: FloatArray,
+    reach_m: float,
+) -> list[tuple[int, int, int]]:
+    """The (transmitter, receiver, echo) of the older frames' echoes nearest any of the paths
+    ``predict(transmitters (m, 3))`` gives each receiver ((k, m): k alternatives), where within
+    ``reach_m``."""
+    found: list[tuple[int, int, int]] = []
+    for t, echoes in frames:
+        if t == newest_t:
+            continue
+        c = echoes.speed_of_sound_m_s
+        predicted = np.atleast_2d(predict(np.broadcast_to(transmitters_m[t], receivers_m.shape)))
+        for r, ch in enumerate(echoes.channels):
+            if len(ch.tof_s) == 0 or not np.any(np.isfinite(predicted[:, r])):
+                continue
+            gap = np.nanmin(np.abs(ch.tof_s[:, None] * c - predicted[None, :, r]), axis=1)
+            e = int(np.argmin(gap))
+            if gap[e] <= reach_m:
+                found.append((t, r, e))
+    return found
+
+
+def _mirror_explains(
+    base: _Channels,
+    ghost_m: FloatArray,
+    point_m: FloatArray,
+    frames: Sequence[tuple[int, FrameEchoes]],
+    newest_t: int,
+    transmitters_m: FloatArray,
+    receivers_m: FloatArray,
+    options: LocateOptions,
+    merge: float,
+) -> bool:
+    """Whether the newest frame's echoes ``base`` of an object located at ``ghost_m`` are the
+    double reflection of the point ``point_m`` (V) via one plane, wall first or last, and the other
+    frames hold its echoes too (:func:`_unheard_mirror`). Both orders have closed forms.
+
+    - Wall last (T -> V -> wall -> R): ``l_i - |V - T|`` is the distance from the receiver to V's
+      mirror image V', which trilaterates from four receivers; V' does not depend on the
+      transmitter, so every frame's echoes must lie at ``|V - T_t| + |V' - R_i|``.
+    - Wall first (T -> wall -> V -> R): ``l_i - |V - R_i|`` is ``|V - T'|``, one number per
+      transmitter, the same on every receiver: each frame's echoes must give one value on three or
+      more receivers.
+
+    Sigmas are widened by a merged peak's; the fit must pass the chi-square gate and beat a point
+    on the same echoes by :data:`DECISIVE_CHI2`.
+    """
+    sigma = np.sqrt(base.sigmas_m**2 + merge**2)
+    reach = CROSS_CHECK_SIGMAS * merge
+    to_receivers = np.linalg.norm(point_m - receivers_m, axis=1)
+    others = [(t, echoes) for t, echoes in frames if t != newest_t]
+    tx_newest = base.transmitters_m[0]
+    candidates: list[tuple[list[tuple[int, int, int]], bool]] = []  # (echoes, wall last)
+
+    # Wall last: V' from the newest frame, then the other frames' echoes where it puts them.
+    ranges = base.paths_m - np.linalg.norm(point_m - tx_newest)
+    boresight = np.asarray(options.boresight, dtype=float)
+    image = surfaces.fit(
+        _image_model(base.receivers_m),
+        surfaces.image_start_m(base.receivers_m, ranges[None], boresight / np.linalg.norm(boresight)),
+        ranges[None],
+        sigma[None],
+        jacobian=surfaces.mirror_jacobian(base.receivers_m),
+    )
+    v_image = image.parameters[0]
+    if np.all(np.isfinite(v_image)) and image.chi2[0] <= _chi2_gate(
+        options.gate_probability, len(ranges) - 3
+    ):
+        extra = _echoes_near(
+            lambda tx: np.linalg.norm(point_m - tx[0]) + np.linalg.norm(v_image - receivers_m, axis=1),
+            frames,
+            newest_t,
+            transmitters_m,
+            receivers_m,
+            reach,
+        )
+        if len(extra) >= 3 and np.linalg.norm(v_image - point_m) > 0:
+            candidates.append((extra, True))
+
+    # Wall first: one |V - T'| per frame, shared by the receivers.
+    first = base.paths_m - to_receivers[list(base.receivers)]
+    weights = 1 / sigma**2
+    d_newest = float(np.sum(weights * first) / np.sum(weights))
+    if d_newest > np.linalg.norm(point_m - tx_newest) + reach and np.sum(
+        weights * (first - d_newest) ** 2
+    ) <= _chi2_gate(options.gate_probability, len(first) - 1):
+        extra = []
+        for t, echoes in others:
+            c = echoes.speed_of_sound_m_s
+            # Longer than V's own echo, |V - T|: sound that went to the wall first.
+            direct = float(np.linalg.norm(point_m - transmitters_m[t]))
+            values = [
+                (r, e, float(ch.tof_s[e] * c - to_receivers[r]))
+                for r, ch in enumerate(echoes.channels)
+                for e in range(len(ch.tof_s))
+            ]
+            best: list[tuple[int, int, int]] = []
+            values = [(r, e, d) for r, e, d in values if d > direct + reach]
+            for _, _, d in values:
+                near: dict[int, tuple[int, float]] = {}
+                for r, e, other in values:
+                    if abs(other - d) <= reach and (r not in near or abs(other - d) < near[r][1]):
+                        near[r] = (e, abs(other - d))
+                if len(near) > len(best):
+                    best = [(t, r, e) for r, (e, _) in sorted(near.items())]
+            extra += best
+        if len(extra) >= 3:
+            candidates.append((extra, False))
+
+    by_tx = dict(frames)
+    for extra, wall_last in candidates:
+        group = _with_echoes(base, extra, by_tx, transmitters_m, receivers_m, options)
+        widened = np.sqrt(group.sigmas_m**2 + merge**2)
+        tx, rx = group.transmitters_m, group.receivers_m
+        to_tx = np.linalg.norm(point_m - tx, axis=1)
+        if wall_last:
+            # V' refitted on every channel; the wall (V and V''s bisector) must have the
+            # transducers on V's side.
+            ranges = group.paths_m - to_tx
+            refit = surfaces.fit(
+                _image_model(rx),
+                v_image[None],
+                ranges[None],
+                widened[None],
+                jacobian=surfaces.mirror_jacobian(rx),
+            )
+            ghost_chi2, dof = float(refit.chi2[0]), len(ranges) - 3
+            normal = refit.parameters[0] - point_m
+            u = normal / np.linalg.norm(normal)
+            h = float(u @ (0.5 * (refit.parameters[0] + point_m)))
+            if not np.all(np.vstack([transmitters_m, receivers_m]) @ u < h):
+                continue
+        else:
+            values = group.paths_m - np.linalg.norm(point_m - rx, axis=1)
+            ghost_chi2, dof = 0.0, len(values)
+            for t in set(group.transmitters):
+                mine = np.array([k == t for k in group.transmitters])
+                w = 1 / widened[mine] ** 2
+                d = float(np.sum(w * values[mine]) / np.sum(w))
+                ghost_chi2 += float(np.sum(w * (values[mine] - d) ** 2))
+                dof -= 1
+        if not ghost_chi2 <= _chi2_gate(options.gate_probability, dof):
+            continue
+        point = _point_fit(ghost_m, group.paths_m, widened, tx, rx)
+        if point.chi2[0] - ghost_chi2 >= DECISIVE_CHI2:
+            return True
+    return False
 
 
 def _seen_by_others(
