@@ -757,7 +757,7 @@ def _cross_check(
     dof = len(group.paths_m) - surfaces.PARAMETERS[surfaces.KINDS[best]]
     if robust.chi2[best] > _chi2_gate(options.gate_probability, dof):
         return o
-    return replace(_robust_object(group, robust, best, scores, newest_m), score=o.score)
+    return _robust_object(group, robust, best, scores, newest_m)
 
 
 def _image_and_point(
