@@ -770,18 +770,16 @@ def _image_and_point(
     tx, rx, paths = group.transmitters_m, group.receivers_m, group.paths_m[None]
     start = surfaces.image_start_m(rx, paths, boresight)
     image = surfaces.fit(
-        _image_model(rx), start, paths, sigmas_m[None], jacobian=surfaces.mirror_jacobian(rx)
+        _image_model(rx),
+        start,
+        paths,
+        sigmas_m[None],
+        jacobian=surfaces.mirror_jacobian(rx),
+        kernel=surfaces.CompiledModel(surfaces.IMAGE_MODEL, rx, rx),
     ).parameters[0]
     if not (np.all(np.isfinite(image)) and (image - tx[0]) @ boresight > 0):
         return None
-    point = surfaces.fit(
-        lambda p: surfaces.point_paths_m(p, tx, rx),
-        near_m[None],
-        paths,
-        sigmas_m[None],
-        jacobian=lambda p: surfaces.point_jacobian(p, tx, rx),
-    ).parameters[0]
-    return image, point
+    return image, _point_fit(near_m, group.paths_m, sigmas_m, tx, rx).parameters[0]
 
 
 def _nearest_echoes(
@@ -1094,6 +1092,7 @@ def _point_fit(
         paths_m[None],
         sigmas_m[None],
         jacobian=lambda p: surfaces.point_jacobian(p, tx, rx),
+        kernel=surfaces.CompiledModel(surfaces.POINT_MODEL, tx, rx),
     )
 
 
@@ -1165,6 +1164,7 @@ def _mirror_explains(
         ranges[None],
         sigma[None],
         jacobian=surfaces.mirror_jacobian(base.receivers_m),
+        kernel=surfaces.CompiledModel(surfaces.IMAGE_MODEL, base.receivers_m, base.receivers_m),
     )
     v_image = image.parameters[0]
     if np.all(np.isfinite(v_image)) and image.chi2[0] <= _chi2_gate(
@@ -1227,6 +1227,7 @@ def _mirror_explains(
                 ranges[None],
                 widened[None],
                 jacobian=surfaces.mirror_jacobian(rx),
+                kernel=surfaces.CompiledModel(surfaces.IMAGE_MODEL, rx, rx),
             )
             ghost_chi2, dof = float(refit.chi2[0]), len(ranges) - 3
             normal = refit.parameters[0] - point_m
