@@ -712,23 +712,12 @@ def _cross_check(
     or more echoes) replaces the point when it scores :data:`DECISIVE_CHI2` better and its fit
     passes the chi-square gate.
     """
-    tx_of = _channel_transmitters(o, frames)
-    own = [k for k, t in enumerate(tx_of) if t == newest_t]
-    if len(own) < 4:
+    base = _newest_channels(o, frames, newest_t, transmitters_m, receivers_m, options)
+    if base is None:
         return o
     assert options.resolution_m is not None
     merge = _merge_sigma(options.resolution_m)
     newest_m = transmitters_m[newest_t]
-    paths, sigmas = _group_paths(o, tx_of, frames, options)
-    base = _Channels(
-        transmitters_m[[newest_t] * len(own)],
-        receivers_m[[o.receivers[k] for k in own]],
-        paths[own],
-        sigmas[own],
-        (newest_t,) * len(own),
-        tuple(o.receivers[k] for k in own),
-        tuple(o.echo_indices[k] for k in own),
-    )
     sources = _image_and_point(base, o.position_m, np.sqrt(base.sigmas_m**2 + merge**2), options)
     if sources is None:
         return o
@@ -746,7 +735,7 @@ def _cross_check(
             continue
         group = _with_echoes(base, extra, dict(frames), transmitters_m, receivers_m, options)
         robust = _robust_hypotheses(group, newest_m, start_m, merge, options, (kind,))
-        penalty = surfaces.PARAMETERS[kind] * math.log(len(own) + n_other)
+        penalty = surfaces.PARAMETERS[kind] * math.log(len(base.paths_m) + n_other)
         scores[k] = robust.priced[k] + MISSED_PRICE * (n_other - len(extra)) + penalty
         fits[k] = (group, robust)
     best = int(np.argmin(scores))
@@ -758,6 +747,31 @@ def _cross_check(
     if robust.chi2[best] > _chi2_gate(options.gate_probability, dof):
         return o
     return _robust_object(group, robust, best, scores, newest_m)
+
+
+def _newest_channels(
+    o: LocatedObject,
+    frames: Sequence[tuple[int, FrameEchoes]],
+    newest_t: int,
+    transmitters_m: FloatArray,
+    receivers_m: FloatArray,
+    options: LocateOptions,
+) -> _Channels | None:
+    """An object's echoes on the newest frame, as a channel group; None with fewer than four."""
+    tx_of = _channel_transmitters(o, frames)
+    own = [k for k, t in enumerate(tx_of) if t == newest_t]
+    if len(own) < 4:
+        return None
+    paths, sigmas = _group_paths(o, tx_of, frames, options)
+    return _Channels(
+        transmitters_m[[newest_t] * len(own)],
+        receivers_m[[o.receivers[k] for k in own]],
+        paths[own],
+        sigmas[own],
+        (newest_t,) * len(own),
+        tuple(o.receivers[k] for k in own),
+        tuple(o.echo_indices[k] for k in own),
+    )
 
 
 def _image_and_point(
@@ -1040,22 +1054,11 @@ def _unheard_mirror(
     object as its double reflection via a wall, first or last (:func:`_mirror_explains`), on the
     newest frame's echoes and on the other transmitters' echoes where it predicts them.
     """
-    tx_of = _channel_transmitters(o, frames)
-    own = [k for k, t in enumerate(tx_of) if t == newest_t]
-    if len(own) < 4:
+    base = _newest_channels(o, frames, newest_t, transmitters_m, receivers_m, options)
+    if base is None:
         return False
     assert options.resolution_m is not None
     merge = _merge_sigma(options.resolution_m)
-    paths, sigmas = _group_paths(o, tx_of, frames, options)
-    base = _Channels(
-        transmitters_m[[newest_t] * len(own)],
-        receivers_m[[o.receivers[k] for k in own]],
-        paths[own],
-        sigmas[own],
-        (newest_t,) * len(own),
-        tuple(o.receivers[k] for k in own),
-        tuple(o.echo_indices[k] for k in own),
-    )
     mean_path = float(np.mean(base.paths_m))
     for v in points:
         if v is o:
