@@ -681,8 +681,8 @@ def _cross_checked(
 ) -> list[LocatedObject]:
     """``objects``, each point the other transmitters hear as a plane or corner refitted as such
     (:func:`_cross_check`); nothing changes with one transmitter position."""
-    distinct = {tuple(np.round(transmitters_m[t], 9)) for t, _ in frames}
-    if len(distinct) < 2 or options.resolution_m is None:
+    fired = transmitters_m[[t for t, _ in frames]]
+    if surfaces.distinct_transmitters(fired) < 2 or options.resolution_m is None:
         return objects
     return [
         o
@@ -1025,8 +1025,8 @@ def _without_unheard_mirrors(
     """``objects`` less the points that are another point's double reflection via a wall never
     heard itself (:func:`_unheard_mirror`); with one transmitter position nothing goes (a point at
     the same range as another is then such a reflection of it for some plane)."""
-    distinct = {tuple(np.round(transmitters_m[t], 9)) for t, _ in frames}
-    if len(distinct) < 2 or options.resolution_m is None:
+    fired = transmitters_m[[t for t, _ in frames]]
+    if surfaces.distinct_transmitters(fired) < 2 or options.resolution_m is None:
         return objects
     points = [o for o in objects if o.surface is None or o.surface.kind == "point"]
     return [
