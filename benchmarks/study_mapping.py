@@ -98,6 +98,12 @@ def _score(scene: Scene, recording: Recording, results: list, grid: OccupancyGri
     return row
 
 
+def _counted(kinds: list[str], kind: str) -> str:
+    """``"3 planes"``, ``"1 point"``: how many of ``kinds`` are ``kind``."""
+    n = kinds.count(kind)
+    return f"{n} {kind}{'' if n == 1 else 's'}"
+
+
 def room(n_frames: int) -> list[str]:
     scene = load_scene(ROOM)
     recording = simulate(scene, n_frames)
@@ -158,8 +164,8 @@ def room(n_frames: int) -> list[str]:
         f"{kinds.count('plane')} planes and {kinds.count('corner')} corners: one transmitter hears these "
         "walls near normal incidence, where it cannot tell a wall from a point (docs/METHOD.md 10.10).",
         f"With a second transmitter 17 cm away (at (0.12, 0.12, 0) m, fired in turn) the {len(two_kinds)} "
-        f"objects are {two_kinds.count('point')} points, {two_kinds.count('plane')} planes and "
-        f"{two_kinds.count('corner')} corners; each plane is drawn as the segment its echoes met.",
+        f"objects are {_counted(two_kinds, 'point')}, {_counted(two_kinds, 'plane')} and "
+        f"{_counted(two_kinds, 'corner')}; each plane is drawn as the segment its echoes met.",
         "",
         "![room](map_room.png)",
         "",
