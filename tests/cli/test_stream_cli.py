@@ -50,6 +50,7 @@ class Proc:
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
+            env={**os.environ, "PYTHONFAULTHANDLER": "1"},  # SIGABRT on a hang prints every thread
         )
         self.lines: list[str] = []
         self._stdout: list[str] = []
@@ -86,9 +87,12 @@ class Proc:
     def finish(self, timeout_s: float = TIMEOUT_S) -> tuple[int, str]:
         try:
             self.popen.wait(timeout=timeout_s)
-        except subprocess.TimeoutExpired:
+        except subprocess.TimeoutExpired as hung:
+            self.popen.send_signal(signal.SIGABRT)  # faulthandler: where every thread is
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                self.popen.wait(timeout=5)
             self.kill()
-            raise
+            raise AssertionError("\n".join(["still running; its stderr:", *self.lines[-80:]])) from hung
         self.kill()  # waits for the readers, closes the pipes
         return self.popen.returncode, "".join(self._stdout)
 
