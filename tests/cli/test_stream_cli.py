@@ -22,6 +22,7 @@ from echoloc.io.recording import read_recording, write_recording
 from echoloc.realtime.transport import Endpoint, send_recording
 from echoloc.sim.scene import default_scene
 from echoloc.sim.simulation import simulate
+from interactive import with_sigint
 
 ECHOLOC = [str(Path(sys.executable).with_name("echoloc"))]
 TIMEOUT_S = 60
@@ -46,7 +47,7 @@ class Proc:
 
     def __init__(self, *args: object) -> None:
         self.popen = subprocess.Popen(
-            [*ECHOLOC, *map(str, args)],
+            with_sigint([*ECHOLOC, *map(str, args)]),
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,

@@ -34,6 +34,7 @@ from echoloc.io.recording import (
 )
 from echoloc.localise.calibrate import read_calibration
 from echoloc.sim.scenefile import load_scene, scene_from_dict
+from interactive import with_sigint
 from repo_paths import REPO
 
 SCENE = REPO / "src" / "echoloc" / "scenes" / "report-three-balls.toml"
@@ -179,7 +180,7 @@ def test_the_stall_timeout_variable_lets_a_slow_read_through(
 def test_locate_on_a_hanging_file_honours_signals(stalling_hdf5: Path, signum: int) -> None:
     path = stalling_hdf5
     process = subprocess.Popen(
-        [sys.executable, "-m", "echoloc", "locate", str(path)],
+        with_sigint([sys.executable, "-m", "echoloc", "locate", str(path)]),
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
