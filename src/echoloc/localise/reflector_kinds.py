@@ -87,8 +87,9 @@ _ROBUST_ROUNDS = 2
 
 MISSED_PRICE = CROSS_CHECK_SIGMAS**2 + 2 * math.log(9.0 * (1 - MERGED_PRIOR) / MERGED_PRIOR)
 """What a channel of another transmitter costs a hypothesis when it holds no echo within reach of
-its prediction: as much as an echo at the edge of the reach that was called merged (a merged
-peak's sigma about 9 times a clean echo's)."""
+its prediction: as much as an echo at the edge of the reach that was called merged, with a merged
+peak's sigma taken as 9 times a clean echo's (it is 7 times for the 0.5 mm model error and the
+29 mm resolution of the test scenes; a fixed price keeps the choice the same on every frame)."""
 
 MAX_COMBINATIONS = 200_000
 """Most echo combinations one transmitter's mirror search weighs; beyond, the frame's mirror
@@ -585,7 +586,10 @@ def locate_with_classes(
         points.objects, frames, newest_t, transmitters_m, receivers_m, options, alternatives
     )
     objects = _explained_away(objects, frames, transmitters_m, receivers_m, options, alternatives)
-    if len(frames) > 1:
+    # Two transmitter positions tell what one image cannot (Kleeman and Kuc): cross-check points.
+    fired = transmitters_m[[t for t, _ in frames]]
+    told_apart = surfaces.distinct_transmitters(fired) >= 2 and options.resolution_m is not None
+    if told_apart:
         objects = _cross_checked(objects, frames, newest_t, transmitters_m, receivers_m, options)
 
     # The echoes no object took may still hold planes and corners the point association cannot fit.
@@ -635,6 +639,7 @@ def locate_with_classes(
     real = _explained_away(objects, frames, transmitters_m, receivers_m, options, alternatives)
     if len(frames) > 1:
         real = [o for o in real if _seen_by_others(o, frames, newest_t, transmitters_m, receivers_m)]
+    if told_apart:
         real = _without_unheard_mirrors(real, frames, newest_t, transmitters_m, receivers_m, options)
     return FrameObjects(points.frame, points.time_s, tuple(real))
 
@@ -665,8 +670,7 @@ def _predicted_elsewhere(
         e = e - (e @ u) * u
         if np.linalg.norm(e) > 1e-6:
             e = e / np.linalg.norm(e)
-            g = newest_m + feet[0]
-            image = 2 * (g + ((transmitter_m - g) @ e) * e) - transmitter_m
+            image = surfaces.half_turned_m(transmitter_m, newest_m + feet[0], e)
             predicted["corner"] = np.linalg.norm(image - receivers_m, axis=1)
     return predicted
 
@@ -680,10 +684,7 @@ def _cross_checked(
     options: LocateOptions,
 ) -> list[LocatedObject]:
     """``objects``, each point the other transmitters hear as a plane or corner refitted as such
-    (:func:`_cross_check`); nothing changes with one transmitter position."""
-    fired = transmitters_m[[t for t, _ in frames]]
-    if surfaces.distinct_transmitters(fired) < 2 or options.resolution_m is None:
-        return objects
+    (:func:`_cross_check`); for two or more transmitter positions and a known resolution."""
     return [
         o
         if o.surface is not None and o.surface.kind != "point"
@@ -779,19 +780,9 @@ def _image_and_point(
 ) -> tuple[FloatArray, FloatArray] | None:
     """The image and the point (m) that fit one transmitter's echo group (sigmas ``sigmas_m``), the
     point started at ``near_m``; None when the image is not ahead of the transmitter."""
-    boresight = np.asarray(options.boresight, dtype=float)
-    boresight = boresight / np.linalg.norm(boresight)
-    tx, rx, paths = group.transmitters_m, group.receivers_m, group.paths_m[None]
-    start = surfaces.image_start_m(rx, paths, boresight)
-    image = surfaces.fit(
-        _image_model(rx),
-        start,
-        paths,
-        sigmas_m[None],
-        jacobian=surfaces.mirror_jacobian(rx),
-        kernel=surfaces.CompiledModel(surfaces.IMAGE_MODEL, rx, rx),
-    ).parameters[0]
-    if not (np.all(np.isfinite(image)) and (image - tx[0]) @ boresight > 0):
+    tx, rx = group.transmitters_m, group.receivers_m
+    image = _fit_image(rx, group.paths_m, sigmas_m, options.boresight).parameters[0]
+    if not (np.all(np.isfinite(image)) and (image - tx[0]) @ np.asarray(options.boresight) > 0):
         return None
     return image, _point_fit(near_m, group.paths_m, sigmas_m, tx, rx).parameters[0]
 
@@ -808,25 +799,21 @@ def _nearest_echoes(
 ) -> dict[str, list[tuple[int, int, int]]]:
     """For each hypothesis, the (transmitter, receiver, echo) of the other frames' echoes nearest
     its prediction (:func:`_predicted_elsewhere`), where within :data:`CROSS_CHECK_SIGMAS` ``merge``."""
-    reach = CROSS_CHECK_SIGMAS * merge
     newest_m = transmitters_m[newest_t]
-    hits: dict[str, list[tuple[int, int, int]]] = {}
-    for t, echoes in frames:
-        if t == newest_t:
-            continue
-        c = echoes.speed_of_sound_m_s
-        predictions = _predicted_elsewhere(
-            image_m, point_m, newest_m, transmitters_m[t], receivers_m, options.edge_axis
-        )
-        for kind, predicted in predictions.items():
-            for r, ch in enumerate(echoes.channels):
-                if len(ch.tof_s) == 0 or not np.isfinite(predicted[r]):
-                    continue
-                gap = np.abs(ch.tof_s * c - predicted[r])
-                e = int(np.argmin(gap))
-                if gap[e] <= reach:
-                    hits.setdefault(kind, []).append((t, r, e))
-    return hits
+    nowhere = np.full(len(receivers_m), np.nan)  # a hypothesis this geometry cannot make
+
+    def prediction(kind: str) -> Callable[[FloatArray], FloatArray]:
+        def paths(tx: FloatArray) -> FloatArray:
+            found = _predicted_elsewhere(image_m, point_m, newest_m, tx[0], receivers_m, options.edge_axis)
+            return found.get(kind, nowhere)
+
+        return paths
+
+    reach = CROSS_CHECK_SIGMAS * merge
+    return {
+        kind: _echoes_near(prediction(kind), frames, newest_t, transmitters_m, receivers_m, reach)
+        for kind in surfaces.KINDS
+    }
 
 
 def _hypothesis_paths(
@@ -973,13 +960,29 @@ def _robust_object(
     )
 
 
-def _image_model(receivers: FloatArray) -> Callable[[FloatArray], FloatArray]:
-    """One-way paths from images (n, 3) to ``receivers`` (m, 3), for :func:`surfaces.fit`."""
-
-    def model(images: FloatArray) -> FloatArray:
-        return surfaces.mirror_paths_m(images, receivers)
-
-    return model
+def _fit_image(
+    receivers_m: FloatArray,
+    ranges_m: FloatArray,
+    sigmas_m: FloatArray,
+    boresight: tuple[float, ...],
+    start_m: FloatArray | None = None,
+) -> surfaces.Fit:
+    """The virtual source at ``ranges_m`` (m,) from ``receivers_m`` (m, 3), fitted compiled from
+    ``start_m`` or, without it, from the closed form on the ``boresight``'s side."""
+    paths = ranges_m[None]
+    if start_m is None:
+        ahead = np.asarray(boresight, dtype=float)
+        start = surfaces.image_start_m(receivers_m, paths, ahead / np.linalg.norm(ahead))
+    else:
+        start = start_m[None]
+    return surfaces.fit(
+        surfaces.mirror_model(receivers_m),
+        start,
+        paths,
+        sigmas_m[None],
+        jacobian=surfaces.mirror_jacobian(receivers_m),
+        kernel=surfaces.CompiledModel(surfaces.IMAGE_MODEL, receivers_m, receivers_m),
+    )
 
 
 def mirrored_paths_m(
@@ -997,21 +1000,10 @@ def mirrored_paths_m(
     transmitter's image; plane last, ``|P - T| + |P - R'|`` (the image-source method, Allen and
     Berkley 1979).
     """
-    h = np.linalg.norm(planes_m, axis=1, keepdims=True)
-    u = planes_m / h
-
-    def mirrored(x: FloatArray) -> FloatArray:
-        return np.asarray(x[None] + 2 * (h - u @ x.T)[..., None] * u[:, None, :])
-
-    if plane_first:
-        return np.asarray(
-            np.linalg.norm(point_m - mirrored(transmitters_m), axis=-1)
-            + np.linalg.norm(point_m - receivers_m, axis=-1)
-        )
-    return np.asarray(
-        np.linalg.norm(point_m - transmitters_m, axis=-1)
-        + np.linalg.norm(point_m - mirrored(receivers_m), axis=-1)
-    )
+    normals = planes_m / np.linalg.norm(planes_m, axis=1, keepdims=True)
+    tx = _mirror_points(transmitters_m, planes_m, normals) if plane_first else transmitters_m[None]
+    rx = receivers_m[None] if plane_first else _mirror_points(receivers_m, planes_m, normals)
+    return np.asarray(np.linalg.norm(point_m - tx, axis=-1) + np.linalg.norm(point_m - rx, axis=-1))
 
 
 def _without_unheard_mirrors(
@@ -1023,11 +1015,8 @@ def _without_unheard_mirrors(
     options: LocateOptions,
 ) -> list[LocatedObject]:
     """``objects`` less the points that are another point's double reflection via a wall never
-    heard itself (:func:`_unheard_mirror`); with one transmitter position nothing goes (a point at
-    the same range as another is then such a reflection of it for some plane)."""
-    fired = transmitters_m[[t for t, _ in frames]]
-    if surfaces.distinct_transmitters(fired) < 2 or options.resolution_m is None:
-        return objects
+    heard itself (:func:`_unheard_mirror`); for two or more transmitter positions only (with one,
+    a point at the same range as another is such a reflection of it for some plane)."""
     points = [o for o in objects if o.surface is None or o.surface.kind == "point"]
     return [
         o
@@ -1160,15 +1149,7 @@ def _mirror_explains(
 
     # Wall last: V' from the newest frame, then the other frames' echoes where it puts them.
     ranges = base.paths_m - np.linalg.norm(point_m - tx_newest)
-    boresight = np.asarray(options.boresight, dtype=float)
-    image = surfaces.fit(
-        _image_model(base.receivers_m),
-        surfaces.image_start_m(base.receivers_m, ranges[None], boresight / np.linalg.norm(boresight)),
-        ranges[None],
-        sigma[None],
-        jacobian=surfaces.mirror_jacobian(base.receivers_m),
-        kernel=surfaces.CompiledModel(surfaces.IMAGE_MODEL, base.receivers_m, base.receivers_m),
-    )
+    image = _fit_image(base.receivers_m, ranges, sigma, options.boresight)
     v_image = image.parameters[0]
     if np.all(np.isfinite(v_image)) and image.chi2[0] <= _chi2_gate(
         options.gate_probability, len(ranges) - 3
@@ -1224,14 +1205,7 @@ def _mirror_explains(
             # V' refitted on every channel; the wall (V and V''s bisector) must have the
             # transducers on V's side.
             ranges = group.paths_m - to_tx
-            refit = surfaces.fit(
-                _image_model(rx),
-                v_image[None],
-                ranges[None],
-                widened[None],
-                jacobian=surfaces.mirror_jacobian(rx),
-                kernel=surfaces.CompiledModel(surfaces.IMAGE_MODEL, rx, rx),
-            )
+            refit = _fit_image(rx, ranges, widened, options.boresight, start_m=v_image)
             ghost_chi2, dof = float(refit.chi2[0]), len(ranges) - 3
             normal = refit.parameters[0] - point_m
             u = normal / np.linalg.norm(normal)

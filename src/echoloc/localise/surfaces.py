@@ -46,7 +46,7 @@ import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -134,10 +134,17 @@ def corner_images_m(
     corners: FloatArray, transmitters_m: FloatArray, reference_m: FloatArray, helper: FloatArray
 ) -> FloatArray:
     """Each channel's transmitter turned half a turn about the corner's edge, (n, m, 3)."""
-    g = corners[:, None, :3]
-    e = _edge_directions(corners, reference_m, helper)[:, None, :]
-    along = np.sum((transmitters_m[None] - g) * e, axis=-1, keepdims=True)
-    return np.asarray(2 * (g + along * e) - transmitters_m[None])
+    return half_turned_m(
+        transmitters_m[None], corners[:, None, :3], _edge_directions(corners, reference_m, helper)[:, None, :]
+    )
+
+
+def half_turned_m(points_m: FloatArray, through_m: FloatArray, direction: FloatArray) -> FloatArray:
+    """``points_m`` turned half a turn about the line through ``through_m`` along the unit
+    ``direction`` (broadcast over the leading axes): ``2 (G + e e.(P - G)) - P``, what two
+    mirrors at a right angle, meeting on that line, make of a point."""
+    along = np.sum((points_m - through_m) * direction, axis=-1, keepdims=True)
+    return np.asarray(2 * (through_m + along * direction) - points_m)
 
 
 def mirror_paths_m(images_m: FloatArray, receivers_m: FloatArray) -> FloatArray:
@@ -458,7 +465,7 @@ def hypotheses(
     start_m: FloatArray,
     gate_probability: float = 0.999,
     *,
-    corner_mode: str = "auto",
+    corner_mode: Literal["auto", "always", "never"] = "auto",
 ) -> Hypotheses:
     """Fit the three hypotheses to echo groups (n, m) on channels ``transmitters_m``,
     ``receivers_m`` (m, 3), m.
@@ -593,7 +600,7 @@ def _edge_guess(
         receivers = rx[channels]
         start = image_start_m(receivers, paths[:, channels], front)
         image = fit(
-            _mirror_model(receivers),
+            mirror_model(receivers),
             start,
             paths[:, channels],
             sigmas[:, channels],
@@ -607,7 +614,7 @@ def _edge_guess(
     return np.asarray(np.where(size > 0, across / np.where(size > 0, size, 1.0), np.nan))
 
 
-def _mirror_model(receivers: FloatArray) -> Callable[[FloatArray], FloatArray]:
+def mirror_model(receivers: FloatArray) -> Callable[[FloatArray], FloatArray]:
     """The one-way paths from images (n, 3) to ``receivers``, as a model for :func:`fit`."""
 
     def model(images: FloatArray) -> FloatArray:
