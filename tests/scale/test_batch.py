@@ -335,6 +335,31 @@ def test_inputs_folders_globs_and_clashes(recordings: Path, tmp_path: Path) -> N
     assert "would be that of" in outcomes[other / "six.h5"].detail
 
 
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        (("--cell-m", "5"), "--cell-m must be between 0.001 and 1 m, got 5"),
+        (("--3d", "--height-m", "0.1"), "--height-m sets the floor plan's height"),
+    ],
+)
+def test_batch_map_refuses_the_grid_options_map_refuses(
+    recordings: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    options: tuple[str, ...],
+    message: str,
+) -> None:
+    """The same one line and exit 2 as `echoloc map`, before any cluster starts."""
+    folder = _copy(recordings, tmp_path, ("six.h5",))
+    serial = _run(capsys, "map", folder / "six.h5", "-o", tmp_path / "six.png", *options)
+    code, _, err = _run(capsys, "batch", "map", folder, "--workers", 1, *options)
+    assert code == serial[0] == 2
+    assert message in err
+    assert err.strip() == serial[2].strip()
+    assert len(err.strip().splitlines()) == 1
+    assert not list(folder.glob("six.map*"))
+
+
 # --- resume --------------------------------------------------------------------------------------
 
 

@@ -194,17 +194,9 @@ def _map_settings(
     cell_m: float, three_d: bool, height_m: float | None, extent_text: str | None, with_objects: bool
 ) -> MapSettings:
     """The map options, refused as `echoloc map` refuses them."""
-    from echoloc.cli.processing import _extent_option
+    from echoloc.cli.processing import _extent_option, check_grid_options
 
-    _finite("--cell-m", cell_m, positive=True)
-    if not 0.001 <= cell_m <= 1.0:
-        raise EchoLocError(f"--cell-m must be between 0.001 and 1 m, got {cell_m:g}")
-    if height_m is not None:
-        _finite("--height-m", height_m)
-        if three_d:
-            raise EchoLocError(
-                "--height-m sets the floor plan's height; a --3d grid takes --extent-m instead"
-            )
+    check_grid_options(cell_m, height_m, three_d)
     extent = _extent_option(extent_text, 3 if three_d else 2)
     return MapSettings(
         cell_m=cell_m,

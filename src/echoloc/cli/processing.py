@@ -231,6 +231,20 @@ _MAX_SAMPLE_RATE_HZ = 100e6
 millisecond's pulse is already 100 000 samples (at 1 THz it would be 10^9)."""
 
 
+def check_grid_options(cell_m: float, height_m: float | None, three_d: bool) -> None:
+    """Refuse a map's cell size outside 1 mm - 1 m and a floor plan's height given to a 3-D grid
+    (`map` and `batch map` alike), in one line."""
+    _finite("--cell-m", cell_m, positive=True)
+    if not 0.001 <= cell_m <= 1.0:
+        raise EchoLocError(f"--cell-m must be between 0.001 and 1 m, got {cell_m:g}")
+    if height_m is not None:
+        _finite("--height-m", height_m)
+        if three_d:
+            raise EchoLocError(
+                "--height-m sets the floor plan's height; a --3d grid takes --extent-m instead"
+            )
+
+
 def _extent_option(text: str | None, dims: int) -> list[tuple[float, float]] | None:
     """``--extent-m``: "x0,x1,z0,z1" for a floor plan, "x0,x1,y0,y1,z0,z1" in 3-D."""
     if text is None:
@@ -317,17 +331,9 @@ def map_command(
     suffix = output_path.suffix.lower()
     if suffix not in _MAP_FORMATS:
         raise EchoLocError(f"{output_path}: choose the format by extension: {', '.join(_MAP_FORMATS)}")
-    _finite("--cell-m", cell_m, positive=True)
-    if not 0.001 <= cell_m <= 1.0:
-        raise EchoLocError(f"--cell-m must be between 0.001 and 1 m, got {cell_m:g}")
+    check_grid_options(cell_m, height_m, three_d)
     if suffix == ".yaml" and three_d:
         raise EchoLocError(f"{output_path}: a nav2 map (.yaml + .pgm) is a floor plan; drop --3d")
-    if height_m is not None:
-        _finite("--height-m", height_m)
-        if three_d:
-            raise EchoLocError(
-                "--height-m sets the floor plan's height; a --3d grid takes --extent-m instead"
-            )
     _check_writable(output_path)
     if suffix == ".yaml":
         _check_writable(output_path.with_suffix(".pgm"))
