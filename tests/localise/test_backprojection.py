@@ -355,3 +355,26 @@ def test_two_transmitters_fired_in_turn_are_located_together() -> None:
         for obj in frame.objects:
             assert set(obj.transmitters) == {0, 1}  # both transmitters' channels support it
             assert len(obj.receivers) >= 6
+
+
+def test_the_working_receivers_check_refuses_warns_or_passes() -> None:
+    """Fewer working receivers than the grid's dimensions: one error naming the file; exactly as
+    many channels a frame: a LocateWarning (every crossing is kept); more: silence. `locate` and
+    `batch` both ask this one check."""
+    import warnings
+
+    from echoloc.localise.backprojection import BackprojectionOptions, check_working_receivers
+    from echoloc.localise.locate import LocateWarning
+    from echoloc.sim.scene import default_scene
+
+    recording = simulate(default_scene(), 1)
+    options = BackprojectionOptions()
+    with pytest.raises(
+        EchoLocError, match=r"only 2 working receiver\(s\), back-projection in 3-D needs at least 3"
+    ):
+        check_working_receivers(recording, 2, 3, options)
+    with pytest.warns(LocateWarning, match="3 working channels: back-projection keeps every crossing"):
+        check_working_receivers(recording, 3, 3, options)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_working_receivers(recording, 4, 3, options)

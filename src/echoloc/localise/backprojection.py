@@ -899,6 +899,26 @@ class Backprojector:
         return np.tile(np.arange(self.n_receivers), len(self.recording.transmitters_m))
 
 
+def check_working_receivers(
+    recording: Recording, working: int, dim: int, options: BackprojectionOptions
+) -> None:
+    """Refuse fewer working receivers than the grid has dimensions, in one line; warn when each
+    frame's working channels are exactly that many (every crossing of their paths is kept)."""
+    if working < dim:
+        raise EchoLocError(
+            f"{recording.source}: only {working} working receiver(s), "
+            f"back-projection in {dim}-D needs at least {dim}"
+        )
+    per_frame = len(recording.transmitters_m) if recording.firing == "simultaneous" else 1
+    if options.min_support is None and working * per_frame == dim:
+        warnings.warn(
+            f"{recording.source}: {dim} working channels: back-projection keeps every crossing of "
+            f"their {dim} paths, so ghosts of several reflectors cannot be told from them",
+            LocateWarning,
+            stacklevel=3,
+        )
+
+
 def prepare_backprojection(
     recording: Recording,
     grid: Grid | None = None,
@@ -948,20 +968,7 @@ def prepare_backprojection(
                 models.append(EchoModel(shape=acf / acf.max(), offset=len(template) - 1))
     usable = np.ones(n_rx, dtype=bool)
     usable[dead_receivers(recording)] = False
-    working = int(usable.sum())
-    if working < grid.dim:
-        raise EchoLocError(
-            f"{recording.source}: only {working} working receiver(s), "
-            f"back-projection in {grid.dim}-D needs at least {grid.dim}"
-        )
-    per_frame = len(recording.transmitters_m) if recording.firing == "simultaneous" else 1
-    if options.min_support is None and working * per_frame == grid.dim:
-        warnings.warn(
-            f"{recording.source}: {grid.dim} working channels: back-projection keeps every crossing of "
-            f"their {grid.dim} paths, so ghosts of several reflectors cannot be told from them",
-            LocateWarning,
-            stacklevel=2,
-        )
+    check_working_receivers(recording, int(usable.sum()), grid.dim, options)
     conditioning = conditioning or Conditioning()
     chain = None
     if options.restore and recording.signal_kind == "rf" and recording.firing != "simultaneous":

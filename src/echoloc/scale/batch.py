@@ -401,8 +401,7 @@ def _plan_backprojection(
     :func:`~echoloc.localise.backprojection.prepare_backprojection` finds it: the receivers
     not dead over all of it (read chunk by chunk), refused or warned about as it does; and,
     where it finds echoes to restore, its echo finder's channel check and receivers."""
-    from echoloc.localise.backprojection import BackprojectionOptions, default_grid
-    from echoloc.localise.locate import LocateWarning
+    from echoloc.localise.backprojection import BackprojectionOptions, check_working_receivers, default_grid
     from echoloc.pipeline import prepare
 
     header = parts.header
@@ -416,22 +415,8 @@ def _plan_backprojection(
             if not dead.any():
                 break
     usable = ~dead
-    dim = default_grid().dim
-    working = int(usable.sum())
-    if working < dim:
-        raise EchoLocError(
-            f"{parts.source}: only {working} working receiver(s), "
-            f"back-projection in {dim}-D needs at least {dim}"
-        )
     options = BackprojectionOptions()
-    per_frame = len(header.transmitters_m) if header.firing == "simultaneous" else 1
-    if options.min_support is None and working * per_frame == dim:
-        warnings.warn(
-            f"{parts.source}: {dim} working channels: back-projection keeps every crossing of "
-            f"their {dim} paths, so ghosts of several reflectors cannot be told from them",
-            LocateWarning,
-            stacklevel=2,
-        )
+    check_working_receivers(header, int(usable.sum()), default_grid().dim, options)
     if not (options.restore and header.signal_kind == "rf" and header.firing != "simultaneous"):
         return usable, None, None
     finder = prepare(assessed, speed_of_sound_m_s=chain.speed_of_sound_m_s, conditioning=chain.conditioning)
