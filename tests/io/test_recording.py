@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -11,6 +12,8 @@ from typing import Any
 import h5py
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from echoloc.errors import RecordingError
 from echoloc.io.recording import (
@@ -729,3 +732,29 @@ def test_truth_kinds_of_no_column_round_trip(tmp_path: Path, ext: str) -> None:
     rec = make_recording(truth_positions_m=np.zeros((N_FRAMES, 0, 3)), truth_kinds=())
     back = read_recording(write_recording(rec, tmp_path / f"r{ext}"))
     assert back.truth_kinds == ()
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.integers(1, 6),
+    st.integers(1, 4),
+    st.integers(1, 5),
+    st.lists(st.integers(1, 3), min_size=1, max_size=6),
+    st.integers(0, 2**16),
+)
+def test_dead_receivers_read_block_by_block_are_those_of_the_whole(
+    n_frames: int, n_rx: int, n_samples: int, cuts: list[int], seed: int
+) -> None:
+    """A receiver is dead when every sample of the file equals its first: the same receivers
+    whether the frames come at once or in any blocks (as batch reads a file)."""
+    from echoloc.io.recording import constant_receivers
+
+    rng = np.random.default_rng(seed)
+    frames = rng.integers(0, 3, size=(n_frames, n_rx, n_samples))
+    frames[:, rng.random(n_rx) < 0.5, :] = 7  # some receivers constant
+    whole = constant_receivers([frames])
+    expected = [r for r in range(n_rx) if (frames[:, r] == frames[0, r, 0]).all()]
+    assert whole == ([] if n_frames * n_samples < 2 else expected)
+    edges = np.cumsum([0, *cuts])
+    blocks = [frames[a:b] for a, b in itertools.pairwise(edges)] + [frames[edges[-1] :]]
+    assert constant_receivers(blocks) == whole

@@ -718,10 +718,27 @@ def dead_receivers(rec: Recording) -> list[int]:
     list of int
         Receiver indices, ascending; empty when each channel holds only one sample.
     """
-    frames = rec.frames
-    if frames.shape[0] * frames.shape[2] < 2:
+    return constant_receivers([rec.frames])
+
+
+def constant_receivers(blocks: Iterable[NDArray[Any]]) -> list[int]:
+    """:func:`dead_receivers` of frames given block by block (n_frames_k, n_rx, n_samples), read
+    no further than the block where every receiver has varied."""
+    first: NDArray[Any] | None = None
+    constant: NDArray[np.bool_] | None = None
+    seen = 0
+    for block in blocks:
+        if block.shape[0] == 0:
+            continue
+        if first is None:
+            first = block[:1, :, :1]
+        same = (block == first).all(axis=(0, 2))
+        constant = same if constant is None else constant & same
+        seen += block.shape[0] * block.shape[2]
+        if seen >= 2 and not constant.any():
+            break
+    if constant is None or seen < 2:
         return []
-    constant = (frames == frames[:1, :, :1]).all(axis=(0, 2))
     return [int(i) for i in np.flatnonzero(constant)]
 
 

@@ -60,7 +60,7 @@ from numpy.typing import NDArray
 
 from echoloc.errors import EchoLocError
 from echoloc.io.output import echoes_record, json_line, objects_record
-from echoloc.io.recording import Recording, RecordingParts
+from echoloc.io.recording import Recording, RecordingParts, constant_receivers
 
 if TYPE_CHECKING:
     from echoloc.cli.app import ChainSettings
@@ -405,16 +405,12 @@ def _plan_backprojection(
     from echoloc.pipeline import prepare
 
     header = parts.header
-    dead = np.zeros(header.n_receivers, dtype=bool)
-    if parts.n_frames * header.n_samples >= 2:
-        first = parts.frames(0, 1)[0, :, :1]
-        dead[:] = True
-        for start in range(0, parts.n_frames, chunk_frames):
-            block = parts.frames(start, min(start + chunk_frames, parts.n_frames))
-            dead &= (block == first[None]).all(axis=(0, 2))
-            if not dead.any():
-                break
-    usable = ~dead
+    blocks = (
+        parts.frames(start, min(start + chunk_frames, parts.n_frames))
+        for start in range(0, parts.n_frames, chunk_frames)
+    )
+    usable = np.ones(header.n_receivers, dtype=bool)
+    usable[constant_receivers(blocks)] = False
     options = BackprojectionOptions()
     check_working_receivers(header, int(usable.sum()), default_grid().dim, options)
     if not (options.restore and header.signal_kind == "rf" and header.firing != "simultaneous"):
