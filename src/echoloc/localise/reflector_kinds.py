@@ -1014,14 +1014,17 @@ def _without_unheard_mirrors(
     receivers_m: FloatArray,
     options: LocateOptions,
 ) -> list[LocatedObject]:
-    """``objects`` less the points that are another point's double reflection via a wall never
-    heard itself (:func:`_unheard_mirror`); for two or more transmitter positions only (with one,
-    a point at the same range as another is such a reflection of it for some plane)."""
+    """``objects`` less the points and corners that are a point's double reflection via a wall
+    never heard itself (:func:`_unheard_mirror`); for two or more transmitter positions only (with
+    one, a point at the same range as another is such a reflection of it for some plane). A
+    corner is tested too: the two orders of a ghost's double reflection (wall first, wall last)
+    arrive a few millimetres apart on each channel, and four parameters fit their merged
+    peaks better than a point's three."""
     points = [o for o in objects if o.surface is None or o.surface.kind == "point"]
     return [
         o
         for o in objects
-        if o not in points
+        if (o.surface is not None and o.surface.kind == "plane")
         or not _unheard_mirror(o, points, frames, newest_t, transmitters_m, receivers_m, options)
     ]
 
@@ -1035,17 +1038,25 @@ def _unheard_mirror(
     receivers_m: FloatArray,
     options: LocateOptions,
 ) -> bool:
-    """Whether a point is a nearer point's double reflection via a plane that made no echo of its own.
+    """Whether an object is a nearer point's double reflection via a plane that made no echo of its own.
 
     A wall whose foot lies outside it (or beyond the beam) is never heard, but the sound of a
     ball beside it still reaches the receivers via the wall, as if from the ball's mirror image:
-    a point that fits no other reflector. Each nearer point V is tried as the reflector and the
-    object as its double reflection via a wall, first or last (:func:`_mirror_explains`), on the
-    newest frame's echoes and on the other transmitters' echoes where it predicts them.
+    a point (or, its two orders' peaks merged, a corner) that fits no other reflector. Each
+    nearer point V is tried as the reflector and the object as its double reflection via a wall,
+    first or last (:func:`_mirror_explains`), on the echoes of one transmitter that gave the
+    object four or more (the newest frame's if it did) and on the other transmitters' echoes
+    where it predicts them.
     """
-    base = _newest_channels(o, frames, newest_t, transmitters_m, receivers_m, options)
+    tx_of = _channel_transmitters(o, frames)
+    heard_by = [newest_t] + [t for t, _ in frames if t != newest_t]
+    base_t = next((t for t in heard_by if tx_of.count(t) >= 4), None)
+    if base_t is None:
+        return False
+    base = _newest_channels(o, frames, base_t, transmitters_m, receivers_m, options)
     if base is None:
         return False
+    kind = "point" if o.surface is None else o.surface.kind
     assert options.resolution_m is not None
     merge = _merge_sigma(options.resolution_m)
     mean_path = float(np.mean(base.paths_m))
@@ -1064,11 +1075,12 @@ def _unheard_mirror(
             o.position_m,
             v.position_m,
             frames,
-            newest_t,
+            base_t,
             transmitters_m,
             receivers_m,
             options,
             merge,
+            kind,
         ):
             return True
     return False
@@ -1125,10 +1137,12 @@ def _mirror_explains(
     receivers_m: FloatArray,
     options: LocateOptions,
     merge: float,
+    kind: str = "point",
 ) -> bool:
-    """Whether the newest frame's echoes ``base`` of an object located at ``ghost_m`` are the
-    double reflection of the point ``point_m`` (V) via one plane, wall first or last, and the other
-    frames hold its echoes too (:func:`_unheard_mirror`). Both orders have closed forms.
+    """Whether one frame's echoes ``base`` (transmitter ``newest_t``) of an object of class ``kind``
+    located at ``ghost_m`` are the double reflection of the point ``point_m`` (V) via one plane, wall
+    first or last, and the other frames hold its echoes too (:func:`_unheard_mirror`). Both orders
+    have closed forms.
 
     - Wall last (T -> V -> wall -> R): ``l_i - |V - T|`` is the distance from the receiver to V's
       mirror image V', which trilaterates from four receivers; V' does not depend on the
@@ -1137,8 +1151,8 @@ def _mirror_explains(
       transmitter, the same on every receiver: each frame's echoes must give one value on three or
       more receivers.
 
-    Sigmas are widened by a merged peak's; the fit must pass the chi-square gate and beat a point
-    on the same echoes by :data:`DECISIVE_CHI2`.
+    Sigmas are widened by a merged peak's; the fit must pass the chi-square gate and beat a point,
+    and the object's own class, on the same echoes by :data:`DECISIVE_CHI2`.
     """
     sigma = np.sqrt(base.sigmas_m**2 + merge**2)
     reach = CROSS_CHECK_SIGMAS * merge
@@ -1223,10 +1237,36 @@ def _mirror_explains(
                 dof -= 1
         if not ghost_chi2 <= _chi2_gate(options.gate_probability, dof):
             continue
-        point = _point_fit(ghost_m, group.paths_m, widened, tx, rx)
-        if point.chi2[0] - ghost_chi2 >= DECISIVE_CHI2:
+        if _rival_chi2(kind, ghost_m, group, widened, tx_newest, options) - ghost_chi2 >= DECISIVE_CHI2:
             return True
     return False
+
+
+def _rival_chi2(
+    kind: str,
+    near_m: FloatArray,
+    group: _Channels,
+    sigmas_m: FloatArray,
+    reference_m: FloatArray,
+    options: LocateOptions,
+) -> float:
+    """The best chi-square of a point, or of a corner for a corner, on the group's echoes (sigmas
+    ``sigmas_m``): what a ghost explanation of them must beat."""
+    tx, rx = group.transmitters_m, group.receivers_m
+    chi2 = float(_point_fit(near_m, group.paths_m, sigmas_m, tx, rx).chi2[0])
+    if kind == "corner":
+        corner = surfaces.hypotheses(
+            tx,
+            rx,
+            group.paths_m[None],
+            sigmas_m[None],
+            reference_m,
+            near_m[None],
+            options.gate_probability,
+            corner_mode="always",
+        )
+        chi2 = min(chi2, float(corner.chi2[0, surfaces.KINDS.index("corner")]))
+    return chi2
 
 
 def _seen_by_others(
