@@ -625,3 +625,62 @@ def test_what_a_ghost_must_beat_is_the_objects_own_class() -> None:
     as_point = reflector_kinds._rival_chi2("point", edge_foot, group, group.sigmas_m, tx[0], options)
     assert as_corner < 1e-3
     assert as_point > 10 * reflector_kinds.DECISIVE_CHI2
+
+
+def test_only_points_kept_explain_farther_objects_as_their_ghosts() -> None:
+    """A ball, its ghost via a wall never heard (G), and an object X whose echoes are exactly G's
+    double reflection via a second such wall. G is the ball's ghost and goes; X, which only G
+    explains, stays: a ghost is no reflector, so it explains nothing (a real corner behind a
+    ghost would otherwise go with it). The objects are given farthest first: the order is the
+    test's own, nearest first."""
+    from echoloc.localise import reflector_kinds, surfaces
+
+    c = 343.0
+    tx = np.array([[0.0, 0.0, 0.0], [0.12, 0.12, 0.0]])
+    rx = np.array([[0.25, 0, 0], [-0.25, 0, 0], [0, 0.25, 0], [0, -0.25, 0]])
+    ball = np.array([0.15, -0.05, 1.2])
+    first_wall = np.array([0.30, 0.0, 0.0])  # x = 0.30, beyond the ball
+    second_wall = np.array([0.0, 0.0, 1.6])  # z = 1.6, beyond the ghost
+
+    def apparent(paths: np.ndarray, start: np.ndarray) -> np.ndarray:
+        channel_tx = np.broadcast_to(tx[1], rx.shape)
+        return surfaces.fit(
+            lambda p: surfaces.point_paths_m(p, channel_tx, rx),
+            start[None],
+            paths[None],
+            np.full((1, 4), 1e-4),
+        ).parameters[0]
+
+    def channel_paths(source: np.ndarray, wall: np.ndarray | None) -> list[np.ndarray]:
+        out = []
+        for t in range(2):
+            channel_tx = np.broadcast_to(tx[t], rx.shape)
+            if wall is None:
+                out.append(surfaces.point_paths_m(source[None], channel_tx, rx)[0])
+            else:
+                out.append(
+                    reflector_kinds.mirrored_paths_m(wall[None], source, channel_tx, rx, plane_first=False)[0]
+                )
+        return out
+
+    ball_paths = channel_paths(ball, None)
+    ghost_paths = channel_paths(ball, first_wall)
+    ghost_at = apparent(ghost_paths[1], np.array([0.45, -0.05, 1.2]))
+    far_paths = channel_paths(ghost_at, second_wall)
+    far_at = apparent(far_paths[1], np.array([0.45, -0.05, 2.0]))
+    stacks = [np.vstack([ball_paths[t], ghost_paths[t], far_paths[t]]) for t in range(2)]
+    frames = _frames_of(stacks, c)
+
+    def located(position: np.ndarray, row: int) -> LocatedObject:
+        # The echo index on each channel is the path's rank among that channel's sorted paths.
+        index = tuple(int(np.sum(stacks[t][:, r] < stacks[t][row, r])) for t in range(2) for r in range(4))
+        return LocatedObject(
+            position, np.eye(3) * 1e-6, (0, 1, 2, 3) * 2, index, 0.0, 1.0, (0, 0, 0, 0, 1, 1, 1, 1)
+        )
+
+    objects = [located(far_at, 2), located(ghost_at, 1), located(ball, 0)]
+    options = prepare(simulate(load_scene(preset_path("rooms/corridor")), 1)).locate_options
+    # X is G's double reflection: with G taken for real, G would explain it.
+    assert reflector_kinds._unheard_mirror(objects[0], [objects[1]], frames, 1, tx, rx, options)
+    kept = reflector_kinds._without_unheard_mirrors(objects, frames, 1, tx, rx, options)
+    assert [o.position_m.tolist() for o in kept] == [far_at.tolist(), ball.tolist()]

@@ -758,7 +758,7 @@ def _newest_channels(
     receivers_m: FloatArray,
     options: LocateOptions,
 ) -> _Channels | None:
-    """An object's echoes on the newest frame, as a channel group; None with fewer than four."""
+    """An object's echoes on transmitter ``newest_t``'s frame, as a channel group; None with under four."""
     tx_of = _channel_transmitters(o, frames)
     own = [k for k, t in enumerate(tx_of) if t == newest_t]
     if len(own) < 4:
@@ -1016,17 +1016,25 @@ def _without_unheard_mirrors(
 ) -> list[LocatedObject]:
     """``objects`` less the points and corners that are a point's double reflection via a wall
     never heard itself (:func:`_unheard_mirror`); for two or more transmitter positions only (with
-    one, a point at the same range as another is such a reflection of it for some plane). A
-    corner is tested too: the two orders of a ghost's double reflection (wall first, wall last)
-    arrive a few millimetres apart on each channel, and four parameters fit their merged
-    peaks better than a point's three."""
-    points = [o for o in objects if o.surface is None or o.surface.kind == "point"]
-    return [
-        o
-        for o in objects
-        if (o.surface is not None and o.surface.kind == "plane")
-        or not _unheard_mirror(o, points, frames, newest_t, transmitters_m, receivers_m, options)
-    ]
+    one, a point at the same range as another is such a reflection of it for some plane). Corners
+    are tested too: four parameters fit a ghost's echoes better than a point's three, so a ghost
+    can come out classed as a corner. Objects are tested nearest first, and only the points
+    kept may explain the farther ones: a ghost is never the reflector of another ghost (nor of a
+    real corner behind it)."""
+    newest_m = transmitters_m[newest_t]
+    order = sorted(range(len(objects)), key=lambda k: float(np.linalg.norm(objects[k].position_m - newest_m)))
+    kept_points: list[LocatedObject] = []
+    ghosts: set[int] = set()
+    for k in order:
+        o = objects[k]
+        kind = "point" if o.surface is None else o.surface.kind
+        if kind != "plane" and _unheard_mirror(
+            o, kept_points, frames, newest_t, transmitters_m, receivers_m, options
+        ):
+            ghosts.add(k)
+        elif kind == "point":
+            kept_points.append(o)
+    return [o for k, o in enumerate(objects) if k not in ghosts]
 
 
 def _unheard_mirror(
