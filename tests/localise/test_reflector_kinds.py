@@ -489,6 +489,29 @@ def _frames_of(paths_by_tx: list[np.ndarray], c: float) -> list[tuple[int, Frame
     return frames
 
 
+_TWO_TRANSMITTERS_M = np.array([[0.0, 0.0, 0.0], [0.12, 0.12, 0.0]])
+_CROSS_RECEIVERS_M = np.array([[0.25, 0, 0], [-0.25, 0, 0], [0, 0.25, 0], [0, -0.25, 0]])
+
+
+def _direct_and_mirrored_paths(
+    ball: np.ndarray, plane: np.ndarray, plane_first: bool
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Per transmitter of :data:`_TWO_TRANSMITTERS_M`, the cross's paths (4,) to a ball and back,
+    and via the plane (foot ``plane`` from the origin) wall first or last, m."""
+    from echoloc.localise import reflector_kinds, surfaces
+
+    direct, mirrored = [], []
+    for transmitter_m in _TWO_TRANSMITTERS_M:
+        channel_tx = np.broadcast_to(transmitter_m, _CROSS_RECEIVERS_M.shape)
+        direct.append(surfaces.point_paths_m(ball[None], channel_tx, _CROSS_RECEIVERS_M)[0])
+        mirrored.append(
+            reflector_kinds.mirrored_paths_m(
+                plane[None], ball, channel_tx, _CROSS_RECEIVERS_M, plane_first=plane_first
+            )[0]
+        )
+    return direct, mirrored
+
+
 @pytest.mark.parametrize("plane_first", [True, False])
 @pytest.mark.parametrize("ball", [(-0.2, 0.1, 0.9), (0.15, -0.05, 1.2), (-0.15, 0.2, 0.7)])
 def test_a_ball_seen_in_a_wall_never_heard_is_explained_by_that_wall(
@@ -502,18 +525,11 @@ def test_a_ball_seen_in_a_wall_never_heard_is_explained_by_that_wall(
     from echoloc.localise import reflector_kinds, surfaces
 
     c = 343.0
-    tx = np.array([[0.0, 0.0, 0.0], [0.12, 0.12, 0.0]])
-    rx = np.array([[0.25, 0, 0], [-0.25, 0, 0], [0, 0.25, 0], [0, -0.25, 0]])
+    tx, rx = _TWO_TRANSMITTERS_M, _CROSS_RECEIVERS_M
     v = np.array(ball)
     u = _unit(np.array([math.copysign(1.0, v[0]), 0.0, 0.0]))  # the wall beside the ball, beyond it
     plane = (u @ v + 0.15) * u
-    ghost_paths, point_paths = [], []
-    for t in range(2):
-        channel_tx = np.broadcast_to(tx[t], rx.shape)
-        ghost_paths.append(
-            reflector_kinds.mirrored_paths_m(plane[None], v, channel_tx, rx, plane_first=plane_first)[0]
-        )
-        point_paths.append(surfaces.point_paths_m(v[None], channel_tx, rx)[0])
+    point_paths, ghost_paths = _direct_and_mirrored_paths(v, plane, plane_first)
     channel_tx = np.broadcast_to(tx[1], rx.shape)
     start = 0.5 * (tx[1] + (v + 2 * (u @ plane / np.linalg.norm(plane) - u @ v) * u))
     apparent = surfaces.fit(
@@ -554,18 +570,11 @@ def test_a_ghost_taken_for_a_corner_is_explained_by_the_wall_never_heard(
     from echoloc.localise import reflector_kinds, surfaces
 
     c = 343.0
-    tx = np.array([[0.0, 0.0, 0.0], [0.12, 0.12, 0.0]])
-    rx = np.array([[0.25, 0, 0], [-0.25, 0, 0], [0, 0.25, 0], [0, -0.25, 0]])
+    tx, rx = _TWO_TRANSMITTERS_M, _CROSS_RECEIVERS_M
     v = np.array(ball)
     u = _unit(np.array([math.copysign(1.0, v[0]), 0.0, 0.0]))
     plane = (u @ v + 0.15) * u
-    ghost_paths, point_paths = [], []
-    for t in range(2):
-        channel_tx = np.broadcast_to(tx[t], rx.shape)
-        ghost_paths.append(
-            reflector_kinds.mirrored_paths_m(plane[None], v, channel_tx, rx, plane_first=plane_first)[0]
-        )
-        point_paths.append(surfaces.point_paths_m(v[None], channel_tx, rx)[0])
+    point_paths, ghost_paths = _direct_and_mirrored_paths(v, plane, plane_first)
     mirror_v = v + 2 * (np.linalg.norm(plane) - u @ v) * u
     edge_foot = 0.5 * (v + mirror_v)  # on the wall, level with the ball
     options = prepare(simulate(load_scene(preset_path("rooms/corridor")), 1)).locate_options
@@ -605,8 +614,7 @@ def test_what_a_ghost_must_beat_is_the_objects_own_class() -> None:
     chi-square (about 0), of a point the point's."""
     from echoloc.localise import reflector_kinds, surfaces
 
-    tx = np.array([[0.0, 0.0, 0.0], [0.12, 0.12, 0.0]])
-    rx = np.array([[0.25, 0, 0], [-0.25, 0, 0], [0, 0.25, 0], [0, -0.25, 0]])
+    tx, rx = _TWO_TRANSMITTERS_M, _CROSS_RECEIVERS_M
     edge_foot, up = np.array([-0.3, 0.0, 1.1]), np.array([0.0, 1.0, 0.0])
     paths = np.concatenate(
         [np.linalg.norm(surfaces.half_turned_m(tx[t], edge_foot, up) - rx, axis=1) for t in range(2)]
@@ -636,8 +644,7 @@ def test_only_points_kept_explain_farther_objects_as_their_ghosts() -> None:
     from echoloc.localise import reflector_kinds, surfaces
 
     c = 343.0
-    tx = np.array([[0.0, 0.0, 0.0], [0.12, 0.12, 0.0]])
-    rx = np.array([[0.25, 0, 0], [-0.25, 0, 0], [0, 0.25, 0], [0, -0.25, 0]])
+    tx, rx = _TWO_TRANSMITTERS_M, _CROSS_RECEIVERS_M
     ball = np.array([0.15, -0.05, 1.2])
     first_wall = np.array([0.30, 0.0, 0.0])  # x = 0.30, beyond the ball
     second_wall = np.array([0.0, 0.0, 1.6])  # z = 1.6, beyond the ghost
@@ -651,22 +658,9 @@ def test_only_points_kept_explain_farther_objects_as_their_ghosts() -> None:
             np.full((1, 4), 1e-4),
         ).parameters[0]
 
-    def channel_paths(source: np.ndarray, wall: np.ndarray | None) -> list[np.ndarray]:
-        out = []
-        for t in range(2):
-            channel_tx = np.broadcast_to(tx[t], rx.shape)
-            if wall is None:
-                out.append(surfaces.point_paths_m(source[None], channel_tx, rx)[0])
-            else:
-                out.append(
-                    reflector_kinds.mirrored_paths_m(wall[None], source, channel_tx, rx, plane_first=False)[0]
-                )
-        return out
-
-    ball_paths = channel_paths(ball, None)
-    ghost_paths = channel_paths(ball, first_wall)
+    ball_paths, ghost_paths = _direct_and_mirrored_paths(ball, first_wall, plane_first=False)
     ghost_at = apparent(ghost_paths[1], np.array([0.45, -0.05, 1.2]))
-    far_paths = channel_paths(ghost_at, second_wall)
+    _, far_paths = _direct_and_mirrored_paths(ghost_at, second_wall, plane_first=False)
     far_at = apparent(far_paths[1], np.array([0.45, -0.05, 2.0]))
     stacks = [np.vstack([ball_paths[t], ghost_paths[t], far_paths[t]]) for t in range(2)]
     frames = _frames_of(stacks, c)
