@@ -596,16 +596,45 @@ def test_a_ghost_taken_for_a_corner_is_explained_by_the_wall_never_heard(
             surface=corner_surface,
         )
 
-    points = [dataclasses.replace(located(point_paths), position_m=v, surface=None)]
+    ball_object = dataclasses.replace(located(point_paths), position_m=v, surface=None)
     frames = _frames_of([np.vstack([point_paths[t], ghost_paths[t]]) for t in range(2)], c)
-    assert reflector_kinds._unheard_mirror(located(ghost_paths), points, frames, 1, tx, rx, options)
+    ghost = located(ghost_paths)
+    kept = reflector_kinds._without_unheard_mirrors([ghost, ball_object], frames, 1, tx, rx, options)
+    assert kept == [ball_object]
     # A real corner: its edge vertical through the ghost's foot; its echoes come from its images.
     real = [
         np.linalg.norm(surfaces.half_turned_m(tx[t], edge_foot, np.array([0.0, 1.0, 0.0])) - rx, axis=1)
         for t in range(2)
     ]
     frames = _frames_of([np.vstack([point_paths[t], real[t]]) for t in range(2)], c)
-    assert not reflector_kinds._unheard_mirror(located(real), points, frames, 1, tx, rx, options)
+    corner_object = located(real)
+    kept = reflector_kinds._without_unheard_mirrors([corner_object, ball_object], frames, 1, tx, rx, options)
+    assert kept == [corner_object, ball_object]
+
+
+def test_a_ghost_must_beat_the_fit_of_the_class_it_was_given(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The same ghost echoes, reported once as a point and once as a corner, against a stand-in
+    for the rivals' fits: a point's fit it beats, a corner's that fits them perfectly it does not.
+    The class reaches the comparison (the rivals' own fits are tested below)."""
+    from echoloc.localise import reflector_kinds
+
+    c = 343.0
+    tx, rx = _TWO_TRANSMITTERS_M, _CROSS_RECEIVERS_M
+    v = np.array([0.15, -0.05, 1.2])
+    plane = np.array([0.30, 0.0, 0.0])
+    point_paths, ghost_paths = _direct_and_mirrored_paths(v, plane, plane_first=False)
+    frames = _frames_of([np.vstack([point_paths[t], ghost_paths[t]]) for t in range(2)], c)
+    index = tuple(int(ghost_paths[t][r] > point_paths[t][r]) for t in (0, 1) for r in range(4))
+    ghost_at = np.array([0.3, -0.05, 1.2])
+    ghost = LocatedObject(ghost_at, np.eye(3) * 1e-6, (0, 1, 2, 3) * 2, index, 0.0, 1.0, (0,) * 4 + (1,) * 4)
+    ball = LocatedObject(
+        v, np.eye(3) * 1e-6, (0, 1, 2, 3) * 2, tuple(1 - i for i in index), 0.0, 1.0, ghost.transmitters
+    )
+    options = prepare(simulate(load_scene(preset_path("rooms/corridor")), 1)).locate_options
+    monkeypatch.setattr(reflector_kinds, "_rival_chi2", lambda kind, *rest: 0.0 if kind == "corner" else 1e9)
+    as_corner = dataclasses.replace(ghost, surface=Surface("corner", 0.9, {"point": 0.1, "corner": 0.9}))
+    assert reflector_kinds._unheard_mirror(ghost, [ball], frames, 1, tx, rx, options)
+    assert not reflector_kinds._unheard_mirror(as_corner, [ball], frames, 1, tx, rx, options)
 
 
 def test_what_a_ghost_must_beat_is_the_objects_own_class() -> None:

@@ -713,7 +713,7 @@ def _cross_check(
     or more echoes) replaces the point when it scores :data:`DECISIVE_CHI2` better and its fit
     passes the chi-square gate.
     """
-    base = _newest_channels(o, frames, newest_t, transmitters_m, receivers_m, options)
+    base = _channels_of(o, frames, newest_t, transmitters_m, receivers_m, options)
     if base is None:
         return o
     assert options.resolution_m is not None
@@ -750,26 +750,26 @@ def _cross_check(
     return _robust_object(group, robust, best, scores, newest_m)
 
 
-def _newest_channels(
+def _channels_of(
     o: LocatedObject,
     frames: Sequence[tuple[int, FrameEchoes]],
-    newest_t: int,
+    transmitter: int,
     transmitters_m: FloatArray,
     receivers_m: FloatArray,
     options: LocateOptions,
 ) -> _Channels | None:
-    """An object's echoes on transmitter ``newest_t``'s frame, as a channel group; None with under four."""
+    """An object's echoes on one transmitter's frame, as a channel group; None with under four."""
     tx_of = _channel_transmitters(o, frames)
-    own = [k for k, t in enumerate(tx_of) if t == newest_t]
+    own = [k for k, t in enumerate(tx_of) if t == transmitter]
     if len(own) < 4:
         return None
     paths, sigmas = _group_paths(o, tx_of, frames, options)
     return _Channels(
-        transmitters_m[[newest_t] * len(own)],
+        transmitters_m[[transmitter] * len(own)],
         receivers_m[[o.receivers[k] for k in own]],
         paths[own],
         sigmas[own],
-        (newest_t,) * len(own),
+        (transmitter,) * len(own),
         tuple(o.receivers[k] for k in own),
         tuple(o.echo_indices[k] for k in own),
     )
@@ -1022,7 +1022,8 @@ def _without_unheard_mirrors(
     kept may explain the farther ones: a ghost is never the reflector of another ghost (nor of a
     real corner behind it)."""
     newest_m = transmitters_m[newest_t]
-    order = sorted(range(len(objects)), key=lambda k: float(np.linalg.norm(objects[k].position_m - newest_m)))
+    ranges = np.nan_to_num([float(np.linalg.norm(o.position_m - newest_m)) for o in objects], nan=np.inf)
+    order = sorted(range(len(objects)), key=lambda k: float(ranges[k]))
     kept_points: list[LocatedObject] = []
     ghosts: set[int] = set()
     for k in order:
@@ -1061,7 +1062,7 @@ def _unheard_mirror(
     base_t = next((t for t in heard_by if tx_of.count(t) >= 4), None)
     if base_t is None:
         return False
-    base = _newest_channels(o, frames, base_t, transmitters_m, receivers_m, options)
+    base = _channels_of(o, frames, base_t, transmitters_m, receivers_m, options)
     if base is None:
         return False
     kind = "point" if o.surface is None else o.surface.kind
@@ -1116,9 +1117,9 @@ def _echoes_near(
     receivers_m: FloatArray,
     reach_m: float,
 ) -> list[tuple[int, int, int]]:
-    """The (transmitter, receiver, echo) of the older frames' echoes nearest any of the paths
-    ``predict(transmitters (m, 3))`` gives each receiver ((k, m): k alternatives), where within
-    ``reach_m``."""
+    """The (transmitter, receiver, echo) of the other frames' echoes (all but ``newest_t``'s)
+    nearest any of the paths ``predict(transmitters (m, 3))`` gives each receiver ((k, m): k
+    alternatives), where within ``reach_m``."""
     found: list[tuple[int, int, int]] = []
     for t, echoes in frames:
         if t == newest_t:
@@ -1169,7 +1170,7 @@ def _mirror_explains(
     tx_newest = base.transmitters_m[0]
     candidates: list[tuple[list[tuple[int, int, int]], bool]] = []  # (echoes, wall last)
 
-    # Wall last: V' from the newest frame, then the other frames' echoes where it puts them.
+    # Wall last: V' from the base frame's echoes, then the other frames' echoes where it puts them.
     ranges = base.paths_m - np.linalg.norm(point_m - tx_newest)
     image = _fit_image(base.receivers_m, ranges, sigma, options.boresight)
     v_image = image.parameters[0]
@@ -1258,8 +1259,9 @@ def _rival_chi2(
     reference_m: FloatArray,
     options: LocateOptions,
 ) -> float:
-    """The best chi-square of a point, or of a corner for a corner, on the group's echoes (sigmas
-    ``sigmas_m``): what a ghost explanation of them must beat."""
+    """The best chi-square of a point, or for a corner of a point, a plane or a corner (a corner
+    whose edge runs along the transmitters' baseline is the plane's twin), on the group's echoes
+    (sigmas ``sigmas_m``): what a ghost explanation of them must beat."""
     tx, rx = group.transmitters_m, group.receivers_m
     chi2 = float(_point_fit(near_m, group.paths_m, sigmas_m, tx, rx).chi2[0])
     if kind == "corner":
@@ -1273,7 +1275,7 @@ def _rival_chi2(
             options.gate_probability,
             corner_mode="always",
         )
-        chi2 = min(chi2, float(corner.chi2[0, surfaces.KINDS.index("corner")]))
+        chi2 = min(chi2, float(np.min(corner.chi2[0])))
     return chi2
 
 
