@@ -77,6 +77,14 @@ def _free_space(spec: GridSpec) -> np.ndarray:
     return np.asarray((inside & ~in_box & ~near_pole)[:, None, :])
 
 
+def _plan_length_m(points_m: np.ndarray, spec: GridSpec) -> float:
+    """How much of the floor plan the surface samples cover: their distinct cells times the cell
+    size, m (the samples are a quarter cell apart and fill the layer's height several times over,
+    so their count is no length)."""
+    index, inside = spec.cell_indices(points_m)
+    return len(np.unique(index[inside], axis=0)) * spec.cell_m
+
+
 def _score(scene: Scene, recording: Recording, results: list, grid: OccupancyGrid) -> dict[str, float]:
     spec = grid.spec
     surface = surface_points_m(scene.objects, spec.cell_m / 4)
@@ -87,7 +95,7 @@ def _score(scene: Scene, recording: Recording, results: list, grid: OccupancyGri
         seen = seen_surface_points_m(surface, heard, spec)
         accuracy = map_accuracy(grid, surface, seen, free_space=_free_space(spec))
         row[f"coverage_{channels}"] = accuracy.coverage
-        row[f"seen_m_{channels}"] = len(seen) * spec.cell_m / 4
+        row[f"seen_m_{channels}"] = _plan_length_m(seen, spec)
     row.update(
         precision=accuracy.precision,
         occupied=accuracy.occupied_cells,
@@ -99,13 +107,17 @@ def _score(scene: Scene, recording: Recording, results: list, grid: OccupancyGri
 
 
 def _label(reflector: object) -> str:
-    """A reflector of the room named by its kind and where it is on the floor plan (x, z), m."""
+    """A reflector named by its kind and where it is on the floor plan (x, z), m."""
     if isinstance(reflector, Plane):
         x, _, z = reflector.centre_m
-        return f"plane at ({x:.2f}, {z:.2f}) facing ({reflector.normal[0]:+.0f}, {reflector.normal[2]:+.0f})"
-    assert isinstance(reflector, Edge)
-    x, _, z = 0.5 * (np.asarray(reflector.start_m) + np.asarray(reflector.end_m))
-    return f"edge at ({x:.2f}, {z:.2f})"
+        nx, _, nz = reflector.normal
+        return f"plane at ({x:.2f}, {z:.2f}) facing ({nx:+.2f}, {nz:+.2f})"
+    if isinstance(reflector, Edge):
+        x, _, z = 0.5 * (np.asarray(reflector.start_m) + np.asarray(reflector.end_m))
+        return f"edge at ({x:.2f}, {z:.2f})"
+    position = getattr(reflector, "position_m", getattr(reflector, "centre_m", None))
+    where = "" if position is None else f" at ({position[0]:.2f}, {position[2]:.2f})"
+    return f"{type(reflector).__name__.lower()}{where}"
 
 
 def by_reflector(scene: Scene, recording: Recording, results: list, grid: OccupancyGrid) -> list[str]:
@@ -123,8 +135,8 @@ def by_reflector(scene: Scene, recording: Recording, results: list, grid: Occupa
             continue
         covered = map_accuracy(grid, everything, seen[1]).coverage
         rows.append(
-            f"| {_label(reflector)} | {len(seen[1]) * spec.cell_m / 4:.2f} m | "
-            f"{len(seen[2]) * spec.cell_m / 4:.2f} m | {covered:.3f} |"
+            f"| {_label(reflector)} | {_plan_length_m(seen[1], spec):.2f} m | "
+            f"{_plan_length_m(seen[2], spec):.2f} m | {covered:.3f} |"
         )
     return rows
 
