@@ -707,3 +707,37 @@ def test_only_points_kept_explain_farther_objects_as_their_ghosts() -> None:
     assert reflector_kinds._unheard_mirror(objects[0], [objects[1]], frames, 1, tx, rx, options)
     kept = reflector_kinds._without_unheard_mirrors(objects, frames, 1, tx, rx, options)
     assert [o.position_m.tolist() for o in kept] == [far_at.tolist(), ball.tolist()]
+
+
+def test_one_wall_found_twice_in_a_frame_is_reported_once() -> None:
+    """Two planes 2 degrees and 1 cm apart are one wall (walls that close along their normal make
+    one merged echo on every channel): the one with more echoes stays. A wall parallel to it but
+    10 cm farther (beyond the 29 mm resolution), and one turned 10 degrees, are walls of their own;
+    without a known resolution nothing is merged."""
+    from echoloc.localise import reflector_kinds
+
+    options = prepare(simulate(load_scene(preset_path("rooms/corridor")), 1)).locate_options
+    assert options.resolution_m is not None
+    assert options.resolution_m < 0.05  # 1 cm apart is within it, 10 cm beyond
+
+    def wall(angle_deg: float, distance_m: float, n_echoes: int) -> LocatedObject:
+        a = math.radians(angle_deg)
+        normal = np.array([math.sin(a), 0.0, -math.cos(a)])
+        surface = Surface("plane", 1.0, {"plane": 1.0}, normal=normal, distance_m=distance_m)
+        return LocatedObject(
+            -distance_m * normal,
+            np.eye(3) * 1e-6,
+            tuple(range(n_echoes)),
+            (0,) * n_echoes,
+            1.0,
+            0.9,
+            surface=surface,
+        )
+
+    best, twin = wall(0.0, 1.20, 8), wall(2.0, 1.21, 6)
+    farther, turned = wall(0.0, 1.30, 6), wall(10.0, 1.20, 6)
+    ball = dataclasses.replace(best, surface=None, position_m=np.array([0.2, 0.0, 0.8]))
+    objects = [twin, ball, best, farther, turned]
+    assert reflector_kinds._one_plane_a_wall(objects, options) == [ball, best, farther, turned]
+    unknown = dataclasses.replace(options, resolution_m=None)
+    assert reflector_kinds._one_plane_a_wall(objects, unknown) == objects

@@ -1,6 +1,6 @@
 """Locating with reflector classes: planes and corners found as such, points as before.
 
-A frame's echoes are explained in five steps (docs/METHOD.md 10.10):
+A frame's echoes are explained in six steps (docs/METHOD.md 10.10):
 
 1. **Points, then classes.** The point association (:mod:`echoloc.localise.locate`) runs as
    without classes, and each object is classified by the hypotheses of
@@ -10,7 +10,9 @@ A frame's echoes are explained in five steps (docs/METHOD.md 10.10):
    one a plane explains about as well (on the boresight or the diagonals of a symmetric
    array with one transmitter) stays a point and says so through its ``kind_confidence``.
 2. **Ghosts.** An object whose echoes two others with shorter paths explain as double
-   reflections goes (:func:`_explained_away`).
+   reflections goes (:func:`_explained_away`). With several transmitters, each point is then
+   cross-checked against what the others would hear from a plane, a corner or a point there
+   (:func:`_cross_check`).
 3. **Mirror groups** among the echoes no object took (:func:`mirror_groups`): every choice
    of one echo per receiver that one image fits, with amplitudes that agree, and that a
    point fits decisively worse. With several transmitters, a group of the newest frame,
@@ -18,7 +20,10 @@ A frame's echoes are explained in five steps (docs/METHOD.md 10.10):
    group that one plane or corner fits (:func:`_paired`).
 4. **Edges** along ``LocateOptions.edge_axis`` among what is left (:func:`edge_groups`).
 5. **Ghosts again**, and, with several transmitters, a point that only the newest frame
-   supports must echo to the other transmitters too (:func:`_seen_by_others`).
+   supports must echo to the other transmitters too (:func:`_seen_by_others`), and a point or
+   corner that is a nearer point's reflection in a wall never heard goes
+   (:func:`_without_unheard_mirrors`).
+6. **One plane a wall** (:func:`_one_plane_a_wall`).
 
 Everything here is in the sensor frame, m.
 """
@@ -94,6 +99,11 @@ peak's sigma taken as 9 times a clean echo's (it is 7 times for the 0.5 mm model
 MAX_COMBINATIONS = 200_000
 """Most echo combinations one transmitter's mirror search weighs; beyond, the frame's mirror
 search stops at this many (the point association still runs)."""
+
+SAME_WALL_DEG = 5.0
+"""Two planes of one frame whose normals are within this angle, and whose distances differ by less
+than the pulse's resolution, are one wall: two walls that close along their normal would make
+one merged echo on every channel, so no frame hears them apart."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -641,7 +651,33 @@ def locate_with_classes(
         real = [o for o in real if _seen_by_others(o, frames, newest_t, transmitters_m, receivers_m)]
     if told_apart:
         real = _without_unheard_mirrors(real, frames, newest_t, transmitters_m, receivers_m, options)
-    return FrameObjects(points.frame, points.time_s, tuple(real))
+    return FrameObjects(points.frame, points.time_s, tuple(_one_plane_a_wall(real, options)))
+
+
+def _one_plane_a_wall(objects: list[LocatedObject], options: LocateOptions) -> list[LocatedObject]:
+    """``objects`` with one plane a wall: of the planes :data:`SAME_WALL_DEG` and the resolution
+    apart (the same wall, found from two echo groups), the one with the most echoes, then the
+    best fit (its chi-square tail), stays. Without a known resolution, nothing goes."""
+    if options.resolution_m is None:
+        return objects
+    walls = {
+        id(o): (o.surface.normal, o.surface.distance_m)
+        for o in objects
+        if o.surface is not None
+        and o.surface.kind == "plane"
+        and o.surface.normal is not None
+        and o.surface.distance_m is not None
+    }
+    cos_same = math.cos(math.radians(SAME_WALL_DEG))
+    kept: list[tuple[FloatArray, float]] = []
+    dropped: set[int] = set()
+    for o in sorted((o for o in objects if id(o) in walls), key=lambda o: (-len(o.receivers), -o.score)):
+        normal, distance = walls[id(o)]
+        if any(float(normal @ n) >= cos_same and abs(distance - d) < options.resolution_m for n, d in kept):
+            dropped.add(id(o))
+        else:
+            kept.append((normal, distance))
+    return [o for o in objects if id(o) not in dropped]
 
 
 def _predicted_elsewhere(
