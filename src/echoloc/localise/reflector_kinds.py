@@ -660,24 +660,23 @@ def _one_plane_a_wall(objects: list[LocatedObject], options: LocateOptions) -> l
     best fit (its chi-square tail), stays. Without a known resolution, nothing goes."""
     if options.resolution_m is None:
         return objects
-    walls = {
-        id(o): (o.surface.normal, o.surface.distance_m)
-        for o in objects
+    planes = [
+        (k, o.surface.normal, o.surface.distance_m, (-len(o.receivers), -o.score))
+        for k, o in enumerate(objects)
         if o.surface is not None
         and o.surface.kind == "plane"
         and o.surface.normal is not None
         and o.surface.distance_m is not None
-    }
+    ]
     cos_same = math.cos(math.radians(SAME_WALL_DEG))
     kept: list[tuple[FloatArray, float]] = []
     dropped: set[int] = set()
-    for o in sorted((o for o in objects if id(o) in walls), key=lambda o: (-len(o.receivers), -o.score)):
-        normal, distance = walls[id(o)]
+    for k, normal, distance, _ in sorted(planes, key=lambda plane: plane[3]):
         if any(float(normal @ n) >= cos_same and abs(distance - d) < options.resolution_m for n, d in kept):
-            dropped.add(id(o))
+            dropped.add(k)
         else:
             kept.append((normal, distance))
-    return [o for o in objects if id(o) not in dropped]
+    return [o for k, o in enumerate(objects) if k not in dropped]
 
 
 def _predicted_elsewhere(
@@ -1093,14 +1092,12 @@ def _unheard_mirror(
     object four or more (the newest frame's if it did) and on the other transmitters' echoes
     where it predicts them.
     """
-    tx_of = _channel_transmitters(o, frames)
-    heard_by = [newest_t] + [t for t, _ in frames if t != newest_t]
-    base_t = next((t for t in heard_by if tx_of.count(t) >= 4), None)
-    if base_t is None:
-        return False
-    base = _channels_of(o, frames, base_t, transmitters_m, receivers_m, options)
+    newest_first = [newest_t] + [t for t, _ in frames if t != newest_t]
+    groups = (_channels_of(o, frames, t, transmitters_m, receivers_m, options) for t in newest_first)
+    base = next((g for g in groups if g is not None), None)
     if base is None:
         return False
+    base_t = base.transmitters[0]
     kind = "point" if o.surface is None else o.surface.kind
     assert options.resolution_m is not None
     merge = _merge_sigma(options.resolution_m)
@@ -1177,14 +1174,14 @@ def _mirror_explains(
     ghost_m: FloatArray,
     point_m: FloatArray,
     frames: Sequence[tuple[int, FrameEchoes]],
-    newest_t: int,
+    base_t: int,
     transmitters_m: FloatArray,
     receivers_m: FloatArray,
     options: LocateOptions,
     merge: float,
     kind: str = "point",
 ) -> bool:
-    """Whether one frame's echoes ``base`` (transmitter ``newest_t``) of an object of class ``kind``
+    """Whether one frame's echoes ``base`` (transmitter ``base_t``) of an object of class ``kind``
     located at ``ghost_m`` are the double reflection of the point ``point_m`` (V) via one plane, wall
     first or last, and the other frames hold its echoes too (:func:`_unheard_mirror`). Both orders
     have closed forms.
@@ -1202,12 +1199,12 @@ def _mirror_explains(
     sigma = np.sqrt(base.sigmas_m**2 + merge**2)
     reach = CROSS_CHECK_SIGMAS * merge
     to_receivers = np.linalg.norm(point_m - receivers_m, axis=1)
-    others = [(t, echoes) for t, echoes in frames if t != newest_t]
-    tx_newest = base.transmitters_m[0]
+    others = [(t, echoes) for t, echoes in frames if t != base_t]
+    tx_base = base.transmitters_m[0]
     candidates: list[tuple[list[tuple[int, int, int]], bool]] = []  # (echoes, wall last)
 
     # Wall last: V' from the base frame's echoes, then the other frames' echoes where it puts them.
-    ranges = base.paths_m - np.linalg.norm(point_m - tx_newest)
+    ranges = base.paths_m - np.linalg.norm(point_m - tx_base)
     image = _fit_image(base.receivers_m, ranges, sigma, options.boresight)
     v_image = image.parameters[0]
     if np.all(np.isfinite(v_image)) and image.chi2[0] <= _chi2_gate(
@@ -1216,7 +1213,7 @@ def _mirror_explains(
         extra = _echoes_near(
             lambda tx: np.linalg.norm(point_m - tx[0]) + np.linalg.norm(v_image - receivers_m, axis=1),
             frames,
-            newest_t,
+            base_t,
             transmitters_m,
             receivers_m,
             reach,
@@ -1227,9 +1224,9 @@ def _mirror_explains(
     # Wall first: one |V - T'| per frame, shared by the receivers.
     first = base.paths_m - to_receivers[list(base.receivers)]
     weights = 1 / sigma**2
-    d_newest = float(np.sum(weights * first) / np.sum(weights))
-    if d_newest > np.linalg.norm(point_m - tx_newest) + reach and np.sum(
-        weights * (first - d_newest) ** 2
+    d_base = float(np.sum(weights * first) / np.sum(weights))
+    if d_base > np.linalg.norm(point_m - tx_base) + reach and np.sum(
+        weights * (first - d_base) ** 2
     ) <= _chi2_gate(options.gate_probability, len(first) - 1):
         extra = []
         for t, echoes in others:
@@ -1282,7 +1279,7 @@ def _mirror_explains(
                 dof -= 1
         if not ghost_chi2 <= _chi2_gate(options.gate_probability, dof):
             continue
-        if _rival_chi2(kind, ghost_m, group, widened, tx_newest, options) - ghost_chi2 >= DECISIVE_CHI2:
+        if _rival_chi2(kind, ghost_m, group, widened, tx_base, options) - ghost_chi2 >= DECISIVE_CHI2:
             return True
     return False
 
@@ -1299,20 +1296,19 @@ def _rival_chi2(
     whose edge runs along the transmitters' baseline is the plane's twin), on the group's echoes
     (sigmas ``sigmas_m``): what a ghost explanation of them must beat."""
     tx, rx = group.transmitters_m, group.receivers_m
-    chi2 = float(_point_fit(near_m, group.paths_m, sigmas_m, tx, rx).chi2[0])
-    if kind == "corner":
-        corner = surfaces.hypotheses(
-            tx,
-            rx,
-            group.paths_m[None],
-            sigmas_m[None],
-            reference_m,
-            near_m[None],
-            options.gate_probability,
-            corner_mode="always",
-        )
-        chi2 = min(chi2, float(np.min(corner.chi2[0])))
-    return chi2
+    if kind != "corner":
+        return float(_point_fit(near_m, group.paths_m, sigmas_m, tx, rx).chi2[0])
+    fitted = surfaces.hypotheses(
+        tx,
+        rx,
+        group.paths_m[None],
+        sigmas_m[None],
+        reference_m,
+        near_m[None],
+        options.gate_probability,
+        corner_mode="always",
+    )
+    return float(np.min(fitted.chi2[0]))  # the point's, the plane's and the corner's
 
 
 def _seen_by_others(
