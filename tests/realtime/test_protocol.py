@@ -139,6 +139,21 @@ def test_session_refuses_bad_geometry_in_one_line(recording):
         decode_session(replace(header, payload_bytes=3), b"{no", "tcp://x")
 
 
+def test_an_array_field_that_is_text_with_a_line_break_is_refused_in_one_line(recording):
+    """The refusal quotes the bad value: quoted as Python writes it, its line breaks stay
+    escaped (hypothesis found ``"waveform": "\\n"`` printed across two lines)."""
+    payload = (
+        b'{"format": "echoloc-recording", "version": 1, "sample_rate_hz": 200000.0, '
+        b'"transmitters": [[0, 0, 0]], "receivers": [[0, 0, 1]], "waveform": "\\n1"}'
+    )
+    header = replace(decode_header(encode_session(recording)), payload_bytes=len(payload), payload_crc32=None)
+    with pytest.raises(ProtocolError) as info:
+        decode_session(header, payload, "tcp://x")
+    assert "\n" not in str(info.value)
+    assert "waveform" in str(info.value)
+    assert "'\\n1'" in str(info.value)
+
+
 @pytest.mark.parametrize(
     ("offset", "match"),
     [(0, "magic"), (4, "version"), (20, "CRC"), (50, "CRC")],

@@ -458,7 +458,7 @@ def _from_json(value: Any) -> NDArray[Any]:
         return np.asarray(value["real"], dtype=np.float64) + 1j * np.asarray(value["imag"], dtype=np.float64)
     arr = np.asarray(value)
     if arr.dtype.kind not in "iuf":
-        raise ProtocolError(f"expected an array of numbers, got {str(value)[:40]}")
+        raise ProtocolError(f"expected an array of numbers, got {repr(value)[:40]}")
     return arr.astype(np.int64) if arr.dtype.kind in "iu" and arr.ndim == 0 else arr.astype(np.float64)
 
 
