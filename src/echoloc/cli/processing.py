@@ -399,8 +399,15 @@ def map_command(
         f"{len(frames)} frames mapped in {elapsed:.1f} s "
         f"({len(frames) / max(elapsed, 1e-9):.0f} frames/s, echoes and objects included) onto "
         f"{shape} cells of {cell_m * 100:g} cm: {occupied} occupied, {free} free, "
-        f"{n_cells - known} unknown; written to {written}"
+        f"{n_cells - known} unknown{_placed_by_tracks(len(accumulator.triangulated))}; written to {written}"
     )
+
+
+def _placed_by_tracks(n_points: int) -> str:
+    """What the map's tracks across poses placed (echoes one receiver heard alone), if any."""
+    if not n_points:
+        return ""
+    return f", {n_points} reflector{'' if n_points == 1 else 's'} placed by tracks across poses"
 
 
 @cli.command(name="evaluate")

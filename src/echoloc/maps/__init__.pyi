@@ -18,12 +18,15 @@ from .mapping import (
     map_accuracy,
     read_trajectory,
 )
+from .triangulation import TrackOptions, TriangulatedPoint
 
 __all__ = [
     "GridSpec",
     "MapAccumulator",
     "OccupancyGrid",
     "SensorModel",
+    "TrackOptions",
+    "TriangulatedPoint",
     "build_map",
     "choose_grid",
     "map_accuracy",

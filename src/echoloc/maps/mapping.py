@@ -63,6 +63,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from echoloc.errors import EchoLocError, read_text_input
 from echoloc.io.recording import Recording
 from echoloc.localise.locate import FrameObjects, LocatedObject
+from echoloc.maps.triangulation import Arc, ArcTracker, TrackOptions, TriangulatedPoint
 from echoloc.physics.transducer import X_FIRST_NULL, X_MINUS_3DB
 from echoloc.pipeline import Chain
 from echoloc.tof.echoes import FrameEchoes, frame_time_s
@@ -75,6 +76,11 @@ MAP_FRAME_ID = "echoloc_map"
 _MAX_CELLS = 60_000_000
 """A map holds about 36 bytes a cell while it is built (:class:`MapAccumulator`) and the
 pictures and exports take copies: 60 M cells is about 2 GiB of scratch."""
+
+
+_MIN_TRACK_SIGMA_M = 1e-4
+"""A track's fit needs a path uncertainty above zero (``path_sigma_m`` may be 0): 0.1 mm,
+below any echo estimator's."""
 
 
 class MapWarning(UserWarning):
@@ -225,6 +231,9 @@ class SensorModel:
         many channels of the frame pass through it (fewer where fewer receivers work):
         the receivers' ellipsoids meet at the reflector and part along the arc, so an
         arc's tails are left alone instead of marked.
+    tracks
+        How the echoes no located object used are followed across frames and placed
+        by the sensor's motion (:mod:`echoloc.maps.triangulation`); None: they are not.
     """
 
     hit_probability: float = 0.7
@@ -241,6 +250,7 @@ class SensorModel:
     min_support: int = 2
     clear_fraction: float = 0.8
     arc_sigmas: float = 2.0
+    tracks: TrackOptions | None = field(default_factory=TrackOptions)
 
     def __post_init__(self) -> None:
         for name in ("hit_probability", "object_probability"):
@@ -619,6 +629,17 @@ class MapAccumulator:
         self._clamp = (_logit(low), _logit(high))
         self._hit_gain = self.model.hit_probability - 0.5
         self._free_gain = _logit(self.model.free_probability)
+        self._tracker = (
+            None
+            if self.model.tracks is None
+            else ArcTracker(
+                self.model.tracks,
+                half_angle_rad=self._half_angle,
+                path_sigma_m=max(self.model.path_sigma_m, _MIN_TRACK_SIGMA_M),
+            )
+        )
+        self.triangulated: list[TriangulatedPoint] = []
+        """The points the tracks placed and the map marked, in the order they were placed."""
 
     @property
     def memory_bytes(self) -> int:
@@ -714,6 +735,10 @@ class MapAccumulator:
             )
         if objects is not None:
             n_touched = self._add_objects(objects, rotation, translation, frame_id, n_touched)
+        if self._tracker is not None:
+            arcs = self._unplaced_arcs(echoes, objects, rotation, translation, transmitter, tx_world, tx_axis)
+            for point in self._tracker.add(echoes.frame, arcs):
+                n_touched = self._add_triangulated(point, frame_id, n_touched)
         usable = len(echoes.channels) if usable_receivers is None else int(np.sum(usable_receivers))
         min_support = max(1, min(self.model.min_support, usable))
         self._kernels.apply_frame(
@@ -743,9 +768,6 @@ class MapAccumulator:
     ) -> int:
         """Each located object as a Gaussian blob of its covariance (plus the cell's own spread);
         a plane (reflector classes) as the patch of it that was heard (:meth:`_add_plane`)."""
-        spec = self.spec
-        h = spec.cell_m
-        ny, nz = spec.shape[1], spec.shape[2]
         for obj in objects.objects:
             surface = obj.surface
             if surface is not None and surface.kind == "plane" and surface.specular_points_m is not None:
@@ -753,23 +775,107 @@ class MapAccumulator:
                 continue
             mean = rotation @ np.asarray(obj.position_m, dtype=float) + translation
             covariance = rotation @ np.asarray(obj.covariance_m2, dtype=float) @ rotation.T
-            covariance = covariance + np.eye(3) * (h * h / 12.0)
-            if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(covariance))):
+            n_touched = self._add_gaussian(
+                mean, covariance, frame_id, n_touched, peak_probability=self.model.object_probability
+            )
+        return n_touched
+
+    def _unplaced_arcs(
+        self,
+        echoes: FrameEchoes,
+        objects: FrameObjects | None,
+        rotation: FloatArray,
+        translation: FloatArray,
+        transmitter: int,
+        tx_world: FloatArray,
+        tx_axis: FloatArray,
+    ) -> dict[tuple[int, int], list[Arc]]:
+        """The frame's echoes that no located object used, as world-frame arcs per channel."""
+        used: set[tuple[int, int]] = set()
+        if objects is not None:
+            for obj in objects.objects:
+                sources = obj.transmitters or (transmitter,) * len(obj.receivers)
+                used.update(
+                    (rx, index)
+                    for rx, index, source in zip(obj.receivers, obj.echo_indices, sources, strict=True)
+                    if source == transmitter
+                )
+        c = echoes.speed_of_sound_m_s
+        arcs: dict[tuple[int, int], list[Arc]] = {}
+        for rx, channel in enumerate(echoes.channels):
+            if self._usable is not None and not self._usable[rx]:
                 continue
-            half = 3.0 * np.sqrt(np.diag(covariance))
-            lower = np.maximum(np.floor((mean - half - spec.origin_m) / h).astype(int), 0)
-            upper = np.minimum(np.floor((mean + half - spec.origin_m) / h).astype(int) + 1, spec.shape)
-            if np.any(upper <= lower):
-                continue
-            grids = np.meshgrid(*(np.arange(lower[a], upper[a]) for a in range(3)), indexing="ij")
-            index = np.stack([g.reshape(-1) for g in grids], axis=1)
-            offset = spec.origin_m + (index + 0.5) * h - mean
-            d2 = np.einsum("ni,ij,nj->n", offset, np.linalg.inv(covariance), offset)
-            p = 0.5 + (self.model.object_probability - 0.5) * np.exp(-0.5 * d2)
-            cells = (index[:, 0] * ny + index[:, 1]) * nz + index[:, 2]
-            n_touched = self._kernels.add_supported_evidence(
+            rx_world = rotation @ self.recording.receivers_m[rx] + translation
+            for index, tof in enumerate(channel.tof_s):
+                path = float(tof) * c
+                if (rx, index) in used or path < self._blind_m:
+                    continue
+                arcs.setdefault((transmitter, rx), []).append(
+                    Arc(echoes.frame, tx_world, rx_world, path, tx_axis)
+                )
+        return arcs
+
+    def _add_triangulated(self, point: TriangulatedPoint, frame_id: int, n_touched: int) -> int:
+        """A track's point (:mod:`echoloc.maps.triangulation`): each of its arcs, now placed, adds
+        the evidence of an arc (``hit_probability``) at the point, spread by its covariance.
+
+        Only a point the data fix along every axis the grid resolves, within the tracks'
+        ``max_std_m``, is marked: a floor plan, a slice at one height, needs the point's
+        position in the slice given that height; a 3-D grid needs its height too (a sensor
+        moving in a plane leaves the height to the beam's prior, which would mark a column).
+        """
+        assert self.model.tracks is not None
+        axes = [a for a in range(3) if self.spec.shape[a] > 1]
+        fixed = point.covariance_given_m2(axes)
+        if fixed is None or not np.sqrt(np.linalg.eigvalsh(fixed).max()) <= self.model.tracks.max_std_m:
+            return n_touched
+        # The resolved axes as the data fix them; an axis the grid does not resolve (a floor
+        # plan's height) as the fit's prior left it.
+        covariance = np.diag(np.diag(point.covariance_m2))
+        covariance[np.ix_(axes, axes)] = fixed
+        self.triangulated.append(point)
+        return self._add_gaussian(
+            point.position_m,
+            covariance,
+            frame_id,
+            n_touched,
+            peak_probability=self.model.hit_probability,
+            weight=point.n_arcs,
+        )
+
+    def _add_gaussian(
+        self,
+        mean: FloatArray,
+        covariance: FloatArray,
+        frame_id: int,
+        n_touched: int,
+        *,
+        peak_probability: float,
+        weight: float = 1.0,
+    ) -> int:
+        """``weight`` times the log-odds of a Gaussian blob of ``peak_probability`` at its centre
+        (world frame), spread by the covariance plus the cell's own spread."""
+        spec = self.spec
+        h = spec.cell_m
+        ny, nz = spec.shape[1], spec.shape[2]
+        covariance = covariance + np.eye(3) * (h * h / 12.0)
+        if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(covariance))):
+            return n_touched
+        half = 3.0 * np.sqrt(np.diag(covariance))
+        lower = np.maximum(np.floor((mean - half - spec.origin_m) / h).astype(int), 0)
+        upper = np.minimum(np.floor((mean + half - spec.origin_m) / h).astype(int) + 1, spec.shape)
+        if np.any(upper <= lower):
+            return n_touched
+        grids = np.meshgrid(*(np.arange(lower[a], upper[a]) for a in range(3)), indexing="ij")
+        index = np.stack([g.reshape(-1) for g in grids], axis=1)
+        offset = spec.origin_m + (index + 0.5) * h - mean
+        d2 = np.einsum("ni,ij,nj->n", offset, np.linalg.inv(covariance), offset)
+        p = 0.5 + (peak_probability - 0.5) * np.exp(-0.5 * d2)
+        cells = (index[:, 0] * ny + index[:, 1]) * nz + index[:, 2]
+        return int(
+            self._kernels.add_supported_evidence(
                 cells,
-                np.log(p / (1 - p)),
+                weight * np.log(p / (1 - p)),
                 self._occupied,
                 self._support,
                 self._stamp,
@@ -777,7 +883,30 @@ class MapAccumulator:
                 self._touched,
                 n_touched,
             )
-        return n_touched
+        )
+
+    def finish_tracks(self) -> None:
+        """Fit the tracks still open (the end of a recording) and mark their points."""
+        if self._tracker is None:
+            return
+        n_touched = 0
+        for point in self._tracker.finish():
+            n_touched = self._add_triangulated(point, self._frames, n_touched)
+        self._kernels.apply_frame(
+            self._log_odds,
+            self._updates,
+            self._occupied,
+            self._free,
+            self._support,
+            self._central,
+            1,
+            self._hit_axes,
+            np.zeros(3),
+            self._touched,
+            n_touched,
+            self._clamp[0],
+            self._clamp[1],
+        )
 
     def _add_plane(
         self, obj: LocatedObject, rotation: FloatArray, translation: FloatArray, frame_id: int, n_touched: int
@@ -901,6 +1030,7 @@ def integrate(
         accumulator.add_frame(echoes, poses[echoes.frame], transmitter=transmitter, objects=objects)
         if progress is not None:
             progress(1)
+    accumulator.finish_tracks()
     grid = accumulator.grid()
     if grid.frames and not grid.known().any():
         warnings.warn(
