@@ -373,3 +373,35 @@ def test_a_grid_file_that_is_no_grid_or_a_device_is_one_error(tmp_path: Path) ->
         patch.setattr(map_export, "MAX_GRID_BYTES", 100_000)  # the file itself is about 4 kB
         with pytest.raises(EchoLocError, match=r"bomb\.npz: unpacks to .* over the limit"):
             read_grid_npz(bomb)
+
+
+def test_map_and_batch_map_place_single_receiver_echoes_unless_told_not_to(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    """The room's first 130 frames: the box's near-left edge is heard by one receiver at a time
+    while the robot drives and the head turns, and the tracks place it (docs/METHOD.md §8).
+    --no-tracks maps as before them; `batch map` takes the same switch and writes the same
+    grid as `map`."""
+    from echoloc.maps.map_export import read_grid_npz
+    from echoloc.sim.scenefile import load_scene, preset_path
+
+    room = tmp_path / "room.h5"
+    write_recording(simulate(load_scene(preset_path("mapping/room")), 130), room)
+    grids = {}
+    for switch in ("--tracks", "--no-tracks"):
+        out = tmp_path / f"serial{switch}.npz"
+        code, stdout, stderr = _run(capsys, "map", room, "-o", out, switch)
+        assert code == 0, stderr
+        assert ("placed by tracks across poses" in " ".join(stdout.split())) == (switch == "--tracks")
+        grids[switch] = read_grid_npz(out)
+        code, _, stderr = _run(capsys, "batch", "map", room, "--workers", 1, "-o", tmp_path / switch, switch)
+        assert code == 0, stderr
+        batch = read_grid_npz(tmp_path / switch / "room.map.npz")
+        np.testing.assert_array_equal(batch.log_odds, grids[switch].log_odds)
+    # The edge at (0.2, 1.1) m of the floor plan: marked with tracks only.
+    spec = grids["--tracks"].spec
+    index, inside = spec.cell_indices([[0.2, 0.0, 1.1]])
+    assert inside[0]
+    near = tuple(slice(max(i - 1, 0), i + 2) for i in index[0])
+    assert grids["--tracks"].occupied()[near].any()
+    assert not grids["--no-tracks"].occupied()[near].any()

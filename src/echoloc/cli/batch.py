@@ -41,6 +41,7 @@ _JOB_OPTIONS = {
     "height_m": ("--height-m", "map"),
     "extent_text": ("--extent-m", "map"),
     "with_objects": ("--objects/--no-objects", "map"),
+    "with_tracks": ("--tracks/--no-tracks", "map"),
 }
 """The options of one job only, and that job."""
 
@@ -116,6 +117,13 @@ def _batch_options(func: Any) -> Any:
     show_default=True,
     help="map: also add the located objects with their covariance.",
 )
+@click.option(
+    "--tracks/--no-tracks",
+    "with_tracks",
+    default=True,
+    show_default=True,
+    help="map: place the echoes one receiver heard alone by following them across poses.",
+)
 def batch_command(
     job: str,
     inputs: tuple[str, ...],
@@ -132,6 +140,7 @@ def batch_command(
     height_m: float | None,
     extent_text: str | None,
     with_objects: bool,
+    with_tracks: bool,
     **chain_options: Any,
 ) -> None:
     """Run JOB (echoes, locate, evaluate or map) on many recordings, on a Dask cluster.
@@ -156,7 +165,7 @@ def batch_command(
     settings = ChainSettings(**{k: chain_options.pop(k) for k in _CHAIN_FIELDS if k in chain_options})
     map_settings = MapSettings()
     if job == "map":
-        map_settings = _map_settings(cell_m, three_d, height_m, extent_text, with_objects)
+        map_settings = _map_settings(cell_m, three_d, height_m, extent_text, with_objects, with_tracks)
     if job == "evaluate":
         _finite("--match-radius-m", match_radius_m, positive=True)
     spec = BatchJob(
@@ -191,7 +200,12 @@ def batch_command(
 
 
 def _map_settings(
-    cell_m: float, three_d: bool, height_m: float | None, extent_text: str | None, with_objects: bool
+    cell_m: float,
+    three_d: bool,
+    height_m: float | None,
+    extent_text: str | None,
+    with_objects: bool,
+    with_tracks: bool,
 ) -> MapSettings:
     """The map options, refused as `echoloc map` refuses them."""
     from echoloc.cli.processing import _extent_option, check_grid_options
@@ -204,6 +218,7 @@ def _map_settings(
         height_m=height_m,
         extent_m=None if extent is None else tuple(extent),
         with_objects=with_objects,
+        with_tracks=with_tracks,
     )
 
 

@@ -300,6 +300,14 @@ def _extent_option(text: str | None, dims: int) -> list[tuple[float, float]] | N
     show_default=True,
     help="Also add the located objects with their covariance.",
 )
+@click.option(
+    "--tracks/--no-tracks",
+    "with_tracks",
+    default=True,
+    show_default=True,
+    help="Place the echoes one receiver heard alone by following them across poses as the sensor "
+    "moves (docs/METHOD.md §8).",
+)
 def map_command(
     processing: Processing,
     output_path: Path,
@@ -309,6 +317,7 @@ def map_command(
     extent_text: str | None,
     trajectory_path: Path | None,
     with_objects: bool,
+    with_tracks: bool,
 ) -> None:
     """Build an occupancy grid from every frame of RECORDING and write it; the format by extension.
 
@@ -355,7 +364,7 @@ def map_command(
         extent_m=extent,
         height_m=height_m,
     )
-    accumulator = chain_accumulator(chain, spec, path_sigma_m=processing.path_sigma_m)
+    accumulator = chain_accumulator(chain, spec, path_sigma_m=processing.path_sigma_m, tracks=with_tracks)
     located: list[FrameObjects] = []
 
     def results() -> Iterator[tuple[FrameEchoes, FrameObjects | None]]:

@@ -986,15 +986,18 @@ def build_map(
     return integrate(accumulator, results, poses, progress=progress)
 
 
-def chain_accumulator(chain: Chain, spec: GridSpec, *, path_sigma_m: float | None = None) -> MapAccumulator:
+def chain_accumulator(
+    chain: Chain, spec: GridSpec, *, path_sigma_m: float | None = None, tracks: bool = True
+) -> MapAccumulator:
     """A :class:`MapAccumulator` for the frames a chain processes.
 
     Its beam is the chain's field of view (the recording's ``field_of_view_deg`` or
     the user's, at most the half-space), its blind zone the chain's blanking, and it
-    leaves out the receivers the chain leaves out.
+    leaves out the receivers the chain leaves out. ``tracks``: place the echoes one
+    receiver heard alone by following them across poses (:class:`SensorModel`).
     """
     fov = min(90.0, float(chain.locate_options.field_of_view_deg))
-    model = SensorModel(field_of_view_deg=fov)
+    model = SensorModel(field_of_view_deg=fov, tracks=TrackOptions() if tracks else None)
     if path_sigma_m is not None:
         model = replace(model, path_sigma_m=path_sigma_m)
     return MapAccumulator(

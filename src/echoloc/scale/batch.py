@@ -107,6 +107,7 @@ class MapSettings:
     height_m: float | None = None
     extent_m: tuple[tuple[float, float], ...] | None = None
     with_objects: bool = True
+    with_tracks: bool = True
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -674,7 +675,9 @@ def _map_task(path: str, job: BatchJob, template: Template | None, plan: FilePla
         extent_m=None if settings.extent_m is None else list(settings.extent_m),
         height_m=settings.height_m,
     )
-    accumulator = chain_accumulator(_on(chain, everything), spec, path_sigma_m=job.settings.path_sigma_m)
+    accumulator = chain_accumulator(
+        _on(chain, everything), spec, path_sigma_m=job.settings.path_sigma_m, tracks=settings.with_tracks
+    )
 
     def results() -> Iterator[tuple[Any, FrameObjects | None]]:
         for recording, indices, n_context in _chunk_recordings(parts, plan, _ranges(plan, job), False):
