@@ -249,7 +249,7 @@ class ArcTracker:
         tracks that ended."""
         options = self.options
         placed: list[TriangulatedPoint] = []
-        for channel in set(self._tracks) | set(arcs_by_channel):
+        for channel in sorted(set(self._tracks) | set(arcs_by_channel)):
             tracks = self._tracks.setdefault(channel, [])
             arcs = sorted(arcs_by_channel.get(channel, []), key=lambda a: a.path_m)
             taken: set[int] = set()
