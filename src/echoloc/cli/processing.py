@@ -408,7 +408,7 @@ def map_command(
         f"{len(frames)} frames mapped in {elapsed:.1f} s "
         f"({len(frames) / max(elapsed, 1e-9):.0f} frames/s, echoes and objects included) onto "
         f"{shape} cells of {cell_m * 100:g} cm: {occupied} occupied, {free} free, "
-        f"{n_cells - known} unknown{_placed_by_tracks(len(accumulator.triangulated))}; written to {written}"
+        f"{n_cells - known} unknown{_placed_by_tracks(accumulator.n_triangulated)}; written to {written}"
     )
 
 

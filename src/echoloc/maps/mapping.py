@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -77,6 +78,9 @@ _MAX_CELLS = 60_000_000
 """A map holds about 36 bytes a cell while it is built (:class:`MapAccumulator`) and the
 pictures and exports take copies: 60 M cells is about 2 GiB of scratch."""
 
+
+_KEPT_POINTS = 10_000
+"""Points placed by tracks that a map keeps a list of (a live map runs for hours)."""
 
 _MIN_TRACK_SIGMA_M = 1e-4
 """A track's fit needs a path uncertainty above zero (``path_sigma_m`` may be 0): 0.1 mm,
@@ -613,6 +617,7 @@ class MapAccumulator:
         self._stamp = np.full(n, -1, dtype=np.int32)
         self._touched = np.zeros(n, dtype=np.int32)
         self._frames = 0
+        self._stamp_id = 0
         self._blind_m = float(blind_path_m)
         self._usable = None if usable_receivers is None else np.asarray(usable_receivers, dtype=bool)
         self._tx_axes = (
@@ -629,6 +634,8 @@ class MapAccumulator:
         self._clamp = (_logit(low), _logit(high))
         self._hit_gain = self.model.hit_probability - 0.5
         self._free_gain = _logit(self.model.free_probability)
+        # A floor plan is a slice at one height: tracks are fitted in it, the height held.
+        slice_m = {a: float(spec.centres_m(a)[0]) for a in range(3) if spec.shape[a] == 1}
         self._tracker = (
             None
             if self.model.tracks is None
@@ -636,10 +643,13 @@ class MapAccumulator:
                 self.model.tracks,
                 half_angle_rad=self._half_angle,
                 path_sigma_m=max(self.model.path_sigma_m, _MIN_TRACK_SIGMA_M),
+                fixed=slice_m,
             )
         )
-        self.triangulated: list[TriangulatedPoint] = []
-        """The points the tracks placed and the map marked, in the order they were placed."""
+        self.triangulated: deque[TriangulatedPoint] = deque(maxlen=_KEPT_POINTS)
+        """The last points the tracks placed (and the map marked), oldest first."""
+        self.n_triangulated = 0
+        """How many points the tracks placed in all."""
 
     @property
     def memory_bytes(self) -> int:
@@ -683,7 +693,7 @@ class MapAccumulator:
         spec = self.spec
         origin = spec.origin_m
         shape = np.array(spec.shape, dtype=np.int64)
-        frame_id = self._frames
+        frame_id = self._stamp_id
         n_touched = 0
         for rx, channel in enumerate(echoes.channels):
             if usable_receivers is not None and not usable_receivers[rx]:
@@ -757,6 +767,7 @@ class MapAccumulator:
             self._clamp[1],
         )
         self._frames += 1
+        self._stamp_id += 1
 
     def _add_objects(
         self,
@@ -790,7 +801,9 @@ class MapAccumulator:
         tx_world: FloatArray,
         tx_axis: FloatArray,
     ) -> dict[tuple[int, int], list[Arc]]:
-        """The frame's echoes that no located object used, as world-frame arcs per channel."""
+        """The frame's echoes that no located object used, as world-frame arcs, for every usable
+        channel of the transmitter that fired (those without such echoes too: the tracker
+        counts the firings a track missed)."""
         used: set[tuple[int, int]] = set()
         if objects is not None:
             for obj in objects.objects:
@@ -806,41 +819,28 @@ class MapAccumulator:
             if self._usable is not None and not self._usable[rx]:
                 continue
             rx_world = rotation @ self.recording.receivers_m[rx] + translation
-            for index, tof in enumerate(channel.tof_s):
-                path = float(tof) * c
-                if (rx, index) in used or path < self._blind_m:
-                    continue
-                arcs.setdefault((transmitter, rx), []).append(
-                    Arc(echoes.frame, tx_world, rx_world, path, tx_axis)
-                )
+            arcs[transmitter, rx] = [
+                Arc(echoes.frame, tx_world, rx_world, float(tof) * c, tx_axis)
+                for index, tof in enumerate(channel.tof_s)
+                if (rx, index) not in used and float(tof) * c >= self._blind_m
+            ]
         return arcs
 
     def _add_triangulated(self, point: TriangulatedPoint, frame_id: int, n_touched: int) -> int:
-        """A track's point (:mod:`echoloc.maps.triangulation`): each of its arcs, now placed, adds
-        the evidence of an arc (``hit_probability``) at the point, spread by its covariance.
-
-        Only a point the data fix along every axis the grid resolves, within the tracks'
-        ``max_std_m``, is marked: a floor plan, a slice at one height, needs the point's
-        position in the slice given that height; a 3-D grid needs its height too (a sensor
-        moving in a plane leaves the height to the beam's prior, which would mark a column).
-        """
-        assert self.model.tracks is not None
-        axes = [a for a in range(3) if self.spec.shape[a] > 1]
-        fixed = point.covariance_given_m2(axes)
-        if fixed is None or not np.sqrt(np.linalg.eigvalsh(fixed).max()) <= self.model.tracks.max_std_m:
-            return n_touched
-        # The resolved axes as the data fix them; an axis the grid does not resolve (a floor
-        # plan's height) as the fit's prior left it.
-        covariance = np.diag(np.diag(point.covariance_m2))
-        covariance[np.ix_(axes, axes)] = fixed
+        """A track's point (:mod:`echoloc.maps.triangulation`), fitted in the grid's slice (a
+        floor plan) or in space (a 3-D grid): each of its arcs, now placed, adds the evidence
+        of an arc (``hit_probability``) at the point, spread by its covariance out to two
+        standard deviations."""
         self.triangulated.append(point)
+        self.n_triangulated += 1
         return self._add_gaussian(
             point.position_m,
-            covariance,
+            point.covariance_m2,
             frame_id,
             n_touched,
             peak_probability=self.model.hit_probability,
             weight=point.n_arcs,
+            cutoff_sigmas=2.0,
         )
 
     def _add_gaussian(
@@ -852,9 +852,11 @@ class MapAccumulator:
         *,
         peak_probability: float,
         weight: float = 1.0,
+        cutoff_sigmas: float = math.inf,
     ) -> int:
         """``weight`` times the log-odds of a Gaussian blob of ``peak_probability`` at its centre
-        (world frame), spread by the covariance plus the cell's own spread."""
+        (world frame), spread by the covariance plus the cell's own spread, over its 3-sigma
+        box and within ``cutoff_sigmas`` (Mahalanobis) of the centre or in the centre's cell."""
         spec = self.spec
         h = spec.cell_m
         ny, nz = spec.shape[1], spec.shape[2]
@@ -870,6 +872,9 @@ class MapAccumulator:
         index = np.stack([g.reshape(-1) for g in grids], axis=1)
         offset = spec.origin_m + (index + 0.5) * h - mean
         d2 = np.einsum("ni,ij,nj->n", offset, np.linalg.inv(covariance), offset)
+        # Within the cutoff, and always the cell that holds the centre.
+        within = (d2 <= cutoff_sigmas**2) | np.all(index == np.floor((mean - spec.origin_m) / h), axis=1)
+        index, d2 = index[within], d2[within]
         p = 0.5 + (peak_probability - 0.5) * np.exp(-0.5 * d2)
         cells = (index[:, 0] * ny + index[:, 1]) * nz + index[:, 2]
         return int(
@@ -891,7 +896,7 @@ class MapAccumulator:
             return
         n_touched = 0
         for point in self._tracker.finish():
-            n_touched = self._add_triangulated(point, self._frames, n_touched)
+            n_touched = self._add_triangulated(point, self._stamp_id, n_touched)
         self._kernels.apply_frame(
             self._log_odds,
             self._updates,
@@ -907,6 +912,7 @@ class MapAccumulator:
             self._clamp[0],
             self._clamp[1],
         )
+        self._stamp_id += 1
 
     def _add_plane(
         self, obj: LocatedObject, rotation: FloatArray, translation: FloatArray, frame_id: int, n_touched: int
