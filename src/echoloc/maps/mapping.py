@@ -750,7 +750,11 @@ class MapAccumulator:
             for point in self._tracker.add(echoes.frame, arcs):
                 n_touched = self._add_triangulated(point, frame_id, n_touched)
         usable = len(echoes.channels) if usable_receivers is None else int(np.sum(usable_receivers))
-        min_support = max(1, min(self.model.min_support, usable))
+        self._apply(n_touched, max(1, min(self.model.min_support, usable)), tx_axis)
+        self._frames += 1
+
+    def _apply(self, n_touched: int, min_support: int, tx_axis: FloatArray) -> None:
+        """Add the touched cells' evidence to the map (``apply_frame``), then move the stamp on."""
         self._kernels.apply_frame(
             self._log_odds,
             self._updates,
@@ -766,7 +770,6 @@ class MapAccumulator:
             self._clamp[0],
             self._clamp[1],
         )
-        self._frames += 1
         self._stamp_id += 1
 
     def _add_objects(
@@ -897,22 +900,7 @@ class MapAccumulator:
         n_touched = 0
         for point in self._tracker.finish():
             n_touched = self._add_triangulated(point, self._stamp_id, n_touched)
-        self._kernels.apply_frame(
-            self._log_odds,
-            self._updates,
-            self._occupied,
-            self._free,
-            self._support,
-            self._central,
-            1,
-            self._hit_axes,
-            np.zeros(3),
-            self._touched,
-            n_touched,
-            self._clamp[0],
-            self._clamp[1],
-        )
-        self._stamp_id += 1
+        self._apply(n_touched, 1, np.zeros(3))
 
     def _add_plane(
         self, obj: LocatedObject, rotation: FloatArray, translation: FloatArray, frame_id: int, n_touched: int
