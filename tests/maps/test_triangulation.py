@@ -66,6 +66,7 @@ def _track(
     frames: list[tuple[int, list[Arc]]],
     sigma: float = 0.001,
     channel: tuple[int, int] = (0, 0),
+    by_firing: bool = False,
     **options: float,
 ):
     tracker = ArcTracker(
@@ -75,8 +76,8 @@ def _track(
         fixed=IN_THE_SLICE,
     )
     placed = []
-    for frame, arcs in frames:
-        placed += tracker.add(frame, {channel: arcs})
+    for n, (frame, arcs) in enumerate(frames):
+        placed += tracker.add(frame, {channel: arcs}, firing=n if by_firing else None)
     return placed + tracker.finish()
 
 
@@ -217,10 +218,12 @@ def test_a_track_does_not_resume_across_a_jump_in_the_frames() -> None:
 
 def test_a_channel_firing_every_fifth_frame_keeps_its_track() -> None:
     """Five transmitters fired in turn: a channel hears every fifth frame, and its track
-    still gathers every arc (a missed firing is counted per channel, not per frame)."""
+    still gathers every arc (misses are counted in the channel's firings, not in frames);
+    counted in frames, four of five would be missed and the track would end at once."""
     truth = np.array([0.3, 0.0, 1.2])
     arcs = _sliding_arcs(truth, 40, 0.02, first_frame=3, every=5)
-    placed = _track([(a.frame, [a]) for a in arcs], channel=(3, 0))
+    assert _track([(a.frame, [a]) for a in arcs], channel=(3, 0)) == []
+    placed = _track([(a.frame, [a]) for a in arcs], channel=(3, 0), by_firing=True)
     assert len(placed) == 1
     assert (placed[0].n_arcs, placed[0].channel) == (40, (3, 0))
     np.testing.assert_allclose(placed[0].position_m, truth, atol=1e-4)
@@ -330,3 +333,48 @@ def test_frames_after_the_tracks_are_finished_are_mapped_in_full() -> None:
     )
     accumulator.add_frame(echoes, np.array([*where, 0.0, 0.0, 0.0, 1.0]))
     assert _post_log_odds(accumulator) < before - 0.1
+
+
+def test_a_firing_seen_twice_adds_nothing_and_an_input_that_goes_back_ends_the_tracks() -> None:
+    truth = np.array([0.3, 0.0, 1.2])
+    arcs = _sliding_arcs(truth, 40, 0.004, 0.001, 3)
+    doubled = [(a.frame, [a]) for a in arcs for _ in range(2)]
+    assert [p.n_arcs for p in _track(doubled)] == [40]
+    back = [(a.frame, [a]) for a in arcs[:20]] + [(a.frame, [a]) for a in arcs[:20]]
+    assert [p.n_arcs for p in _track(back)] == [20, 20]
+
+
+def test_a_mirror_image_as_good_as_the_reflector_places_nothing() -> None:
+    """Driving straight ahead with the receiver 25 cm right of the transmitter, every
+    ellipsoid is symmetric about the plane halfway between them (x = 12.5 cm): the post
+    5 cm right of the transmitter and its mirror image at 20 cm fit the paths alike. The
+    track is ambiguous and places nothing; the same post seen from a drive across the beam
+    is placed."""
+    post = np.array([0.05, 0.0, 1.2])
+    ahead = []
+    for k in range(40):
+        transmitter = np.array([0.0, 0.0, 0.01 * k])
+        receiver = transmitter + RECEIVER_OFFSET_M
+        ahead.append(Arc(k, transmitter, receiver, _path_m(post, transmitter, receiver), AHEAD))
+    mirror = np.array([0.2, 0.0, 1.2])
+    assert [_path_m(mirror, a.transmitter_m, a.receiver_m) for a in ahead] == pytest.approx(
+        [a.path_m for a in ahead]
+    )
+    assert _fit(ahead, fixed=IN_THE_SLICE) is None
+    across = _fit(_sliding_arcs(post, 40, 0.004), fixed=IN_THE_SLICE)
+    assert across is not None
+    np.testing.assert_allclose(across.position_m, post, atol=1e-4)
+
+
+def test_a_reflector_above_the_slice_is_not_placed_in_it_when_the_motion_fixes_its_height() -> None:
+    """Bobbing 2 mm fixes the height: a post 30 cm above the slice still fits the slice (at its
+    slant range, 3.7 cm too far), and only the refit in space shows it is not there. A
+    post in the slice is placed."""
+    above = np.array([0.3, -0.3, 1.2])
+    arcs = _sliding_arcs(above, 60, 0.004, 0.0005, 2, bob_m=0.002)
+    assert _fit(arcs, sigma=0.0005, fixed=IN_THE_SLICE, max_std_m=0.05) is None
+    level = np.array([0.3, 0.0, 1.2])
+    arcs = _sliding_arcs(level, 60, 0.004, 0.0005, 2, bob_m=0.002)
+    placed = _fit(arcs, sigma=0.0005, fixed=IN_THE_SLICE, max_std_m=0.05)
+    assert placed is not None
+    np.testing.assert_allclose(placed.position_m, level, atol=0.005)

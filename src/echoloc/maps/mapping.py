@@ -286,6 +286,8 @@ class SensorModel:
             raise EchoLocError(f"min_support must be between 1 and 254 channels, got {self.min_support}")
         if not 0.0 <= self.silent_clear <= 1.0:
             raise EchoLocError(f"silent_clear must be in [0, 1], got {self.silent_clear}")
+        if self.tracks is not None and not isinstance(self.tracks, TrackOptions):
+            raise EchoLocError(f"tracks must be TrackOptions or None, got {self.tracks!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -640,16 +642,28 @@ class MapAccumulator:
             None
             if self.model.tracks is None
             else ArcTracker(
-                self.model.tracks,
+                self.model.tracks
+                if self.model.tracks.max_std_m is not None
+                else replace(self.model.tracks, max_std_m=spec.cell_m),
                 half_angle_rad=self._half_angle,
                 path_sigma_m=max(self.model.path_sigma_m, _MIN_TRACK_SIGMA_M),
                 fixed=slice_m,
+                fixed_within_m=spec.cell_m / 2,
             )
         )
+        # Each frame's count of earlier frames its transmitter fired (tracks count their
+        # channel's missed firings); without a schedule, one transmitter fires every frame.
+        self._firings: NDArray[np.int64] | None = None
+        if recording.frame_transmitter is not None:
+            schedule = np.asarray(recording.frame_transmitter, dtype=np.int64)
+            self._firings = np.zeros(len(schedule), dtype=np.int64)
+            for t in np.unique(schedule):
+                mine = schedule == t
+                self._firings[mine] = np.arange(int(mine.sum()))
         self.triangulated: deque[TriangulatedPoint] = deque(maxlen=_KEPT_POINTS)
         """The last points the tracks placed (and the map marked), oldest first."""
         self.n_triangulated = 0
-        """How many points the tracks placed in all."""
+        """How many points the tracks placed in the grid, in all."""
 
     @property
     def memory_bytes(self) -> int:
@@ -747,7 +761,13 @@ class MapAccumulator:
             n_touched = self._add_objects(objects, rotation, translation, frame_id, n_touched)
         if self._tracker is not None:
             arcs = self._unplaced_arcs(echoes, objects, rotation, translation, transmitter, tx_world, tx_axis)
-            for point in self._tracker.add(echoes.frame, arcs):
+            firings = self._firings
+            firing = (
+                int(firings[echoes.frame])
+                if firings is not None and 0 <= echoes.frame < len(firings)
+                else None
+            )
+            for point in self._tracker.add(echoes.frame, arcs, firing=firing):
                 n_touched = self._add_triangulated(point, frame_id, n_touched)
         usable = len(echoes.channels) if usable_receivers is None else int(np.sum(usable_receivers))
         self._apply(n_touched, max(1, min(self.model.min_support, usable)), tx_axis)
@@ -834,6 +854,8 @@ class MapAccumulator:
         floor plan) or in space (a 3-D grid): each of its arcs, now placed, adds the evidence
         of an arc (``hit_probability``) at the point, spread by its covariance out to two
         standard deviations."""
+        if not self.spec.cell_indices(point.position_m[None, :])[1][0]:
+            return n_touched  # outside the grid: nothing to mark
         self.triangulated.append(point)
         self.n_triangulated += 1
         return self._add_gaussian(

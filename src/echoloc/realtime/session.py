@@ -72,11 +72,12 @@ def listener_events(
 
 
 def live_mapper(header: Recording, chain: Chain) -> Any:
-    """A floor plan at :data:`MAP_CELL_M` around a sensor that does not move."""
+    """A floor plan at :data:`MAP_CELL_M` around a sensor that does not move (so without
+    tracks across poses, which need motion)."""
     from echoloc.maps.mapping import chain_accumulator, default_floor_plan
 
     spec = default_floor_plan(header, IDENTITY_POSE[None, :], MAP_CELL_M, chain.speed_of_sound_m_s)
-    return chain_accumulator(chain, spec)
+    return chain_accumulator(chain, spec, tracks=False)
 
 
 def _ignore_result(frame: StreamFrame, result: StreamResult) -> None:
