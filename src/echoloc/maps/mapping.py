@@ -842,10 +842,11 @@ class MapAccumulator:
             if self._usable is not None and not self._usable[rx]:
                 continue
             rx_world = rotation @ self.recording.receivers_m[rx] + translation
+            paths = np.asarray(channel.tof_s, dtype=float) * c
             arcs[transmitter, rx] = [
-                Arc(echoes.frame, tx_world, rx_world, float(tof) * c, tx_axis)
-                for index, tof in enumerate(channel.tof_s)
-                if (rx, index) not in used and float(tof) * c >= self._blind_m
+                Arc(echoes.frame, tx_world, rx_world, float(path), tx_axis)
+                for index, path in enumerate(paths)
+                if (rx, index) not in used and path >= self._blind_m
             ]
         return arcs
 

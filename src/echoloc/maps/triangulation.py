@@ -291,16 +291,10 @@ def fit_track(
         point, chi2, information = found
         if not (np.all(np.isfinite(point)) and chi2 / degrees <= options.max_reduced_chi2 and in_beam(point)):
             return None
-        eigenvalues = np.linalg.eigvalsh(information)
-        if not eigenvalues.min() > 1e-12 * max(eigenvalues.max(), 1e-300):
+        block = _scaled_covariance(chi2, degrees, information)
+        if block is None or not np.sqrt(np.linalg.eigvalsh(block).max()) <= options.std_limit_m:
             return None
-        # scipy's curve_fit without absolute_sigma: the residuals' own scale.
-        block = chi2 / degrees * np.linalg.inv(information)
-        return (
-            np.asarray(block, dtype=float)
-            if np.sqrt(np.linalg.eigvalsh(block).max()) <= options.std_limit_m
-            else None
-        )
+        return block
 
     best = solve(free, candidates[order[0]][free], base)
     block = accepted(best)
@@ -345,6 +339,16 @@ def _paths_m(points: FloatArray, transmitters: FloatArray, receivers: FloatArray
     )
 
 
+def _scaled_covariance(chi2: float, degrees: int, information: FloatArray) -> FloatArray | None:
+    """``s^2 (J^T J)^-1`` with ``s^2 = chi2 / degrees`` (scipy's ``curve_fit`` without
+    ``absolute_sigma``: the residuals' own scale); None when ``J^T J`` is singular (the data
+    leave a direction free)."""
+    eigenvalues = np.linalg.eigvalsh(information)
+    if not eigenvalues.min() > 1e-12 * max(eigenvalues.max(), 1e-300):
+        return None
+    return np.asarray(chi2 / max(degrees, 1) * np.linalg.inv(information), dtype=float)
+
+
 def _off_the_slice(
     solve: Callable[[Sequence[int], FloatArray, FloatArray], tuple[FloatArray, float, FloatArray]],
     point: FloatArray,
@@ -358,10 +362,9 @@ def _off_the_slice(
     standard deviations off (a reflector above or below a floor plan's slice, which the
     slice's fit would place at its slant range)."""
     free_point, chi2, information = solve([0, 1, 2], point, point)
-    eigenvalues = np.linalg.eigvalsh(information)
-    if not (np.all(np.isfinite(free_point)) and eigenvalues.min() > 1e-12 * max(eigenvalues.max(), 1e-300)):
+    covariance = _scaled_covariance(chi2, degrees - len(held), information)
+    if covariance is None or not np.all(np.isfinite(free_point)):
         return False
-    covariance = max(chi2 / max(degrees - len(held), 1), 1e-300) * np.linalg.inv(information)
     for a, value in held.items():
         std = math.sqrt(max(covariance[a, a], 0.0))
         if std <= options.std_limit_m and abs(free_point[a] - value) > within_m + 2.0 * std:
